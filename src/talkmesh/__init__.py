@@ -1,0 +1,51 @@
+"""talkmesh: speech-driven 3D facial animation.
+
+    import talkmesh
+    anim = talkmesh.animate("speech.wav")           # procedural lip sync on the bundled head
+    talkmesh.save_animation(anim, "speech.glb")      # glTF morph-target animation
+    talkmesh.render_video(anim, "speech.mp4")        # shaded head, with the audio
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from talkmesh.animation import Animation
+from talkmesh.assets import Head, list_identities, load_head, load_template
+from talkmesh.errors import TalkmeshError
+
+__all__ = [
+    "Animation",
+    "Head",
+    "TalkmeshError",
+    "__version__",
+    "animate",
+    "list_identities",
+    "load_animation",
+    "load_audio",
+    "load_head",
+    "load_template",
+    "render_video",
+    "save_animation",
+]
+
+
+def __getattr__(name: str):
+    # Heavier modules load on first use so `import talkmesh` stays fast.
+    if name == "animate":
+        from talkmesh.pipeline import animate
+
+        return animate
+    if name in ("save_animation", "load_animation"):
+        from talkmesh import io
+
+        return getattr(io, name)
+    if name == "load_audio":
+        from talkmesh.audio import load_audio
+
+        return load_audio
+    if name == "render_video":
+        from talkmesh.render import render_video
+
+        return render_video
+    raise AttributeError(f"module 'talkmesh' has no attribute {name!r}")

@@ -1,0 +1,3 @@
+from talkmesh.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,76 @@
+"""The :class:`Animation` that every animator returns and every renderer/exporter consumes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from talkmesh.errors import TalkmeshError
+
+
+@dataclass
+class Animation:
+    """A talking face.
+
+    Attributes:
+        vertices: (T, V, 3) float32 vertex positions in metres (not offsets).
+        faces: (F, 3) int32 triangle indices.
+        fps: frames per second.
+        audio: optional (S,) float32 mono waveform at ``sample_rate``.
+        sample_rate: sample rate of ``audio`` in Hz.
+        weights: optional (T, 52) float32 ARKit blendshape weights in [0, 1].
+        weight_names: names of the columns of ``weights`` (ARKit order).
+        template: optional (V, 3) neutral face the motion is relative to.
+        basis: optional (52, V, 3) blendshape offsets, so ``vertices ~ template + weights @ basis``
+            (lets exporters write morph targets instead of per-frame vertices).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    fps: float
+    audio: np.ndarray | None = None
+    sample_rate: int = 16_000
+    weights: np.ndarray | None = None
+    weight_names: list[str] = field(default_factory=list)
+    template: np.ndarray | None = None
+    basis: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.vertices = np.asarray(self.vertices, dtype=np.float32)
+        self.faces = np.asarray(self.faces, dtype=np.int32)
+        if self.vertices.ndim != 3 or self.vertices.shape[2] != 3:
+            raise TalkmeshError(f"animation vertices must be (T, V, 3), got {self.vertices.shape}")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3:
+            raise TalkmeshError(f"animation faces must be (F, 3) triangles, got {self.faces.shape}")
+        if self.faces.size and (self.faces.min() < 0 or self.faces.max() >= self.num_vertices):
+            raise TalkmeshError("animation faces index vertices that do not exist")
+        if self.fps <= 0:
+            raise TalkmeshError(f"fps must be positive, got {self.fps}")
+        if self.audio is not None:
+            self.audio = np.asarray(self.audio, dtype=np.float32).reshape(-1)
+        if self.weights is not None:
+            self.weights = np.asarray(self.weights, dtype=np.float32)
+            if self.weights.shape[0] != self.num_frames:
+                raise TalkmeshError(
+                    f"weights have {self.weights.shape[0]} frames but vertices have {self.num_frames}"
+                )
+            if len(self.weight_names) != self.weights.shape[1]:
+                raise TalkmeshError("weight_names must name every column of weights")
+        if self.template is not None:
+            self.template = np.asarray(self.template, dtype=np.float32)
+        if self.basis is not None:
+            self.basis = np.asarray(self.basis, dtype=np.float32)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertices.shape[1])
+
+    @property
+    def duration(self) -> float:
+        """Length in seconds of the motion."""
+        return self.num_frames / self.fps

@@ -1,0 +1,87 @@
+"""The 52 ARKit blendshape names, and the Live Link Face spelling and column order.
+
+``ARKIT_NAMES`` are the raw values of ARKit's ``ARFaceAnchor.BlendShapeLocation`` in the order of
+Apple's documentation (left eye, right eye, jaw and mouth, brows, cheeks, nose, tongue). Every
+``(T, 52)`` weight array in talkmesh uses this order unless its ``weight_names`` say otherwise.
+
+Epic's Live Link Face app writes the same 52 shapes capitalised (``EyeBlinkLeft``) and in its own
+order: it swaps ``jawLeft``/``jawRight`` and ``mouthLeft``/``mouthRight`` relative to ARKit, and
+adds nine head and eye rotations (61 values per row, its ``BlendShapeCount``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from talkmesh.errors import TalkmeshError
+
+ARKIT_NAMES: tuple[str, ...] = (
+    "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
+    "eyeSquintLeft", "eyeWideLeft",
+    "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight", "eyeLookOutRight", "eyeLookUpRight",
+    "eyeSquintRight", "eyeWideRight",
+    "jawForward", "jawLeft", "jawRight", "jawOpen",
+    "mouthClose", "mouthFunnel", "mouthPucker", "mouthLeft", "mouthRight",
+    "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft", "mouthFrownRight",
+    "mouthDimpleLeft", "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight",
+    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper",
+    "mouthPressLeft", "mouthPressRight", "mouthLowerDownLeft", "mouthLowerDownRight",
+    "mouthUpperUpLeft", "mouthUpperUpRight",
+    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight",
+    "cheekPuff", "cheekSquintLeft", "cheekSquintRight",
+    "noseSneerLeft", "noseSneerRight",
+    "tongueOut",
+)  # fmt: skip
+NUM_ARKIT = len(ARKIT_NAMES)
+assert NUM_ARKIT == 52
+
+# ARKit name -> Live Link Face column name (same shape, capitalised).
+LIVE_LINK_NAMES: dict[str, str] = {n: n[0].upper() + n[1:] for n in ARKIT_NAMES}
+
+# Live Link Face column order, as in the header of the CSV files the app exports.
+LIVE_LINK_BLENDSHAPES: tuple[str, ...] = tuple(
+    LIVE_LINK_NAMES[n]
+    for n in (
+        *ARKIT_NAMES[:15],
+        "jawRight", "jawLeft",
+        *ARKIT_NAMES[17:21],
+        "mouthRight", "mouthLeft",
+        *ARKIT_NAMES[23:],
+    )
+)  # fmt: skip
+LIVE_LINK_ROTATIONS: tuple[str, ...] = (
+    "HeadYaw", "HeadPitch", "HeadRoll",
+    "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
+    "RightEyeYaw", "RightEyePitch", "RightEyeRoll",
+)  # fmt: skip
+LIVE_LINK_COLUMNS: tuple[str, ...] = LIVE_LINK_BLENDSHAPES + LIVE_LINK_ROTATIONS
+assert sorted(LIVE_LINK_BLENDSHAPES) == sorted(LIVE_LINK_NAMES.values())
+assert len(LIVE_LINK_COLUMNS) == 61
+
+
+def arkit_index(name: str) -> int:
+    """Index into ``ARKIT_NAMES`` of a name in either spelling (case-insensitive); -1 if unknown."""
+    return _LOWER_INDEX.get(name.lower(), -1)
+
+
+_LOWER_INDEX = {n.lower(): i for i, n in enumerate(ARKIT_NAMES)}
+
+
+def to_arkit_order(weights: np.ndarray, names: Sequence[str]) -> np.ndarray:
+    """(T, N) weights with column ``names`` -> (T, 52) float32 weights in ``ARKIT_NAMES`` order.
+
+    Names match case-insensitively, so Live Link spellings work too; extra columns are dropped.
+    """
+    weights = np.asarray(weights, dtype=np.float32)
+    if weights.ndim != 2 or weights.shape[1] != len(names):
+        raise TalkmeshError(f"weights {weights.shape} do not match {len(names)} names")
+    column = {n.lower(): i for i, n in enumerate(names)}
+    missing = [n for n in ARKIT_NAMES if n.lower() not in column]
+    if missing:
+        raise TalkmeshError(
+            f"the weights lack {len(missing)} ARKit blendshapes: {', '.join(missing[:3])}"
+            + (", ..." if len(missing) > 3 else "")
+        )
+    return weights[:, [column[n.lower()] for n in ARKIT_NAMES]]

@@ -1,0 +1,273 @@
+"""Audio I/O: any speech file -> (S,) float32 mono waveform at 16 kHz.
+
+WAV, FLAC, OGG and the other formats libsndfile reads are decoded with ``soundfile`` block by
+block, mixed down to mono and resampled with a polyphase filter (``scipy.signal.resample_poly``
+with the exact rational factor), so memory stays bounded by the output plus one block. Everything
+else (mp3, m4a, video containers) goes through the static ffmpeg binary of ``imageio-ffmpeg``,
+which decodes straight to 16-bit mono PCM at the target rate through a pipe.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import tempfile
+from collections.abc import Iterator
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+import soundfile as sf
+from scipy.signal import resample_poly
+
+from talkmesh.errors import MissingDependencyError, TalkmeshError
+
+SAMPLE_RATE = 16_000  # Hz: what the phone recogniser and the animators expect
+MAX_DURATION_S = 3 * 60 * 60  # longer inputs are almost certainly a mistake: refuse them
+BLOCK_S = 30.0  # seconds of input decoded and resampled at a time
+INT16_SCALE = 32_768.0  # s16 PCM -> [-1, 1)
+BYTES_PER_SAMPLE = 2  # s16le from ffmpeg
+PIPE_CHUNK_BYTES = 1 << 20  # read from ffmpeg's stdout at a time
+
+# Decoded by libsndfile; anything else is handed to ffmpeg.
+SOUNDFILE_EXTENSIONS = frozenset(
+    {".wav", ".wave", ".flac", ".ogg", ".oga", ".aif", ".aiff", ".aifc", ".au", ".w64", ".caf"}
+)
+
+
+def load_audio(path: str | Path, sr: int = SAMPLE_RATE) -> np.ndarray:
+    """Read an audio file as a mono waveform.
+
+    Args:
+        path: any audio file: wav/flac/ogg are read with soundfile, everything else (mp3, m4a,
+            video files) with ffmpeg. Any sample rate and channel count.
+        sr: target sample rate in Hz.
+
+    Returns:
+        (S,) float32 waveform in [-1, 1] at ``sr``; channels are averaged.
+
+    Raises:
+        TalkmeshError: the file is missing, empty, not audio, has no samples or is longer than
+            ``MAX_DURATION_S``.
+    """
+    path = _check_file(path)
+    if sr <= 0:
+        raise TalkmeshError(f"sample rate must be positive, got {sr}")
+    if path.suffix.lower() in SOUNDFILE_EXTENSIONS:
+        try:
+            audio = _load_soundfile(path, sr)
+        except sf.LibsndfileError as e:
+            # libsndfile cannot read some codecs inside WAV (e.g. GSM, MP3-in-RIFF): try ffmpeg.
+            audio = _load_ffmpeg_fallback(path, sr, reason=_one_line(str(e)))
+    else:
+        audio = _load_ffmpeg(path, sr)
+    assert audio.ndim == 1 and audio.dtype == np.float32
+    if not len(audio):
+        raise TalkmeshError(f"{path} contains no audio samples: re-export or re-record it")
+    return audio
+
+
+def audio_duration(path: str | Path) -> float:
+    """Duration of an audio file in seconds, from its header (nothing is decoded)."""
+    path = _check_file(path)
+    if path.suffix.lower() in SOUNDFILE_EXTENSIONS:
+        try:
+            info = sf.info(str(path))
+            return info.frames / info.samplerate
+        except sf.LibsndfileError:
+            pass  # maybe a codec only ffmpeg knows: probe with it below
+    return _ffmpeg_duration(path)
+
+
+def save_wav(path: str | Path, audio: np.ndarray, sr: int = SAMPLE_RATE) -> None:
+    """Write a (S,) or (S, C) waveform in [-1, 1] as 16-bit PCM WAV (parent folders are created)."""
+    audio = np.asarray(audio, dtype=np.float32)
+    if audio.ndim not in (1, 2) or not audio.size:
+        raise TalkmeshError(f"cannot write {path}: audio must be a non-empty (S,) or (S, C) array")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # libsndfile wraps out-of-range floats around instead of clipping them.
+    sf.write(str(path), np.clip(audio, -1.0, 1.0), sr, subtype="PCM_16")
+
+
+def resample(audio: np.ndarray, orig_sr: int, sr: int = SAMPLE_RATE) -> np.ndarray:
+    """Resample a (S,) waveform from ``orig_sr`` to ``sr`` with a polyphase filter; float32 out."""
+    audio = np.asarray(audio, dtype=np.float32)
+    assert audio.ndim == 1, f"expected a (S,) waveform, got shape {audio.shape}"
+    return _resample_blocks(iter([audio]), len(audio), orig_sr, sr)
+
+
+def _check_file(path: str | Path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise TalkmeshError(f"audio file not found: {path}: check the path")
+    if path.is_dir():
+        raise TalkmeshError(f"{path} is a folder, not an audio file: pass a wav, flac or mp3 file")
+    if path.stat().st_size == 0:
+        raise TalkmeshError(f"audio file {path} is empty (0 bytes): re-export or re-record it")
+    return path
+
+
+def _check_duration(path: Path, seconds: float) -> None:
+    if seconds > MAX_DURATION_S:
+        raise TalkmeshError(
+            f"{path} is {seconds / 3600:.1f} hours long, more than the "
+            f"{MAX_DURATION_S / 3600:g} hours talkmesh accepts: split it into shorter files"
+        )
+
+
+def _one_line(message: str) -> str:
+    return " ".join(message.split())
+
+
+def _unreadable(path: Path, reason: str) -> TalkmeshError:
+    return TalkmeshError(
+        f"cannot read audio from {path} ({reason}): check that it is a valid audio file "
+        "(wav, flac, ogg, mp3, m4a) and not corrupt"
+    )
+
+
+# --- soundfile path -------------------------------------------------------------------------
+
+
+def _load_soundfile(path: Path, sr: int) -> np.ndarray:
+    with sf.SoundFile(str(path)) as f:
+        if f.frames <= 0:
+            raise TalkmeshError(f"{path} contains no audio samples: re-export or re-record it")
+        _check_duration(path, f.frames / f.samplerate)
+        block = max(1, int(BLOCK_S * f.samplerate))
+        blocks = (
+            b[:, 0] if b.shape[1] == 1 else b.mean(axis=1, dtype=np.float32)
+            for b in f.blocks(blocksize=block, dtype="float32", always_2d=True)
+        )
+        return _resample_blocks(blocks, f.frames, f.samplerate, sr)
+
+
+def _resample_blocks(blocks: Iterator[np.ndarray], n_in: int, orig_sr: int, sr: int) -> np.ndarray:
+    """Polyphase-resample a stream of (n,) float32 blocks holding ``n_in`` samples in total.
+
+    Each piece is filtered with enough context either side that the result equals
+    ``resample_poly`` on the whole signal: pieces start on multiples of ``down`` input samples,
+    which fall exactly on output samples. If the stream ends early (a truncated file), the
+    output is shortened to match.
+    """
+    ratio = Fraction(sr, orig_sr)
+    up, down = ratio.numerator, ratio.denominator
+    out = np.empty(-(-n_in * up // down), dtype=np.float32)
+    # resample_poly's filter reaches 10 * max(up, down) samples either side at the upsampled rate.
+    margin = down * math.ceil((math.ceil(10 * max(up, down) / up) + 1) / down)
+
+    buf = np.zeros(0, dtype=np.float32)
+    buf_start = 0  # input index of buf[0]; always a multiple of down
+    done = 0  # input samples whose output is written; a multiple of down until the end
+    n_written = 0
+
+    def emit(ready: int) -> None:
+        nonlocal buf, buf_start, done, n_written
+        if up == down:
+            piece = buf[done - buf_start : ready - buf_start]
+        else:
+            y = resample_poly(buf, up, down)  # y[0] is output sample buf_start * up / down
+            lo = (done - buf_start) * up // down
+            piece = y[lo : lo - (-(ready - done) * up // down)]
+        out[n_written : n_written + len(piece)] = piece
+        n_written += len(piece)
+        done = ready
+        keep = max(0, done - margin)
+        buf, buf_start = buf[keep - buf_start :], keep
+
+    for block in blocks:
+        buf = np.concatenate([buf, block[: n_in - (buf_start + len(buf))]])
+        end = buf_start + len(buf)
+        ready = n_in if end >= n_in else (end - margin) // down * down
+        if ready > done:
+            emit(ready)
+        if done >= n_in:
+            break
+    if done < buf_start + len(buf):  # the stream ended before n_in samples
+        emit(buf_start + len(buf))
+    return out[:n_written]
+
+
+# --- ffmpeg path ----------------------------------------------------------------------------
+
+
+def _ffmpeg_exe() -> str:
+    try:
+        import imageio_ffmpeg
+    except ImportError as e:
+        raise MissingDependencyError(
+            "imageio-ffmpeg", "render", "Reading mp3, m4a and other compressed audio"
+        ) from e
+    return imageio_ffmpeg.get_ffmpeg_exe()
+
+
+def _load_ffmpeg_fallback(path: Path, sr: int, reason: str) -> np.ndarray:
+    try:
+        exe = _ffmpeg_exe()
+    except MissingDependencyError:
+        raise _unreadable(path, reason) from None
+    return _load_ffmpeg(path, sr, exe)
+
+
+def _load_ffmpeg(path: Path, sr: int, exe: str | None = None) -> np.ndarray:
+    """Decode with ffmpeg to s16le mono at ``sr`` through a pipe, refusing overlong streams."""
+    exe = exe or _ffmpeg_exe()
+    seconds, _ = _ffmpeg_probe(path, exe)
+    if seconds is not None:  # else no duration in the header: the decoded length tells
+        _check_duration(path, seconds)
+    max_bytes = int(MAX_DURATION_S * sr) * BYTES_PER_SAMPLE
+    cmd = [exe, "-nostdin", "-v", "error", "-i", str(path), "-vn", "-sn", "-dn"]
+    cmd += ["-ac", "1", "-ar", str(sr), "-f", "s16le", "-acodec", "pcm_s16le", "-"]
+    data = bytearray()
+    # stderr goes to a file: a corrupt input can log more than a pipe buffer holds.
+    with tempfile.TemporaryFile() as log:
+        with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log) as proc:
+            assert proc.stdout is not None
+            while chunk := proc.stdout.read(PIPE_CHUNK_BYTES):
+                data += chunk
+                if len(data) > max_bytes:
+                    proc.kill()
+                    _check_duration(path, len(data) / BYTES_PER_SAMPLE / sr)
+            returncode = proc.wait()
+        log.seek(0)
+        errors = log.read().decode(errors="replace").strip()
+    if returncode != 0:
+        raise _unreadable(path, _ffmpeg_reason(errors, path) or f"ffmpeg exit status {returncode}")
+    n = len(data) // BYTES_PER_SAMPLE
+    pcm = np.frombuffer(data, dtype="<i2", count=n)
+    audio = np.empty(n, dtype=np.float32)
+    np.multiply(pcm, np.float32(1 / INT16_SCALE), out=audio)
+    return audio
+
+
+_DURATION = re.compile(r"Duration:\s*(\d+):(\d\d):(\d\d(?:\.\d+)?)")
+
+
+def _ffmpeg_duration(path: Path) -> float:
+    seconds, log = _ffmpeg_probe(path, _ffmpeg_exe())
+    if seconds is None:
+        raise _unreadable(path, log or "no duration in its header")
+    return seconds
+
+
+def _ffmpeg_probe(path: Path, exe: str) -> tuple[float | None, str]:
+    """The duration in the container header (nothing is decoded) or None with ffmpeg's reason."""
+    proc = subprocess.run(
+        [exe, "-nostdin", "-hide_banner", "-i", str(path)],
+        capture_output=True,
+        text=True,
+        errors="replace",
+    )
+    m = _DURATION.search(proc.stderr)
+    if m is None:
+        return None, _ffmpeg_reason(proc.stderr, path)
+    hours, minutes, seconds = m.groups()
+    return int(hours) * 3600 + int(minutes) * 60 + float(seconds), ""
+
+
+def _ffmpeg_reason(log: str, path: Path) -> str:
+    """ffmpeg's last complaint, without the file name it prefixes."""
+    lines = [line for line in log.splitlines() if line.strip() and "output file" not in line]
+    return _one_line(lines[-1].replace(str(path), "").strip(": ")) if lines else ""

@@ -1,0 +1,246 @@
+"""``talkmesh`` command line: a thin layer of subcommands over the Python API."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from talkmesh import __version__
+from talkmesh.errors import TalkmeshError
+
+VIDEO_SUFFIXES = (".mp4",)
+DEFAULT_OUTPUT = "{stem}.mp4"
+
+
+def _parse_outputs(patterns: list[str], inputs: list[Path]) -> list[list[Path]]:
+    """Expand ``-o`` values into output paths per input.
+
+    Each value is a file path (its extension picks the format), a pattern with ``{stem}`` (the
+    input's file name without extension) or, for several inputs, a directory ending in ``/``
+    (then ``DIR/{stem}.mp4``).
+    """
+    out: list[list[Path]] = [[] for _ in inputs]
+    for pattern in patterns:
+        if pattern.endswith(("/", os.sep)) or (Path(pattern).is_dir() and not Path(pattern).suffix):
+            pattern = os.path.join(pattern, DEFAULT_OUTPUT)
+        if len(inputs) > 1 and "{stem}" not in pattern:
+            raise TalkmeshError(
+                f"-o {pattern}: several inputs need a directory (-o out/) or a pattern "
+                "with {stem} (-o out/{stem}.glb)"
+            )
+        for k, audio in enumerate(inputs):
+            out[k].append(Path(pattern.replace("{stem}", audio.stem)))
+    return out
+
+
+def _check_outputs(outputs: list[list[Path]], inputs: list[Path], overwrite: bool) -> None:
+    from talkmesh.io import EXPORTERS
+
+    known = set(EXPORTERS) | set(VIDEO_SUFFIXES)
+    resolved_inputs = {p.resolve() for p in inputs}
+    seen: set[Path] = set()
+    for paths in outputs:
+        for p in paths:
+            suffix = p.suffix.lower()
+            if suffix not in known:
+                raise TalkmeshError(
+                    f"{p}: unknown output format '{suffix or '(none)'}': use one of {', '.join(sorted(known))}"
+                )
+            r = p.resolve()
+            if r in resolved_inputs:
+                raise TalkmeshError(f"{p}: refusing to write over an input file")
+            if r in seen:
+                raise TalkmeshError(f"{p}: two inputs would write the same output file")
+            seen.add(r)
+            if p.exists() and not overwrite:
+                raise TalkmeshError(f"{p} already exists: choose another -o or pass --overwrite")
+
+
+def write_animation(anim, path: Path, *, overwrite: bool, size: int = 512) -> None:
+    """Write ``anim`` to ``path``: a video for .mp4, else the exporter for the extension."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        from talkmesh.render import render_video
+
+        if path.exists() and not overwrite:
+            raise TalkmeshError(f"{path} already exists: choose another -o or pass --overwrite")
+        render_video(anim, path, size=size)
+    else:
+        from talkmesh.io import save_animation
+
+        save_animation(anim, path, overwrite=overwrite)
+
+
+def cmd_animate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from talkmesh.assets import load_head, load_template
+    from talkmesh.pipeline import animate
+
+    inputs = [Path(a) for a in args.audio]
+    outputs = _parse_outputs(args.output or [DEFAULT_OUTPUT], inputs)
+    _check_outputs(outputs, inputs, args.overwrite)
+    head = load_template(args.template) if args.template else load_head(args.identity)
+    failures: list[str] = []
+    bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
+    for audio, paths in zip(inputs, outputs):
+        bar.set_description(audio.name)
+        try:
+            anim = animate(audio, head=head, text=args.text, fps=args.fps, seed=args.seed, model=args.model)
+            for p in paths:
+                write_animation(anim, p, overwrite=args.overwrite, size=args.size)
+                if not args.quiet:
+                    tqdm.write(f"wrote {p} ({anim.num_frames} frames, {anim.duration:.2f} s)")
+        except TalkmeshError as e:
+            failures.append(str(e) if str(audio) in str(e) else f"{audio}: {e}")
+        bar.update()
+    bar.close()
+    for f in failures:
+        print(f"talkmesh: error: {f}", file=sys.stderr)
+    if failures:
+        print(f"talkmesh: {len(failures)} of {len(inputs)} files failed", file=sys.stderr)
+    return 1 if failures else 0
+
+
+def _load(path: str, fps: float | None):
+    from talkmesh.io import load_animation
+
+    return load_animation(Path(path), fps=fps)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from talkmesh.audio import SAMPLE_RATE, load_audio
+    from talkmesh.render import render_side_by_side, render_video
+
+    out = Path(args.output)
+    inputs = [Path(a) for a in args.anim] + ([Path(args.audio)] if args.audio else [])
+    _check_outputs([[out]], inputs, args.overwrite)
+    anims = [_load(a, args.fps) for a in args.anim]
+    if args.audio:
+        anims[0].audio, anims[0].sample_rate = load_audio(args.audio), SAMPLE_RATE
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if len(anims) == 1:
+        render_video(anims[0], out, size=args.size, progress=not args.quiet)
+    else:
+        labels = args.labels.split(",") if args.labels else [Path(a).stem for a in args.anim]
+        if len(labels) != len(anims):
+            raise TalkmeshError(f"--labels names {len(labels)} panels but {len(anims)} animations were given")
+        render_side_by_side(anims, labels, out, size=args.size, progress=not args.quiet)
+    if not args.quiet:
+        print(f"wrote {out}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    src, out = Path(args.anim), Path(args.output)
+    _check_outputs([[out]], [src], args.overwrite)
+    write_animation(_load(args.anim, args.fps), out, overwrite=args.overwrite, size=args.size)
+    if not args.quiet:
+        print(f"wrote {out}")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    import importlib.util
+    import shutil
+
+    from talkmesh.assets import default_identity, list_identities, load_head
+    from talkmesh.pipeline import MODELS
+
+    head = load_head()
+    print(f"talkmesh {__version__}")
+    print(f"python   {sys.version.split()[0]}")
+    print(
+        f"head     {head.num_vertices} vertices, {len(head.faces)} triangles, "
+        f"{len(head.blendshape_names)} ARKit blendshapes"
+    )
+    ids = list_identities()
+    print(f"identities ({len(ids)}, default {default_identity()}): {', '.join(ids)}")
+    print(f"models   {', '.join(MODELS)}")
+    try:
+        import torch
+
+        cuda = torch.cuda.is_available()
+        devices = ["cpu"] + [f"cuda:{i} ({torch.cuda.get_device_name(i)})" for i in range(torch.cuda.device_count())] if cuda else ["cpu"]
+        print(f"torch    {torch.__version__}; devices: {', '.join(devices)}")
+    except ImportError:
+        print("torch    not installed (needed for learned models)")
+    for mod, purpose in (("pocketsphinx", "phone recognition"), ("moderngl", "rendering"),
+                         ("imageio_ffmpeg", "video"), ("pygltflib", "glb export")):  # fmt: skip
+        state = "ok" if importlib.util.find_spec(mod) else "missing"
+        print(f"{mod:<15} {state:<8} ({purpose})")
+    print(f"{'espeak-ng':<15} {'ok' if shutil.which('espeak-ng') else 'missing':<8} (speech synthesis)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="talkmesh", description="Speech-driven 3D facial animation.")
+    p.add_argument("--version", action="version", version=f"talkmesh {__version__}")
+    p.add_argument("--debug", action="store_true", help="show tracebacks for errors")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
+        sp.add_argument("--size", type=int, default=512, help="video size in pixels (default 512)")
+        sp.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+
+    a = sub.add_parser("animate", help="animate a face from speech files")
+    a.add_argument("audio", nargs="+", help="speech files (wav, flac, ogg, mp3, ...)")
+    a.add_argument("-o", "--output", action="append",
+                   help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv "
+                        ".json); repeat for several; {stem} is the input name (default {stem}.mp4)")  # fmt: skip
+    who = a.add_mutually_exclusive_group()
+    who.add_argument("--identity", help="a bundled identity (see `talkmesh info`)")
+    who.add_argument("--template", help="your own neutral mesh with the bundled topology (.obj .ply .npy)")
+    a.add_argument("--text", help="transcript of the speech (forced alignment instead of recognition)")
+    a.add_argument("--seed", type=int, default=0, help="seed of blinks and other free motion")
+    a.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
+    a.add_argument("--model", default="procedural", help="animator (default procedural)")
+    common(a)
+    a.set_defaults(func=cmd_animate)
+
+    r = sub.add_parser("render", help="render animations to an mp4 (several: side by side)")
+    r.add_argument("anim", nargs="+", help="animation files (.npz .glb .npy)")
+    r.add_argument("-o", "--output", required=True, help="output .mp4")
+    r.add_argument("--audio", help="speech to mux into the video")
+    r.add_argument("--labels", help="comma-separated panel labels for side-by-side")
+    r.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
+    common(r)
+    r.set_defaults(func=cmd_render)
+
+    e = sub.add_parser("export", help="convert an animation to another format")
+    e.add_argument("anim", help="animation file (.npz .glb .npy)")
+    e.add_argument("-o", "--output", required=True, help="output file; the extension picks the format")
+    e.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
+    common(e)
+    e.set_defaults(func=cmd_export)
+
+    i = sub.add_parser("info", help="version, assets, models and devices")
+    i.set_defaults(func=cmd_info)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except TalkmeshError as e:
+        if args.debug:
+            raise
+        print(f"talkmesh: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("talkmesh: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # a bug, not bad input: still one line, with a way to see more
+        if args.debug:
+            raise
+        print(
+            f"talkmesh: internal error: {type(e).__name__}: {e} (rerun with --debug for the traceback "
+            "and please report it)",
+            file=sys.stderr,
+        )
+        return 3
