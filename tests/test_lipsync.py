@@ -4,7 +4,7 @@ import pytest
 from talkmesh.arkit import ARKIT_NAMES
 from talkmesh.assets import lip_opening, load_head
 from talkmesh.errors import TalkmeshError
-from talkmesh.lipsync import SpeakingStyle, pitch_accents, phones_to_weights
+from talkmesh.lipsync import SpeakingStyle, phones_to_weights, pitch_accents
 from talkmesh.phonemes import Phone
 
 FPS = 60

@@ -72,8 +72,9 @@ class Head:
         weights = np.asarray(weights, dtype=np.float32)
         assert weights.ndim == 2 and weights.shape[1] == len(self.blendshape_names), weights.shape
         basis = self.blendshapes.reshape(len(self.blendshape_names), -1)
-        offsets = (weights @ basis).reshape(len(weights), self.num_vertices, 3)
-        return self.template[None] + offsets
+        vertices = weights @ basis  # (T, 3V): built in place, one copy even for 10 minutes
+        vertices += self.template.reshape(1, -1)
+        return vertices.reshape(len(weights), self.num_vertices, 3)
 
     def with_template(self, template: np.ndarray, name: str) -> Head:
         """The same topology and blendshapes on another neutral mesh."""
@@ -83,7 +84,9 @@ class Head:
                 f"template has {template.shape[0]} vertices but the head has {self.num_vertices}: "
                 "use a mesh with the bundled head's topology (export one with `talkmesh export`)"
             )
-        return Head(name, template, self.faces, self.blendshapes, self.blendshape_names, self.regions)
+        return Head(
+            name, template, self.faces, self.blendshapes, self.blendshape_names, self.regions
+        )
 
 
 @lru_cache(maxsize=1)
@@ -140,7 +143,11 @@ def read_mesh_vertices(path: str | Path) -> np.ndarray:
     suffix = path.suffix.lower()
     try:
         if suffix == ".obj":
-            rows = [ln.split()[1:4] for ln in path.read_text(errors="replace").splitlines() if ln.startswith("v ")]
+            rows = [
+                ln.split()[1:4]
+                for ln in path.read_text(errors="replace").splitlines()
+                if ln.startswith("v ")
+            ]
             verts = np.array(rows, dtype=np.float32)
         elif suffix == ".npy":
             verts = np.load(path, allow_pickle=False).astype(np.float32).reshape(-1, 3)
@@ -152,7 +159,9 @@ def read_mesh_vertices(path: str | Path) -> np.ndarray:
             mesh = trimesh.load(path, process=False, force="mesh")
             verts = np.asarray(mesh.vertices, dtype=np.float32)
         else:
-            raise TalkmeshError(f"{path}: unsupported mesh format '{suffix}' (use .obj, .ply or .npy)")
+            raise TalkmeshError(
+                f"{path}: unsupported mesh format '{suffix}' (use .obj, .ply or .npy)"
+            )
     except TalkmeshError:
         raise
     except Exception as e:  # any parser failure is a corrupt file to the user

@@ -88,7 +88,9 @@ def cmd_animate(args: argparse.Namespace) -> int:
     for audio, paths in zip(inputs, outputs):
         bar.set_description(audio.name)
         try:
-            anim = animate(audio, head=head, text=args.text, fps=args.fps, seed=args.seed, model=args.model)
+            anim = animate(
+                audio, head=head, text=args.text, fps=args.fps, seed=args.seed, model=args.model
+            )
             for p in paths:
                 write_animation(anim, p, overwrite=args.overwrite, size=args.size)
                 if not args.quiet:
@@ -126,7 +128,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     else:
         labels = args.labels.split(",") if args.labels else [Path(a).stem for a in args.anim]
         if len(labels) != len(anims):
-            raise TalkmeshError(f"--labels names {len(labels)} panels but {len(anims)} animations were given")
+            raise TalkmeshError(
+                f"--labels names {len(labels)} panels but {len(anims)} animations were given"
+            )
         render_side_by_side(anims, labels, out, size=args.size, progress=not args.quiet)
     if not args.quiet:
         print(f"wrote {out}")
@@ -163,7 +167,15 @@ def cmd_info(args: argparse.Namespace) -> int:
         import torch
 
         cuda = torch.cuda.is_available()
-        devices = ["cpu"] + [f"cuda:{i} ({torch.cuda.get_device_name(i)})" for i in range(torch.cuda.device_count())] if cuda else ["cpu"]
+        devices = (
+            ["cpu"]
+            + [
+                f"cuda:{i} ({torch.cuda.get_device_name(i)})"
+                for i in range(torch.cuda.device_count())
+            ]
+            if cuda
+            else ["cpu"]
+        )
         print(f"torch    {torch.__version__}; devices: {', '.join(devices)}")
     except ImportError:
         print("torch    not installed (needed for learned models)")
@@ -171,7 +183,9 @@ def cmd_info(args: argparse.Namespace) -> int:
                          ("imageio_ffmpeg", "video"), ("pygltflib", "glb export")):  # fmt: skip
         state = "ok" if importlib.util.find_spec(mod) else "missing"
         print(f"{mod:<15} {state:<8} ({purpose})")
-    print(f"{'espeak-ng':<15} {'ok' if shutil.which('espeak-ng') else 'missing':<8} (speech synthesis)")
+    print(
+        f"{'espeak-ng':<15} {'ok' if shutil.which('espeak-ng') else 'missing':<8} (speech synthesis)"
+    )
     return 0
 
 
@@ -193,8 +207,12 @@ def build_parser() -> argparse.ArgumentParser:
                         ".json); repeat for several; {stem} is the input name (default {stem}.mp4)")  # fmt: skip
     who = a.add_mutually_exclusive_group()
     who.add_argument("--identity", help="a bundled identity (see `talkmesh info`)")
-    who.add_argument("--template", help="your own neutral mesh with the bundled topology (.obj .ply .npy)")
-    a.add_argument("--text", help="transcript of the speech (forced alignment instead of recognition)")
+    who.add_argument(
+        "--template", help="your own neutral mesh with the bundled topology (.obj .ply .npy)"
+    )
+    a.add_argument(
+        "--text", help="transcript of the speech (forced alignment instead of recognition)"
+    )
     a.add_argument("--seed", type=int, default=0, help="seed of blinks and other free motion")
     a.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
     a.add_argument("--model", default="procedural", help="animator (default procedural)")
@@ -212,7 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("export", help="convert an animation to another format")
     e.add_argument("anim", help="animation file (.npz .glb .npy)")
-    e.add_argument("-o", "--output", required=True, help="output file; the extension picks the format")
+    e.add_argument(
+        "-o", "--output", required=True, help="output file; the extension picks the format"
+    )
     e.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
     common(e)
     e.set_defaults(func=cmd_export)

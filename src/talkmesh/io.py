@@ -521,6 +521,28 @@ class MorphRig:
         return (self.base + offset).astype(np.float32)
 
 
+BLOCK_FRAMES = 1024  # frames processed at a time when checking long animations
+
+
+def _blend(weights: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """(T, K) weights and (K, V, 3) basis -> (T, V, 3) offsets in float64."""
+    return np.tensordot(weights.astype(np.float64), basis, axes=1)
+
+
+def _max_over_blocks(fn, num_frames: int) -> float:
+    return max(
+        float(np.abs(fn(slice(s, s + BLOCK_FRAMES))).max())
+        for s in range(0, num_frames, BLOCK_FRAMES)
+    )
+
+
+def _mean_over_blocks(fn, num_frames: int) -> np.ndarray:
+    total = sum(
+        fn(slice(s, s + BLOCK_FRAMES)).sum(axis=0) for s in range(0, num_frames, BLOCK_FRAMES)
+    )
+    return total / num_frames
+
+
 def morph_rig(anim: Animation) -> MorphRig:
     """Morph targets that play ``anim``.
 
@@ -530,7 +552,6 @@ def morph_rig(anim: Animation) -> MorphRig:
     the offsets from the template (or the first frame): the fewest that reproduce every vertex
     within ``GLB_MAX_ERROR``, at most ``MAX_PCA_TARGETS``.
     """
-    vertices = anim.vertices.astype(np.float64)
     num_v = anim.num_vertices
     template = anim.template
     if template is not None and template.shape != (num_v, 3):
@@ -542,20 +563,36 @@ def morph_rig(anim: Animation) -> MorphRig:
     )
     if has_basis:
         basis = anim.basis.astype(np.float64)
-        blend = np.tensordot(anim.weights.astype(np.float64), basis, axes=1)  # (T, V, 3)
         if template is None:
-            template = (vertices - blend).mean(axis=0)
+            template = _mean_over_blocks(
+                lambda b: anim.vertices[b] - _blend(anim.weights[b], basis), anim.num_frames
+            )
         reference = template.astype(np.float64)
-        residual = vertices - reference - blend
+
+        def residual_block(b: slice) -> np.ndarray:
+            return anim.vertices[b] - reference - _blend(anim.weights[b], basis)
+
         names, targets = list(anim.weight_names), [basis]
         weights, rest = [anim.weights.astype(np.float64)], [np.zeros(len(basis))]
         prefix = "residual"
     else:
         reference = (template if template is not None else anim.vertices[0]).astype(np.float64)
-        residual = vertices - reference
+
+        def residual_block(b: slice) -> np.ndarray:
+            return anim.vertices[b] - reference
+
         names, targets, weights, rest = [], [], [], []
         prefix = "pca"
-    if not has_basis or np.abs(residual).max() >= PCA_TOLERANCE:
+    # Long animations (10 min is 1 GB of float32 vertices) are checked in blocks of frames; the
+    # full residual is only built when principal components are really needed.
+    needs_pca = not has_basis or _max_over_blocks(residual_block, anim.num_frames) >= PCA_TOLERANCE
+    if needs_pca:
+        residual = np.concatenate(
+            [
+                residual_block(slice(s, s + BLOCK_FRAMES))
+                for s in range(0, anim.num_frames, BLOCK_FRAMES)
+            ]
+        )
         components, coeffs = principal_components(residual, MAX_PCA_TARGETS, PCA_TOLERANCE)
         # Blender clamps shape-key values to [slider_min, slider_max] (0..1 by default) and its
         # glTF importer widens that range from the first keyframe only, so keep weights in [0, 1]:

@@ -42,7 +42,13 @@ MOUTH_TO_ARKIT = {
 
 VOWELS = frozenset("AA AE AH AO AW AY EH ER EY IH IY OW OY UH UW".split())
 # Diphthongs glide between two targets: first half, second half.
-DIPHTHONGS = {"AW": ("AA", "UH"), "AY": ("AA", "IY"), "EY": ("EH", "IY"), "OW": ("AO", "UW"), "OY": ("AO", "IY")}
+DIPHTHONGS = {
+    "AW": ("AA", "UH"),
+    "AY": ("AA", "IY"),
+    "EY": ("EH", "IY"),
+    "OW": ("AO", "UW"),
+    "OY": ("AO", "IY"),
+}
 
 # Viseme targets (mouth channel -> weight). Jaw opening is ordered by vowel openness.
 VISEMES: dict[str, dict[str, float]] = {
@@ -170,7 +176,9 @@ def mouth_curves(phones: list[Phone], times: np.ndarray, style: SpeakingStyle) -
         return out
     centres, halves, _, visemes = _expand_phones(phones)
     targets = np.array([[VISEMES[v].get(ch, 0.0) for ch in MOUTH] for v in visemes])
-    alpha = np.array([[DOMINANCE.get(v, {}).get(ch, DEFAULT_DOMINANCE) for ch in MOUTH] for v in visemes])
+    alpha = np.array(
+        [[DOMINANCE.get(v, {}).get(ch, DEFAULT_DOMINANCE) for ch in MOUTH] for v in visemes]
+    )
     spread = np.array([SPREAD.get(v, DEFAULT_SPREAD) for v in visemes])
     width = np.clip(halves, MIN_HALF_WIDTH, MAX_HALF_WIDTH) * spread * style.smoothing
     reach = 6 * width.max() * max(style.anticipation, 1.0)

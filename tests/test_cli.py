@@ -1,0 +1,236 @@
+"""The command line with good and bad inputs: one-line errors, never a traceback, never a lost file."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from talkmesh.assets import load_head
+from talkmesh.cli import main
+
+LIBRIVOX = Path("/usr/share/pocketsphinx/test/data/librivox")
+CLIP = (
+    LIBRIVOX / "sense_and_sensibility_01_austen_64kb-0880.wav"
+)  # 3.0 s, "he was not an ill disposed young man"
+
+pytestmark = pytest.mark.skipif(not CLIP.exists(), reason="pocketsphinx-testdata not installed")
+
+
+def run_cli(
+    *args: str, cwd: Path | None = None, timeout: float = 300
+) -> subprocess.CompletedProcess:
+    """Run the installed console script the way a user does."""
+    env = dict(os.environ, HF_HUB_OFFLINE="1")
+    return subprocess.run(
+        [sys.executable, "-m", "talkmesh", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=timeout,
+    )
+
+
+def assert_one_line_error(stderr: str, *fragments: str) -> None:
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if ln.startswith("talkmesh: error:")]
+    assert errors, stderr
+    assert "Traceback" not in stderr, stderr
+    for frag in fragments:
+        assert any(frag in ln for ln in errors), (frag, stderr)
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture
+def speech(tmp_path) -> Path:
+    """A short real recording, copied so the test may put files next to it."""
+    dst = tmp_path / "speech.wav"
+    dst.write_bytes(CLIP.read_bytes())
+    return dst
+
+
+def test_animate_real_clip_end_to_end(speech, tmp_path):
+    out_npy, out_csv = tmp_path / "a.npy", tmp_path / "a.csv"
+    rc = main(["animate", str(speech), "-o", str(out_npy), "-o", str(out_csv), "-q"])
+    assert rc == 0
+    verts = np.load(out_npy)
+    head = load_head()
+    assert verts.shape == (90, head.num_vertices * 3)  # 3.0 s at 30 fps, VOCASET layout
+    rows = out_csv.read_text().splitlines()
+    assert len(rows) == 1 + 90
+    motion = np.abs(verts.reshape(90, -1, 3) - head.template).max()
+    assert 1e-3 < motion < 0.05  # the face moves, by millimetres to centimetres
+
+
+def test_python_module_entry_point_prints_version():
+    res = run_cli("--version")
+    assert res.returncode == 0
+    assert res.stdout.startswith("talkmesh ")
+
+
+@pytest.mark.parametrize(
+    "name, content, fragment",
+    [
+        ("missing.wav", None, "not found"),
+        ("empty.wav", b"", "empty"),
+        ("notes.wav", b"this is not audio at all\n" * 20, "notes.wav"),
+        ("noise.mp3", bytes(range(256)) * 64, "noise.mp3"),
+    ],
+)
+def test_bad_audio_gives_one_line_error_and_writes_nothing(tmp_path, name, content, fragment):
+    src = tmp_path / name
+    if content is not None:
+        src.write_bytes(content)
+    out = tmp_path / "out.npy"
+    res = run_cli("animate", str(src), "-o", str(out))
+    assert res.returncode == 1
+    assert_one_line_error(res.stderr, fragment)
+    assert not out.exists()
+    if content is not None:
+        assert src.read_bytes() == content  # the input is untouched
+
+
+def test_directory_as_audio(tmp_path, capsys):
+    rc = main(["animate", str(tmp_path), "-o", str(tmp_path / "x.npy")])
+    assert rc == 1
+    assert_one_line_error(capsys.readouterr().err, str(tmp_path))
+
+
+def test_one_bad_file_among_good_ones_is_reported_at_the_end(speech, tmp_path, capsys):
+    bad = tmp_path / "bad.wav"
+    bad.write_bytes(b"RIFF garbage")
+    rc = main(["animate", str(bad), str(speech), "-o", str(tmp_path / "out" / "{stem}.npy"), "-q"])
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert_one_line_error(err, "bad.wav")
+    assert "1 of 2 files failed" in err
+    assert np.load(tmp_path / "out" / "speech.npy").shape[0] == 90  # the good file is still done
+    assert not (tmp_path / "out" / "bad.npy").exists()
+
+
+def test_tenth_of_a_second_clip_gives_a_short_animation(tmp_path):
+    clip, sr = sf.read(CLIP, dtype="float32")
+    short = tmp_path / "short.wav"
+    sf.write(short, clip[sr : sr + sr // 10], sr)
+    out = tmp_path / "short.npy"
+    assert main(["animate", str(short), "-o", str(out), "-q"]) == 0
+    verts = np.load(out)
+    assert verts.shape[0] == 3  # 0.1 s at 30 fps
+    assert np.isfinite(verts).all()
+
+
+def test_template_with_wrong_vertex_count(speech, tmp_path):
+    head = load_head()
+    bad = tmp_path / "face.obj"
+    bad.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in head.template[:100]) + "f 1 2 3\n")
+    out = tmp_path / "a.npy"
+    res = run_cli("animate", str(speech), "--template", str(bad), "-o", str(out))
+    assert res.returncode == 2
+    assert_one_line_error(res.stderr, "face.obj", "100", str(head.num_vertices))
+    assert not out.exists()
+
+
+def test_own_template_with_the_bundled_topology_is_animated(speech, tmp_path):
+    head = load_head()
+    shifted = head.template + np.float32([0.0, 0.01, 0.0])
+    npy = tmp_path / "mine.npy"
+    np.save(npy, shifted)
+    out = tmp_path / "a.npy"
+    assert main(["animate", str(speech), "--template", str(npy), "-o", str(out), "-q"]) == 0
+    first = np.load(out)[0].reshape(-1, 3)
+    assert (
+        np.abs(first - shifted).max() < 0.02
+    )  # animated around the user's face, not the bundled one
+
+
+def test_existing_output_is_never_overwritten(speech, tmp_path):
+    out = tmp_path / "keep.npy"
+    out.write_bytes(b"precious")
+    res = run_cli("animate", str(speech), "-o", str(out))
+    assert res.returncode == 2
+    assert_one_line_error(res.stderr, "keep.npy", "--overwrite")
+    assert out.read_bytes() == b"precious"
+
+
+def test_refuses_to_write_over_the_input(speech, tmp_path):
+    before = digest(speech)
+    res = run_cli("animate", str(speech), "-o", str(speech))
+    assert res.returncode == 2
+    assert_one_line_error(res.stderr, "speech.wav")
+    assert digest(speech) == before
+    anim = tmp_path / "anim.npy"
+    np.save(anim, np.repeat(load_head().template.reshape(1, -1), 3, axis=0))
+    before = digest(anim)
+    res = run_cli("export", str(anim), "-o", str(anim), "--overwrite")
+    assert res.returncode == 2
+    assert_one_line_error(res.stderr, "input")
+    assert digest(anim) == before
+
+
+def test_unknown_output_format(speech, tmp_path):
+    res = run_cli("animate", str(speech), "-o", str(tmp_path / "a.xyz"))
+    assert res.returncode == 2
+    assert_one_line_error(res.stderr, ".xyz")
+
+
+def test_unknown_identity_and_model(speech, tmp_path, capsys):
+    assert (
+        main(["animate", str(speech), "--identity", "nobody", "-o", str(tmp_path / "a.npy")]) == 2
+    )
+    assert_one_line_error(capsys.readouterr().err, "nobody")
+    rc = main(["animate", str(speech), "--model", "nothing", "-o", str(tmp_path / "b.npy"), "-q"])
+    assert rc == 1
+    assert_one_line_error(capsys.readouterr().err, "nothing")
+
+
+def test_export_and_render_bad_animation_files(tmp_path, capsys):
+    bad = tmp_path / "anim.npy"
+    bad.write_bytes(b"\x93NUMPY garbage")
+    assert main(["export", str(bad), "-o", str(tmp_path / "x.glb")]) == 2
+    assert_one_line_error(capsys.readouterr().err, "anim.npy")
+    wrong = tmp_path / "wrong.npy"
+    np.save(wrong, np.zeros((5, 30), np.float32))  # 10 vertices: not the bundled head
+    assert main(["export", str(wrong), "-o", str(tmp_path / "y.glb")]) == 2
+    assert_one_line_error(capsys.readouterr().err, "wrong.npy")
+    assert not (tmp_path / "x.glb").exists() and not (tmp_path / "y.glb").exists()
+
+
+def test_info_lists_assets_and_models(capsys):
+    assert main(["info"]) == 0
+    out = capsys.readouterr().out
+    assert "identities (16" in out
+    assert "procedural" in out
+
+
+@pytest.mark.slow
+def test_ten_minute_clip_in_bounded_memory(tmp_path):
+    """10 min of speech -> ARKit weights (.json) and a .glb: finishes, and peak memory stays bounded."""
+    clip, sr = sf.read(CLIP, dtype="float32")
+    n = 600 * sr
+    long = tmp_path / "long.wav"
+    sf.write(long, np.tile(clip, n // len(clip) + 1)[:n], sr)
+    out, glb = tmp_path / "long.json", tmp_path / "long.glb"
+    code = (
+        "import resource, sys; from talkmesh.cli import main; rc = main(sys.argv[1:]); "
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); sys.exit(rc)"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code, "animate", str(long), "-o", str(out), "-o", str(glb), "-q"],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert res.returncode == 0, res.stderr
+    peak_mb = int(res.stdout.split()[-1]) / 1024
+    assert peak_mb < 2500, peak_mb  # 18000 frames x 4766 vertices would be 1 GB of float32 alone
+    assert out.stat().st_size > 0 and glb.stat().st_size > 0

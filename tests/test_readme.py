@@ -1,0 +1,98 @@
+"""The README's commands are executed as written: a user copying them gets what it promises."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from talkmesh.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+CLIP = Path(
+    "/usr/share/pocketsphinx/test/data/librivox/sense_and_sensibility_01_austen_64kb-0880.wav"
+)
+
+pytestmark = pytest.mark.skipif(not CLIP.exists(), reason="pocketsphinx-testdata not installed")
+
+
+def code_blocks(section: str) -> list[str]:
+    text = README.read_text()
+    start = text.index(f"## {section}\n")
+    end = text.find("\n## ", start + 1)
+    return re.findall(r"```[a-z]*\n(.*?)```", text[start : end if end > 0 else None], re.S)
+
+
+def test_readme_opens_with_the_two_setup_commands():
+    first = re.match(r"```\n(.*?)```", README.read_text(), re.S)
+    assert first, "README must start with a code block"
+    commands = [ln.split("#")[0].strip() for ln in first.group(1).splitlines() if ln.strip()]
+    assert commands == ["make demo", "make test"]
+    makefile = (ROOT / "Makefile").read_text()
+    for target in ("demo", "test", "setup"):
+        assert re.search(rf"^{target}:", makefile, re.M), target
+    assert "make test" in (ROOT / ".ci" / "run").read_text()
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch) -> Path:
+    """The files the README's examples name, made from a real recording."""
+    from imageio_ffmpeg import get_ffmpeg_exe
+
+    from talkmesh.assets import load_head
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "speech.wav").write_bytes(CLIP.read_bytes())
+    (tmp_path / "a.wav").write_bytes(CLIP.read_bytes())
+    for name in ("b.flac", "c.mp3"):
+        subprocess.run(
+            [get_ffmpeg_exe(), "-loglevel", "error", "-i", str(CLIP), str(tmp_path / name)],
+            check=True,
+        )
+    head = load_head()
+    with open(tmp_path / "my_head.obj", "w") as f:
+        f.writelines(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in head.template)
+        f.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in head.faces)
+    return tmp_path
+
+
+def test_every_cli_example_in_the_readme_runs(workdir):
+    (block,) = code_blocks("Use")
+    lines = [ln.split("  #")[0].strip() for ln in block.splitlines() if ln.strip()]
+    assert len(lines) >= 8
+    for line in lines:
+        argv = shlex.split(line)
+        assert argv[0] == "talkmesh", line
+        if argv[1] == "render" and "truth.npz" in argv:  # make the two animations it compares
+            for name, seed in (("truth", 1), ("pred", 2)):
+                assert (
+                    main(["animate", "speech.wav", "--seed", str(seed), "-o", f"{name}.npz", "-q"])
+                    == 0
+                )
+        assert main(argv[1:] + (["-q"] if argv[1] != "info" else [])) == 0, line
+        outputs = [argv[k + 1] for k, a in enumerate(argv) if a == "-o"]
+        for out in outputs:
+            if out.endswith("/"):
+                assert sorted(p.name for p in Path(out).iterdir()) == ["a.mp4", "b.mp4", "c.mp4"], (
+                    line
+                )
+            elif out.endswith(".obj"):
+                assert list(Path().glob(Path(out).stem + "_*.obj")), line
+            else:
+                assert Path(out).stat().st_size > 0, line
+    assert np.load("s.npz")["vertices"].shape[0] == 90
+
+
+def test_python_example_in_the_readme_runs(workdir):
+    (block,) = code_blocks("Python")
+    namespace: dict = {}
+    exec(compile(block, "README.md", "exec"), namespace)
+    anim = namespace["anim"]
+    assert anim.vertices.shape[1:] == (anim.num_vertices, 3)
+    assert anim.weights.shape == (anim.num_frames, 52)
+    assert Path("speech.glb").stat().st_size > 0 and Path("speech.mp4").stat().st_size > 0
