@@ -189,6 +189,86 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_synth(args: argparse.Namespace) -> int:
+    from talkmesh.synth import make_corpus
+
+    info = make_corpus(
+        Path(args.out),
+        subjects=args.subjects,
+        sentences=args.sentences,
+        seed=args.seed,
+        workers=args.workers,
+        progress=not args.quiet,
+        overwrite=args.overwrite,
+    )
+    if not args.quiet:
+        print(f"wrote {info}")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from talkmesh.evaluate import evaluate, format_table, scores_to_json
+
+    scores = evaluate(
+        args.dataset,
+        args.data,
+        args.pred,
+        split=args.split,
+        protocol=args.protocol,
+        regions=args.regions,
+    )
+    print(format_table(scores))
+    if args.json:
+        out = Path(args.json)
+        if out.exists() and not args.overwrite:
+            raise TalkmeshError(f"{out} already exists: choose another --json or pass --overwrite")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(scores_to_json(scores), indent=2) + "\n")
+    return 0
+
+
+def cmd_baseline(args: argparse.Namespace) -> int:
+    from talkmesh.evaluate import write_baseline
+
+    n = write_baseline(
+        args.dataset,
+        args.data,
+        args.out,
+        method=args.method,
+        split=args.split,
+        progress=not args.quiet,
+    )
+    if not args.quiet:
+        print(f"wrote {n} predictions to {args.out}")
+    return 0
+
+
+def cmd_prepare_biwi(args: argparse.Namespace) -> int:
+    from talkmesh.biwi import prepare_biwi
+
+    n = prepare_biwi(Path(args.raw), Path(args.out), progress=not args.quiet)
+    if not args.quiet:
+        print(f"wrote {n} sequences to {args.out}")
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from talkmesh.train import load_recipe, train
+
+    overrides = list(args.overrides)
+    if args.devices is not None:
+        overrides.append(f"train.devices={args.devices}")
+    if args.num_nodes is not None:
+        overrides.append(f"train.num_nodes={args.num_nodes}")
+    recipe = load_recipe(args.recipe, overrides)
+    release = train(recipe, resume=args.resume, progress=not args.quiet)
+    if not args.quiet:
+        print(f"wrote {release}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="talkmesh", description="Speech-driven 3D facial animation.")
     p.add_argument("--version", action="version", version=f"talkmesh {__version__}")
@@ -236,6 +316,61 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
     common(e)
     e.set_defaults(func=cmd_export)
+
+    sy = sub.add_parser("synth", help="make a multi-speaker synthetic talking-face corpus")
+    sy.add_argument("--out", required=True, help="output directory (VOCASET layout)")
+    sy.add_argument("--subjects", type=int, default=12, help="number of speakers (default 12)")
+    sy.add_argument("--sentences", type=int, default=40, help="sentences per speaker (default 40)")
+    sy.add_argument("--seed", type=int, default=0, help="seed (same seed, same bytes)")
+    sy.add_argument("--workers", type=int, help="processes (default: all cores)")
+    sy.add_argument("--overwrite", action="store_true", help="write into a non-empty directory")
+    sy.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    sy.set_defaults(func=cmd_synth)
+
+    ev = sub.add_parser(
+        "evaluate", help="lip vertex error, FDD and more for predictions on a dataset"
+    )
+    ev.add_argument("--dataset", required=True, help="dataset kind: vocaset, biwi, synth, folder")
+    ev.add_argument("--data", required=True, help="dataset root")
+    ev.add_argument(
+        "--pred", required=True, help="directory of <SUBJECT>_<SENTENCE>[_condition_<STYLE>].npy"
+    )
+    ev.add_argument("--split", default="test", help="split to evaluate (default test)")
+    ev.add_argument("--protocol", choices=("codetalker", "physical"), default="codetalker")
+    ev.add_argument("--regions", help="directory with lve.txt and fdd.txt (default: the dataset's)")
+    ev.add_argument("--json", help="also write the scores here")
+    ev.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
+    ev.set_defaults(func=cmd_evaluate)
+
+    bl = sub.add_parser(
+        "baseline", help="write baseline predictions (static template or procedural)"
+    )
+    bl.add_argument("--dataset", required=True, help="dataset kind")
+    bl.add_argument("--data", required=True, help="dataset root")
+    bl.add_argument("--method", choices=("static", "procedural"), required=True)
+    bl.add_argument("--split", default="test")
+    bl.add_argument("-o", "--out", required=True, help="output directory for the .npy predictions")
+    bl.add_argument("-q", "--quiet", action="store_true")
+    bl.set_defaults(func=cmd_baseline)
+
+    pb = sub.add_parser(
+        "prepare-biwi", help="CodeTalker's BIWI preprocessing into the VOCASET layout"
+    )
+    pb.add_argument("raw", help="raw BIWI directory")
+    pb.add_argument("out", help="output dataset directory")
+    pb.add_argument("-q", "--quiet", action="store_true")
+    pb.set_defaults(func=cmd_prepare_biwi)
+
+    tr = sub.add_parser("train", help="train a model stage from a YAML recipe")
+    tr.add_argument("recipe", help="recipe YAML (see configs/)")
+    tr.add_argument(
+        "overrides", nargs="*", help="dotted overrides, e.g. train.lr=3e-4 data.batch_size=8"
+    )
+    tr.add_argument("--resume", action="store_true", help="continue the run in train.out_dir")
+    tr.add_argument("--devices", type=int, help="processes/GPUs per node (DDP when > 1)")
+    tr.add_argument("--num-nodes", type=int, help="number of machines")
+    tr.add_argument("-q", "--quiet", action="store_true")
+    tr.set_defaults(func=cmd_train)
 
     i = sub.add_parser("info", help="version, assets, models and devices")
     i.set_defaults(func=cmd_info)

@@ -1,0 +1,478 @@
+"""Training: ``talkmesh train RECIPE.yaml [key=value ...]`` for every model and stage.
+
+Models are plain ``nn.Module``s; this module wraps them in one Lightning system. A recipe is a YAML
+file that maps 1:1 onto :class:`Recipe`::
+
+    task: codetalker-stage1          # which model/stage (see TASKS)
+    model: {...}                     # the task's model config (validated by the task)
+    data: {kind: synth, root: corpus/synth, batch_size: 4, max_seconds: 4.0}
+    train: {lr: 1.0e-4, epochs: 20, seed: 0, out_dir: runs/ct1}
+    init: runs/ct1/model.safetensors # optional: a released earlier stage (e.g. stage 1 for stage 2)
+
+Exact resume: checkpoints are written at the end of every epoch (``last.ckpt``) with the optimiser,
+the epoch and the RNG states; crops and shuffling depend only on (seed, epoch, index), so a run that
+is killed and resumed with ``--resume`` continues the same loss curve. DDP: ``--devices N``
+(processes on this machine, gloo on CPU) and ``--num-nodes``; each process sees its own shard.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import json
+import random
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, NamedTuple
+
+import numpy as np
+
+from talkmesh.config import from_dict, load_config, to_dict
+from talkmesh.errors import MissingDependencyError, TalkmeshError
+
+try:
+    import torch
+    from torch import nn
+except ImportError:  # pragma: no cover - torch is a hard requirement of training only
+    torch = None
+    nn = None
+
+
+# ---------------------------------------------------------------------------------------------
+# Recipe
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """Which dataset to train on and how to cut it into batches."""
+
+    kind: str = "synth"  # a talkmesh.datasets reader: vocaset, biwi, synth, folder
+    root: str = "corpus/synth"
+    train_split: str = "train"
+    val_split: str = "val"
+    batch_size: int = 4
+    max_seconds: float = 4.0  # random crops of at most this long (0: whole sequences)
+    num_workers: int = 0
+    regions: str | None = None  # region files directory, if not in the dataset
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1:
+            raise ValueError("data.batch_size must be at least 1")
+        if self.max_seconds < 0:
+            raise ValueError("data.max_seconds must be >= 0")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation and run settings (paper values in the recipes, not here)."""
+
+    lr: float = 1e-4
+    weight_decay: float = 0.0
+    optimizer: Literal["adam", "adamw"] = "adamw"
+    epochs: int = 10
+    max_steps: int = -1  # stop after this many optimiser steps (-1: no limit)
+    seed: int = 0
+    precision: str = "32-true"  # Lightning precision: "32-true", "bf16-mixed", "16-mixed"
+    accelerator: str = "auto"
+    devices: int = 1
+    num_nodes: int = 1
+    grad_clip: float = 0.0
+    log_every: int = 10  # steps between log rows
+    val_every: int = 1  # epochs between validation runs
+    out_dir: str = "runs/train"
+    record_batches: bool = False  # write the sample names each process trained on (DDP checks)
+
+    def __post_init__(self) -> None:
+        if self.lr <= 0:
+            raise ValueError("train.lr must be positive")
+        if self.epochs < 1:
+            raise ValueError("train.epochs must be at least 1")
+        if self.devices < 1 or self.num_nodes < 1:
+            raise ValueError("train.devices and train.num_nodes must be at least 1")
+
+
+@dataclass(frozen=True)
+class Recipe:
+    task: str
+    model: dict[str, Any] = field(default_factory=dict)
+    data: DataConfig = DataConfig()
+    train: TrainConfig = TrainConfig()
+    init: str | None = None
+
+
+def load_recipe(path: str | Path | None, overrides: list[str] = ()) -> Recipe:
+    """A YAML recipe plus dotted overrides (``train.lr=3e-4``) -> :class:`Recipe`."""
+    recipe = load_config(Recipe, path, overrides)
+    task_spec(recipe.task)  # fail early on an unknown task
+    return recipe
+
+
+# ---------------------------------------------------------------------------------------------
+# Tasks: how each model/stage is built, stepped and released
+
+
+class StepOutput(NamedTuple):
+    """What a task's step returns: the loss to minimise and scalar diagnostics to log."""
+
+    loss: Any  # () tensor
+    logs: dict[str, float]
+
+
+class TorchBatch(NamedTuple):
+    """A padded batch on the model's device.
+
+    names: B sample names; audio (B, S) float32 at 16 kHz; audio_lengths (B,) int64;
+    vertices (B, T, V, 3) float32; templates (B, V, 3); motion_mask (B, T) bool; styles (B,) int64
+    (-1 for speakers outside the training set).
+    """
+
+    names: list[str]
+    audio: Any
+    audio_lengths: Any
+    vertices: Any
+    templates: Any
+    motion_mask: Any
+    styles: Any
+
+    def to(self, device) -> TorchBatch:
+        return TorchBatch(self.names, *(t.to(device) for t in self[1:]))
+
+
+@dataclass(frozen=True)
+class DatasetInfo:
+    """Facts a task needs to size its model, taken from the training data."""
+
+    num_vertices: int
+    motion_fps: float
+    train_subjects: tuple[str, ...]
+    faces: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Task:
+    """A trainable model/stage.
+
+    build(model_config: dict, info, init: Path | None) -> nn.Module
+    step(model, batch: TorchBatch) -> StepOutput
+    parameters(model) -> the parameters to optimise (frozen parts excluded)
+    save(model, path) -> writes the release file
+    """
+
+    name: str
+    build: Callable[..., Any]
+    step: Callable[..., StepOutput]
+    parameters: Callable[..., Any]
+    save: Callable[..., None]
+
+
+# Task name -> "module:attribute" of a Task, imported on first use so that `talkmesh info` and the
+# CLI do not import every model.
+TASKS: dict[str, str] = {
+    "codetalker-stage1": "talkmesh.models.codetalker_tasks:STAGE1",
+    "codetalker-stage2": "talkmesh.models.codetalker_tasks:STAGE2",
+    "meshtalk": "talkmesh.models.meshtalk_tasks:EXPRESSION",
+    "meshtalk-prior": "talkmesh.models.meshtalk_tasks:PRIOR",
+}
+
+
+def task_spec(name: str) -> Task:
+    if name not in TASKS:
+        raise TalkmeshError(
+            f"unknown task '{name}': available tasks are {', '.join(sorted(TASKS))}"
+        )
+    module, attr = TASKS[name].split(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+# ---------------------------------------------------------------------------------------------
+# Data
+
+
+def _require_torch() -> None:
+    if torch is None:
+        raise MissingDependencyError("torch", "train", "training")
+
+
+def crop_window(
+    num_frames: int, max_frames: int, seed: int, epoch: int, index: int
+) -> tuple[int, int]:
+    """The [start, stop) frames of a sample's crop; depends only on (seed, epoch, index)."""
+    if max_frames <= 0 or num_frames <= max_frames:
+        return 0, num_frames
+    digest = hashlib.blake2b(f"{seed}:{epoch}:{index}".encode(), digest_size=8).digest()
+    start = int.from_bytes(digest, "little") % (num_frames - max_frames + 1)
+    return start, start + max_frames
+
+
+class CroppedMotion:
+    """A ``MotionDataset`` as a torch dataset of random, reproducible crops.
+
+    The audio is cut to the same time window as the motion (16 kHz samples per frame).
+    """
+
+    def __init__(self, dataset, max_seconds: float, seed: int) -> None:
+        self.dataset = dataset
+        self.max_frames = int(round(max_seconds * dataset.spec.motion_fps)) if max_seconds else 0
+        self.seed = seed
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, index: int):
+        from talkmesh.audio import SAMPLE_RATE
+
+        sample = self.dataset[index]
+        start, stop = crop_window(
+            len(sample.vertices), self.max_frames, self.seed, self.epoch, index
+        )
+        per_frame = SAMPLE_RATE / self.dataset.spec.motion_fps
+        a0, a1 = int(round(start * per_frame)), int(round(stop * per_frame))
+        return sample._replace(vertices=sample.vertices[start:stop], audio=sample.audio[a0:a1])
+
+
+class EpochShuffle:
+    """A shuffling sampler whose order depends only on (seed, epoch): exact after a resume.
+
+    Lightning calls ``set_epoch`` before each epoch (and shards it across DDP processes).
+    """
+
+    def __init__(self, num_samples: int, seed: int) -> None:
+        self.num_samples = num_samples
+        self.seed = seed
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.num_samples
+
+    def __iter__(self):
+        rng = np.random.default_rng([self.seed, self.epoch])
+        return iter(rng.permutation(self.num_samples).tolist())
+
+
+def collate_torch(samples) -> TorchBatch:
+    """Samples -> a padded :class:`TorchBatch` (see ``talkmesh.datasets.collate``)."""
+    from talkmesh.datasets import collate
+
+    b = collate(samples)
+    return TorchBatch(
+        names=list(b.names),
+        audio=torch.from_numpy(b.audio),
+        audio_lengths=torch.from_numpy(b.audio_lengths),
+        vertices=torch.from_numpy(b.vertices),
+        templates=torch.from_numpy(b.templates),
+        motion_mask=torch.from_numpy(b.motion_mask),
+        styles=torch.from_numpy(b.styles),
+    )
+
+
+def dataset_info(dataset) -> DatasetInfo:
+    first = dataset[0]
+    return DatasetInfo(
+        num_vertices=int(first.template.shape[0]),
+        motion_fps=float(dataset.spec.motion_fps),
+        train_subjects=tuple(dataset.spec.train_subjects),
+        faces=getattr(dataset, "faces", None),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# The Lightning system
+
+
+def _lightning():
+    try:
+        import lightning as L
+    except ImportError:
+        raise MissingDependencyError("lightning", "train", "training") from None
+    return L
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
+    """The LightningModule that trains ``recipe.task`` (a plain nn.Module inside)."""
+    L = _lightning()
+    task = task_spec(recipe.task)
+
+    class MotionSystem(L.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = task.build(recipe.model, info, init)
+            self.recorded: list[str] = []
+
+        def training_step(self, batch: TorchBatch, batch_idx: int):
+            out = task.step(self.model, batch)
+            bs = len(batch.names)
+            self.log("train/loss", out.loss.detach(), prog_bar=True, batch_size=bs, sync_dist=False)
+            for key, value in out.logs.items():
+                self.log(f"train/{key}", value, batch_size=bs)
+            if recipe.train.record_batches:
+                self.recorded.extend(batch.names)
+            return out.loss
+
+        def validation_step(self, batch: TorchBatch, batch_idx: int) -> None:
+            out = task.step(self.model, batch)
+            self.log(
+                "val/loss", out.loss, prog_bar=True, batch_size=len(batch.names), sync_dist=True
+            )
+
+        def configure_optimizers(self):
+            params = [p for p in task.parameters(self.model) if p.requires_grad]
+            opt = torch.optim.AdamW if recipe.train.optimizer == "adamw" else torch.optim.Adam
+            return opt(params, lr=recipe.train.lr, weight_decay=recipe.train.weight_decay)
+
+        def on_train_epoch_start(self) -> None:
+            loader = self.trainer.train_dataloader
+            dataset = getattr(loader, "dataset", None)
+            if isinstance(dataset, CroppedMotion):
+                dataset.epoch = self.current_epoch
+
+        def on_save_checkpoint(self, checkpoint: dict) -> None:
+            checkpoint["talkmesh_recipe"] = to_dict(recipe)
+            checkpoint["talkmesh_rng"] = {
+                "torch": torch.get_rng_state(),
+                "numpy": np.random.get_state(),
+                "python": random.getstate(),
+            }
+
+        def on_load_checkpoint(self, checkpoint: dict) -> None:
+            rng = checkpoint.get("talkmesh_rng")
+            if rng:
+                torch.set_rng_state(rng["torch"])
+                np.random.set_state(rng["numpy"])
+                random.setstate(rng["python"])
+
+    return MotionSystem()
+
+
+def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Path:
+    """Train ``recipe`` and write ``<out_dir>/model.safetensors``; returns that path.
+
+    ``resume=True`` continues from ``<out_dir>/last.ckpt`` (the same loss curve as an
+    uninterrupted run). Logs go to ``<out_dir>/logs`` as CSV (and TensorBoard if installed).
+    """
+    _require_torch()
+    L = _lightning()
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.loggers import CSVLogger
+
+    from talkmesh.datasets import open_dataset
+
+    out = Path(recipe.train.out_dir)
+    last = out / "last.ckpt"
+    if resume and not last.is_file():
+        raise TalkmeshError(f"nothing to resume: {last} does not exist (drop --resume to start)")
+    if not resume and last.exists():
+        raise TalkmeshError(
+            f"{out} already holds a run: pass --resume to continue it or choose train.out_dir"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "recipe.json").write_text(json.dumps(to_dict(recipe), indent=2, sort_keys=True))
+
+    seed_everything(recipe.train.seed)
+    train_set = open_dataset(
+        recipe.data.kind, recipe.data.root, recipe.data.train_split, regions=recipe.data.regions
+    )
+    if len(train_set) == 0:
+        raise TalkmeshError(f"{recipe.data.root}: the {recipe.data.train_split} split is empty")
+    info = dataset_info(train_set)
+    init = Path(recipe.init) if recipe.init else None
+    if init is not None and not init.is_file():
+        raise TalkmeshError(f"init checkpoint not found: {init} (train the earlier stage first)")
+    system = build_system(recipe, info, init)
+
+    loader_args = dict(
+        batch_size=recipe.data.batch_size,
+        num_workers=recipe.data.num_workers,
+        collate_fn=collate_torch,
+    )
+    train_loader = torch.utils.data.DataLoader(
+        CroppedMotion(train_set, recipe.data.max_seconds, recipe.train.seed),
+        sampler=EpochShuffle(len(train_set), recipe.train.seed),
+        **loader_args,
+    )
+    val_loader = None
+    if recipe.data.val_split:
+        val_set = open_dataset(
+            recipe.data.kind, recipe.data.root, recipe.data.val_split, regions=recipe.data.regions
+        )
+        if len(val_set):
+            val_loader = torch.utils.data.DataLoader(
+                CroppedMotion(val_set, recipe.data.max_seconds, recipe.train.seed),
+                shuffle=False,
+                **loader_args,
+            )
+
+    loggers = [CSVLogger(out, name="logs", version="")]
+    try:
+        import tensorboard  # noqa: F401
+        from lightning.pytorch.loggers import TensorBoardLogger
+
+        loggers.append(TensorBoardLogger(out, name="logs", version="tb"))
+    except ImportError:
+        pass
+    trainer = L.Trainer(
+        default_root_dir=out,
+        max_epochs=recipe.train.epochs,
+        max_steps=recipe.train.max_steps,
+        accelerator=recipe.train.accelerator,
+        devices=recipe.train.devices,
+        num_nodes=recipe.train.num_nodes,
+        strategy="ddp" if recipe.train.devices * recipe.train.num_nodes > 1 else "auto",
+        precision=recipe.train.precision,
+        gradient_clip_val=recipe.train.grad_clip or None,
+        log_every_n_steps=recipe.train.log_every,
+        check_val_every_n_epoch=recipe.train.val_every,
+        callbacks=[
+            ModelCheckpoint(
+                dirpath=out, filename="epoch{epoch:03d}", save_last=True, every_n_epochs=1
+            )
+        ],
+        logger=loggers,
+        enable_progress_bar=progress,
+        enable_model_summary=progress,
+        num_sanity_val_steps=0,
+        deterministic=False,
+    )
+    trainer.fit(system, train_loader, val_loader, ckpt_path=str(last) if resume else None)
+
+    if recipe.train.record_batches:
+        rank = trainer.global_rank
+        (out / f"batches_rank{rank}.txt").write_text("\n".join(system.recorded) + "\n")
+        digest = hashlib.sha256()
+        for p in system.model.state_dict().values():
+            digest.update(p.detach().cpu().numpy().tobytes())
+        (out / f"weights_rank{rank}.sha256").write_text(digest.hexdigest() + "\n")
+    release = out / "model.safetensors"
+    if trainer.is_global_zero:
+        task_spec(recipe.task).save(system.model, release)
+    return release
+
+
+def recipe_from_checkpoint(path: str | Path) -> Recipe:
+    """The recipe stored in a Lightning checkpoint written by :func:`train`."""
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    return from_dict(Recipe, ckpt["talkmesh_recipe"])
+
+
+__all__ = [
+    "DataConfig",
+    "DatasetInfo",
+    "Recipe",
+    "StepOutput",
+    "Task",
+    "TorchBatch",
+    "TrainConfig",
+    "crop_window",
+    "load_recipe",
+    "train",
+]
