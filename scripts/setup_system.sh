@@ -1,11 +1,16 @@
 #!/usr/bin/env bash
 # Installs the Debian packages talkmesh uses, only those that are missing (idempotent).
-#   espeak-ng             speech synthesis for the demo and the synthetic corpus
+#   espeak-ng             speech synthesis for the demo; drives the MBROLA voices
+#   mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1
+#                         synthetic voices with exact phone timings (contrib / non-free)
+#   festival festvox-*    four more synthetic voices with exact segment times
 #   pocketsphinx-testdata real recorded speech (LibriVox clips) used by tests and docs
 #   alsa-utils            more real speech (/usr/share/sounds/alsa/*.wav)
 #   nodejs npm            the Khronos glTF validator used by the tests
 set -euo pipefail
-pkgs=(espeak-ng pocketsphinx-testdata alsa-utils)
+pkgs=(espeak-ng pocketsphinx-testdata alsa-utils
+      mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1
+      festival festvox-kallpc16k festvox-kdlpc16k festvox-rablpc16k festvox-us-slt-hts)
 command -v node >/dev/null 2>&1 || pkgs+=(nodejs)
 command -v npm >/dev/null 2>&1 || pkgs+=(npm)
 missing=()
@@ -15,6 +20,13 @@ done
 if [ ${#missing[@]} -gt 0 ]; then
   sudo=""
   [ "$(id -u)" -eq 0 ] || sudo="sudo"
+  # The MBROLA voices live in contrib / non-free: enable those components (deb822 or one-line sources).
+  src=/etc/apt/sources.list.d/debian.sources
+  if [ -f "$src" ] && grep -q '^Components: main$' "$src"; then
+    $sudo sed -i 's/^Components: main$/Components: main contrib non-free/' "$src"
+  elif [ -f /etc/apt/sources.list ] && grep -qE '^deb .* main$' /etc/apt/sources.list; then
+    $sudo sed -i -E 's/^(deb .* main)$/\1 contrib non-free/' /etc/apt/sources.list
+  fi
   echo "installing Debian packages: ${missing[*]}"
   $sudo apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null

@@ -45,7 +45,9 @@ def test_round_trip_through_plain_dicts():
 def test_dotted_overrides(tmp_path):
     path = tmp_path / "r.yaml"
     path.write_text("name: run\n")
-    cfg = load_config(Outer, path, ["inner.rate=1e-4", "inner.kind=b", "path=out/x", "inner.sizes=[9]"])
+    cfg = load_config(
+        Outer, path, ["inner.rate=1e-4", "inner.kind=b", "path=out/x", "inner.sizes=[9]"]
+    )
     assert cfg.inner.rate == pytest.approx(1e-4)
     assert cfg.inner.kind == "b" and cfg.path == "out/x" and cfg.inner.sizes == (9,)
     data = {"a": {"b": 1}}

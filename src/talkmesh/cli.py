@@ -219,13 +219,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         protocol=args.protocol,
         regions=args.regions,
     )
-    print(format_table(scores))
+    print(format_table(scores, label=Path(args.pred).name))
     if args.json:
         out = Path(args.json)
         if out.exists() and not args.overwrite:
             raise TalkmeshError(f"{out} already exists: choose another --json or pass --overwrite")
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(scores_to_json(scores), indent=2) + "\n")
+        out.write_text(json.dumps(scores_to_json(scores, args.split), indent=2) + "\n")
     return 0
 
 

@@ -157,6 +157,7 @@ class Task:
     step(model, batch: TorchBatch) -> StepOutput
     parameters(model) -> the parameters to optimise (frozen parts excluded)
     save(model, path) -> writes the release file
+    prepare(model, dataset) -> optional: fit normalisation statistics on the training data
     """
 
     name: str
@@ -164,6 +165,7 @@ class Task:
     step: Callable[..., StepOutput]
     parameters: Callable[..., Any]
     save: Callable[..., None]
+    prepare: Callable[..., None] | None = None
 
 
 # Task name -> "module:attribute" of a Task, imported on first use so that `talkmesh info` and the
@@ -389,6 +391,9 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     if init is not None and not init.is_file():
         raise TalkmeshError(f"init checkpoint not found: {init} (train the earlier stage first)")
     system = build_system(recipe, info, init)
+    task = task_spec(recipe.task)
+    if task.prepare is not None and not resume:  # a resumed run restores them from the checkpoint
+        task.prepare(system.model, train_set)
 
     loader_args = dict(
         batch_size=recipe.data.batch_size,

@@ -1,0 +1,227 @@
+"""``talkmesh evaluate`` and ``talkmesh baseline``: score predictions named like the anchors'.
+
+Predictions are ``PRED/<SUBJECT>_<SENTENCE>.npy`` or ``..._condition_<STYLE>.npy`` (one file per
+training style, as the anchors write for unseen speakers), [T, V*3] or [T, V, 3] at the dataset's
+motion frame rate. Every (sequence, condition) is a row; LVE and MVE pool all their frames.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from talkmesh.datasets import MotionDataset, open_dataset
+from talkmesh.errors import TalkmeshError
+from talkmesh.metrics import PROTOCOLS, Scores, pool, score_sequence
+
+CONDITION = re.compile(r"^(?P<name>.+?)_condition_(?P<style>.+)$")
+
+
+def find_predictions(
+    pred_dir: str | Path, names: list[str]
+) -> dict[str, list[tuple[str | None, Path]]]:
+    """Prediction files per sequence name: [(condition or None, path), ...]."""
+    pred_dir = Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise TalkmeshError(f"predictions directory not found: {pred_dir}")
+    wanted = set(names)
+    found: dict[str, list[tuple[str | None, Path]]] = {}
+    for path in sorted(pred_dir.glob("*.npy")):
+        stem = path.stem
+        m = CONDITION.match(stem)
+        name, cond = (m["name"], m["style"]) if m else (stem, None)
+        if name in wanted:
+            found.setdefault(name, []).append((cond, path))
+    return found
+
+
+def _load_prediction(path: Path, num_vertices: int) -> np.ndarray:
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise TalkmeshError(f"{path}: not a readable .npy ({e})") from None
+    if arr.ndim == 2 and arr.shape[1] == num_vertices * 3:
+        arr = arr.reshape(len(arr), num_vertices, 3)
+    if arr.ndim != 3 or arr.shape[1:] != (num_vertices, 3):
+        raise TalkmeshError(
+            f"{path}: shape {arr.shape} does not match the dataset's {num_vertices} vertices "
+            f"(expected [T, {num_vertices * 3}])"
+        )
+    return arr.astype(np.float32)
+
+
+def _lip_pairs(dataset: MotionDataset, num_vertices: int) -> np.ndarray | None:
+    from talkmesh.assets import load_head
+
+    head = load_head()
+    if num_vertices == head.num_vertices:
+        return np.asarray(head.regions.lip_pair).reshape(-1, 2)
+    return None
+
+
+def evaluate_dataset(
+    dataset: MotionDataset,
+    pred: str | Path,
+    *,
+    protocol: str = "codetalker",
+) -> tuple[Scores, list[str]]:
+    """Scores of the predictions in ``pred`` on ``dataset``, and the sequences without one."""
+    if protocol not in PROTOCOLS:
+        raise TalkmeshError(f"unknown protocol '{protocol}': use one of {', '.join(PROTOCOLS)}")
+    if dataset.regions.lve is None or dataset.regions.fdd is None:
+        raise TalkmeshError(
+            f"{dataset.root}: no regions/lve.txt and regions/fdd.txt: pass --regions DIR"
+        )
+    found = find_predictions(pred, dataset.names)
+    if not found:
+        raise TalkmeshError(
+            f"{pred}: no prediction named like a {dataset.split} sequence "
+            f"(e.g. {dataset.names[0] + '.npy' if dataset.names else '<SUBJECT>_<SENTENCE>.npy'})"
+        )
+    pending, missing = [], []
+    for index, name in enumerate(dataset.names):
+        if name not in found:
+            missing.append(name)
+            continue
+        sample = dataset[index]
+        pairs = _lip_pairs(dataset, len(sample.template))
+        for cond, path in found[name]:
+            p = _load_prediction(path, len(sample.template))
+            pending.append(
+                score_sequence(
+                    p,
+                    sample.vertices,
+                    sample.template,
+                    dataset.regions.lve,
+                    dataset.regions.fdd,
+                    protocol,
+                    pairs,
+                    name,
+                    cond,
+                )
+            )
+    return pool(pending, protocol), missing
+
+
+def evaluate(
+    kind: str,
+    data: str | Path,
+    pred: str | Path,
+    *,
+    split: str = "test",
+    protocol: str = "codetalker",
+    regions: str | Path | None = None,
+) -> Scores:
+    """``talkmesh evaluate``: open the dataset split and score the predictions."""
+    dataset = open_dataset(kind, data, split, regions=regions)
+    scores, _ = evaluate_dataset(dataset, pred, protocol=protocol)
+    return scores
+
+
+def format_table(scores: Scores, label: str = "") -> str:
+    """A one-row table in the papers' units (anchor protocol) or in mm (physical)."""
+    if scores.protocol == "codetalker":
+        head = "| method | LVE (x1e-4, squared) | FDD (x1e-5, signed) | MVE (mm) | lip-sync r | seqs | frames |"
+        row = (
+            f"| {label or '-'} | {scores.lve * 1e4:.4f} | {scores.fdd * 1e5:.4f} | "
+            f"{scores.mve * 1e3:.3f} | {scores.lip_sync:.3f} | {scores.n_sequences} | {scores.n_frames} |"
+        )
+    else:
+        head = "| method | LVE (mm) | FDD (mm, absolute) | MVE (mm) | lip-sync r | seqs | frames |"
+        row = (
+            f"| {label or '-'} | {scores.lve * 1e3:.3f} | {scores.fdd * 1e3:.4f} | "
+            f"{scores.mve * 1e3:.3f} | {scores.lip_sync:.3f} | {scores.n_sequences} | {scores.n_frames} |"
+        )
+    sep = "|" + "|".join("---" for _ in head.strip("|").split("|")) + "|"
+    return "\n".join([head, sep, row])
+
+
+def scores_to_json(scores: Scores, split: str | None = None) -> dict:
+    return {
+        "protocol": scores.protocol,
+        "split": split,
+        "lve": scores.lve,
+        "fdd": scores.fdd,
+        "mve": scores.mve,
+        "lip_sync": None if np.isnan(scores.lip_sync) else scores.lip_sync,
+        "n_sequences": scores.n_sequences,
+        "n_frames": scores.n_frames,
+        "rows": [
+            {
+                "name": r.name,
+                "condition": r.condition,
+                "frames": r.frames,
+                "truncated": r.truncated,
+                "lve": r.lve,
+                "fdd": r.fdd,
+                "mve": r.mve,
+                "lip_sync": None if np.isnan(r.lip_sync) else r.lip_sync,
+            }
+            for r in scores.rows
+        ],
+    }
+
+
+def write_baseline(
+    kind: str,
+    data: str | Path,
+    out_dir: str | Path,
+    *,
+    method: str = "static",
+    split: str = "test",
+    progress: bool = True,
+) -> int:
+    """Write baseline predictions for a split: ``static`` (the template, unmoving) or
+    ``procedural`` (phones RECOGNISED from the audio -> procedural lip sync with the default
+    style on the subject's head; no learning and no true timings)."""
+    import json
+
+    from tqdm import tqdm
+
+    if method not in ("static", "procedural"):
+        raise TalkmeshError(f"unknown baseline '{method}': use static or procedural")
+    dataset = open_dataset(kind, data, split)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    identities: dict[str, str] = {}
+    if method == "procedural":
+        manifest = Path(data) / "manifest.json"
+        if not manifest.is_file():
+            raise TalkmeshError(
+                f"the procedural baseline needs blendshapes for the subjects: {kind} data at {data} has "
+                "no manifest.json naming talkmesh identities (use --method static)"
+            )
+        identities = {
+            s: m["identity"] for s, m in json.loads(manifest.read_text())["subjects"].items()
+        }
+    written = 0
+    for index in tqdm(range(len(dataset)), desc=method, unit="seq", disable=not progress):
+        sample = dataset[index]
+        path = out / f"{sample.name}.npy"
+        if path.exists():
+            raise TalkmeshError(f"{path} already exists: choose an empty output directory")
+        if method == "static":
+            pred = np.repeat(sample.template[None], len(sample.vertices), axis=0)
+        else:
+            from talkmesh.assets import load_head
+            from talkmesh.audio import SAMPLE_RATE
+            from talkmesh.lipsync import phones_to_weights
+            from talkmesh.phonemes import recognize_phones
+
+            head = load_head(identities[sample.subject]).with_template(
+                sample.template, sample.subject
+            )
+            phones = recognize_phones(sample.audio, SAMPLE_RATE)
+            weights = phones_to_weights(
+                phones,
+                len(sample.vertices),
+                dataset.spec.motion_fps,
+                audio=sample.audio,
+                sr=SAMPLE_RATE,
+            )
+            pred = head.vertices_from_weights(weights)
+        np.save(path, pred.reshape(len(pred), -1).astype(np.float32))
+        written += 1
+    return written

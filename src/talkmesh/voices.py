@@ -1,0 +1,254 @@
+"""Synthetic voices with exact phone timings, for the synthetic corpus.
+
+Two Debian synthesisers give the times of the phones they actually render:
+
+* MBROLA through espeak-ng: ``espeak-ng -v mb-us1 --pho`` writes the phones with durations in ms
+  and ``mbrola`` renders exactly that file, so the durations are the truth.
+* Festival: the utterance's ``Segment`` relation holds each phone's end time
+  (``utt.save.segs``), for diphone and HTS voices alike.
+
+Twelve voices: the four MBROLA voices at two prosody settings (pitch and rate change the
+rendered durations, which the .pho carries) and four Festival voices.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from talkmesh.errors import TalkmeshError
+from talkmesh.phonemes import ARPABET_PHONES, SILENCE, Phone
+
+MBROLA_DIR = Path("/usr/share/mbrola")
+MBROLA_RATE = 16_000  # Hz of the us1/us2/us3/en1 databases
+FESTIVAL_RATE = 16_000  # Hz of the diphone voices; HTS voices are resampled to it below
+
+
+@dataclass(frozen=True)
+class Voice:
+    """A synthesiser voice: ``engine`` is "mbrola" or "festival"."""
+
+    name: str
+    engine: str
+    voice: str  # mb-us1 ... for MBROLA, the Festival voice function name otherwise
+    pitch: int = 50  # espeak-ng -p (0-99), MBROLA voices only
+    speed: int = 160  # espeak-ng -s (words per minute), MBROLA voices only
+    description: str = ""
+    phoneset: str = "radio"  # Festival voices: "radio" (US) or "mrpa" (British rab)
+
+
+VOICES: tuple[Voice, ...] = (
+    Voice("mb-us1", "mbrola", "mb-us1", 50, 160, "US female (MBROLA us1)"),
+    Voice("mb-us2", "mbrola", "mb-us2", 50, 160, "US male (MBROLA us2)"),
+    Voice("mb-us3", "mbrola", "mb-us3", 50, 160, "US male (MBROLA us3)"),
+    Voice("mb-en1", "mbrola", "mb-en1", 50, 160, "British male (MBROLA en1)"),
+    Voice("mb-us1-high", "mbrola", "mb-us1", 75, 185, "US female, higher and faster"),
+    Voice("mb-us2-low", "mbrola", "mb-us2", 25, 140, "US male, lower and slower"),
+    Voice("mb-us3-fast", "mbrola", "mb-us3", 60, 195, "US male, fast"),
+    Voice("mb-en1-slow", "mbrola", "mb-en1", 35, 135, "British male, slow"),
+    Voice(
+        "fest-kal", "festival", "voice_kal_diphone", description="US male (Festival kal diphone)"
+    ),
+    Voice(
+        "fest-ked", "festival", "voice_ked_diphone", description="US male (Festival ked diphone)"
+    ),
+    Voice(
+        "fest-rab",
+        "festival",
+        "voice_rab_diphone",
+        description="British male (Festival rab diphone)",
+        phoneset="mrpa",
+    ),
+    Voice(
+        "fest-slt",
+        "festival",
+        "voice_cmu_us_slt_arctic_hts",
+        description="US female (Festival slt HTS)",
+    ),
+)
+VOICE_NAMES = tuple(v.name for v in VOICES)
+
+# MBROLA (SAMPA, as espeak-ng writes it for us1-3 and en1) -> ARPABET.
+SAMPA_TO_ARPABET = {
+    "_": SILENCE, "p": "P", "p_h": "P", "b": "B", "t": "T", "t_h": "T", "d": "D", "k": "K", "k_h": "K",
+    "g": "G", "f": "F", "v": "V", "T": "TH", "D": "DH", "s": "S", "z": "Z", "S": "SH", "Z": "ZH",
+    "h": "HH", "tS": "CH", "dZ": "JH", "m": "M", "n": "N", "N": "NG", "l": "L", "r": "R", "w": "W",
+    "j": "Y", "i": "IY", "i:": "IY", "I": "IH", "E": "EH", "e": "EH", "{": "AE", "A": "AA", "A:": "AA",
+    "Q": "AA", "V": "AH", "O": "AO", "O:": "AO", "O2": "AO", "U": "UH", "u": "UW", "u:": "UW",
+    "@": "AH", "5": "L", "r=": "ER", "3:": "ER", "3": "ER", "@U": "OW", "oU": "OW", "EI": "EY",
+    "eI": "EY", "AI": "AY", "aI": "AY", "OI": "OY", "aU": "AW", "I@": "IH", "e@": "EH", "U@": "UH",
+    "4": "T", "R": "R", "l=": "L", "n=": "N", "m=": "M", "?": SILENCE,
+}  # fmt: skip
+
+# Festival's US voices use the radio phone set (lower-case ARPABET with "ax" and "pau"); the
+# British rab voice uses MRPA, mapped here to the nearest ARPABET phone.
+FESTIVAL_TO_ARPABET = {p.lower(): p for p in ARPABET_PHONES} | {
+    "pau": SILENCE,
+    "ax": "AH",
+    "h#": SILENCE,
+}
+MRPA_TO_ARPABET = {
+    "#": SILENCE, "@": "AH", "@@": "ER", "a": "AE", "aa": "AA", "ai": "AY", "au": "AW", "e": "EH",
+    "e@": "EH", "ei": "EY", "h": "HH", "i": "IH", "i@": "IH", "ii": "IY", "o": "AA", "oi": "OY",
+    "oo": "AO", "ou": "OW", "u": "UH", "u@": "UH", "uh": "AH", "uu": "UW", "y": "Y",
+}  # fmt: skip
+PHONESETS = {"radio": FESTIVAL_TO_ARPABET, "mrpa": FESTIVAL_TO_ARPABET | MRPA_TO_ARPABET}
+
+
+def available_voices() -> list[Voice]:
+    """The voices whose synthesiser and data are installed."""
+    out = []
+    espeak, mbrola, festival = (shutil.which(x) for x in ("espeak-ng", "mbrola", "festival"))
+    for v in VOICES:
+        if v.engine == "mbrola" and espeak and mbrola and _mbrola_db(v).is_file():
+            out.append(v)
+        elif v.engine == "festival" and festival:
+            out.append(v)
+    return out
+
+
+def get_voice(name: str) -> Voice:
+    for v in VOICES:
+        if v.name == name:
+            return v
+    raise TalkmeshError(f"unknown voice '{name}': use one of {', '.join(VOICE_NAMES)}")
+
+
+def _mbrola_db(v: Voice) -> Path:
+    db = v.voice.removeprefix("mb-")
+    return MBROLA_DIR / db / db
+
+
+def _run(cmd: list[str], **kw) -> subprocess.CompletedProcess:
+    try:
+        return subprocess.run(cmd, capture_output=True, check=True, **kw)
+    except FileNotFoundError:
+        raise TalkmeshError(
+            f"{cmd[0]} is not installed: run `make setup` (Debian packages mbrola, festival)"
+        ) from None
+    except subprocess.CalledProcessError as e:
+        msg = (e.stderr or b"").decode(errors="replace").strip().splitlines()
+        raise TalkmeshError(f"{cmd[0]} failed: {msg[-1] if msg else e.returncode}") from None
+
+
+def _phones_from_pho(pho: str) -> list[Phone]:
+    phones, t = [], 0.0
+    for line in pho.splitlines():
+        parts = line.split()
+        if len(parts) < 2 or line.startswith(";"):
+            continue
+        sym, ms = parts[0], float(parts[1])
+        if sym not in SAMPA_TO_ARPABET:
+            raise TalkmeshError(f"MBROLA phone '{sym}' has no ARPABET mapping")
+        phones.append(Phone(SAMPA_TO_ARPABET[sym], t, t + ms / 1000.0))
+        t += ms / 1000.0
+    return phones
+
+
+def _merge(phones: list[Phone], duration: float) -> list[Phone]:
+    """Contiguous phones from 0 to ``duration``: silences merged, leading/trailing gaps filled."""
+    out: list[Phone] = []
+    for p in phones:
+        if p.end <= p.start:
+            continue
+        if out and p.label == SILENCE and out[-1].label == SILENCE:
+            out[-1] = Phone(SILENCE, out[-1].start, p.end)
+        else:
+            out.append(p)
+    if not out or out[0].start > 0:
+        out.insert(0, Phone(SILENCE, 0.0, out[0].start if out else duration))
+    if out[-1].end < duration:
+        if out[-1].label == SILENCE:
+            out[-1] = Phone(SILENCE, out[-1].start, duration)
+        else:
+            out.append(Phone(SILENCE, out[-1].end, duration))
+    elif out[-1].end > duration:
+        out = [p for p in out if p.start < duration]
+        out[-1] = Phone(out[-1].label, out[-1].start, duration)
+    return out
+
+
+def synthesize_mbrola(voice: Voice, text: str, wav: Path) -> tuple[list[Phone], int]:
+    """Render ``text`` with an MBROLA voice into ``wav``; returns (phones, sample rate)."""
+    pho = _run(
+        [
+            "espeak-ng",
+            "-v",
+            voice.voice,
+            "-p",
+            str(voice.pitch),
+            "-s",
+            str(voice.speed),
+            "-q",
+            "--pho",
+            text,
+        ]
+    ).stdout.decode()
+    with tempfile.NamedTemporaryFile("w", suffix=".pho", delete=False) as f:
+        f.write(pho)
+    try:
+        _run(["mbrola", "-e", str(_mbrola_db(voice)), f.name, str(wav)])
+    finally:
+        os.unlink(f.name)
+    import soundfile as sf
+
+    info = sf.info(str(wav))
+    return _merge(_phones_from_pho(pho), info.frames / info.samplerate), info.samplerate
+
+
+def _scheme_string(text: str) -> str:
+    return '"' + text.replace("\\", " ").replace('"', " ") + '"'
+
+
+def synthesize_festival(
+    voice: Voice, items: list[tuple[str, Path]]
+) -> list[tuple[list[Phone], int]]:
+    """Render several (text, wav) pairs with one Festival process; returns phones per item."""
+    import soundfile as sf
+
+    with tempfile.TemporaryDirectory() as tmp:
+        lines = [f"({voice.voice})"]
+        for k, (text, wav) in enumerate(items):
+            segs = Path(tmp) / f"{k}.segs"
+            lines.append(f"(set! utt (SynthText {_scheme_string(text)}))")
+            lines.append(f'(utt.save.wave utt "{wav}" \'riff)')
+            lines.append(f'(utt.save.segs utt "{segs}")')
+        script = Path(tmp) / "run.scm"
+        script.write_text("\n".join(lines) + "\n")
+        _run(["festival", "-b", str(script)])
+        out = []
+        table = PHONESETS[voice.phoneset]
+        for k, (_, wav) in enumerate(items):
+            segs = (Path(tmp) / f"{k}.segs").read_text().splitlines()
+            phones, t = [], 0.0
+            for line in segs:
+                parts = line.split()
+                if len(parts) != 3 or line.startswith("#"):
+                    continue
+                end, sym = float(parts[0]), parts[2]
+                if sym not in table:
+                    raise TalkmeshError(f"Festival phone '{sym}' has no ARPABET mapping")
+                phones.append(Phone(table[sym], t, end))
+                t = end
+            info = sf.info(str(wav))
+            out.append((_merge(phones, info.frames / info.samplerate), info.samplerate))
+    return out
+
+
+def synthesize(voice: Voice, items: list[tuple[str, Path]]) -> list[tuple[list[Phone], int]]:
+    """Speak each (text, wav path) with ``voice``; returns (phones, sample rate) per item."""
+    if voice.engine == "festival":
+        return synthesize_festival(voice, items)
+    return [synthesize_mbrola(voice, text, wav) for text, wav in items]
+
+
+def phone_coverage(phones: list[Phone]) -> dict[str, int]:
+    """How often each ARPABET phone occurs."""
+    labels = [p.label for p in phones if p.label != SILENCE]
+    return {p: int(n) for p, n in zip(*np.unique(labels, return_counts=True))}

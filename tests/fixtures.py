@@ -1,0 +1,84 @@
+"""Tiny datasets in the official layouts, written by the tests themselves."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+import soundfile as sf
+
+from talkmesh.datasets import BIWI, VOCASET
+
+
+def write_wav(path: Path, seconds: float, sr: int) -> None:
+    t = np.arange(int(round(seconds * sr))) / sr
+    sf.write(path, (0.1 * np.sin(2 * np.pi * 220 * t)).astype(np.float32), sr)
+
+
+def write_ply(path: Path, num_vertices: int) -> None:
+    """An ASCII PLY with a triangle fan over the vertices."""
+    faces = [(0, k, k + 1) for k in range(1, num_vertices - 1)]
+    lines = ["ply", "format ascii 1.0", f"element vertex {num_vertices}", "property float x",
+             "property float y", "property float z", f"element face {len(faces)}",
+             "property list uchar int vertex_indices", "end_header"]  # fmt: skip
+    lines += [f"{k * 0.01} {np.sin(k)} {np.cos(k)}" for k in range(num_vertices)]
+    lines += [f"3 {a} {b} {c}" for a, b, c in faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def make_dataset(root: Path, spec, names: list[str], frames: int, disk_fps: float, sr: int,
+                 dtype=np.float32, python2_pickle: bool = False) -> dict[str, np.ndarray]:  # fmt: skip
+    """Write sequences for ``names`` (<SUBJECT>_<SENTENCE>) in the contract layout."""
+    v = spec.num_vertices
+    (root / "wav").mkdir(parents=True, exist_ok=True)
+    (root / "vertices_npy").mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    subjects = sorted({n.rpartition("_")[0] for n in names})
+    templates = {s: rng.standard_normal((v, 3)).astype(np.float64) for s in subjects}
+    for name in names:
+        subject = name.rpartition("_")[0]
+        motion = templates[subject][None] + 0.01 * rng.standard_normal((frames, v, 3))
+        np.save(root / "vertices_npy" / f"{name}.npy", motion.reshape(frames, -1).astype(dtype))
+        write_wav(root / "wav" / f"{name}.wav", frames / disk_fps, sr)
+    if python2_pickle:
+        # VOCASET's templates.pkl was written by Python 2: str keys as bytes, read with latin1
+        data = {s.encode(): t for s, t in templates.items()}
+    else:
+        data = templates
+    with open(root / "templates.pkl", "wb") as f:
+        pickle.dump(data, f, protocol=2)
+    write_ply(root / (spec.faces_file or "faces.ply"), v)
+    return templates
+
+
+def vocaset_names(missing: int = 3) -> list[str]:
+    names = [
+        f"{s}_{n}" for split in VOCASET.splits.values() for s, sents in split.items() for n in sents
+    ]
+    names = sorted(set(names))
+    return names[missing:]  # the first few pairs are missing, like the real data
+
+
+def make_vocaset(root: Path, frames: int = 2) -> list[str]:
+    names = vocaset_names()
+    make_dataset(root, VOCASET, names, frames, disk_fps=60, sr=22050, python2_pickle=True)
+    return names
+
+
+def make_biwi(root: Path, frames: int = 2) -> list[str]:
+    """Every subject of every split, with the first and last sentence of each split's range
+    (23370 vertices in float64 make the full set 450 MB; the rest count as missing pairs)."""
+    names = sorted(
+        {
+            f"{s}_{n}"
+            for split in BIWI.splits.values()
+            for s, sents in split.items()
+            for n in (sents[0], sents[-1])
+        }
+    )
+    make_dataset(root, BIWI, names, frames, disk_fps=25, sr=44100, dtype=np.float64)
+    (root / "regions").mkdir()
+    (root / "regions" / "lve.txt").write_text(",".join(map(str, range(0, 4996))))
+    (root / "regions" / "fdd.txt").write_text(", ".join(map(str, range(5000, 12784))) + "\n")
+    return names

@@ -1,0 +1,103 @@
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from talkmesh.cli import main
+from talkmesh.evaluate import evaluate, find_predictions, write_baseline
+from talkmesh.synth import make_corpus
+from talkmesh.voices import available_voices
+
+pytestmark = pytest.mark.skipif(not shutil.which("mbrola"), reason="mbrola not installed")
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ev") / "c"
+    make_corpus(root, subjects=3, sentences=2, seed=1, workers=1, progress=False)
+    return root
+
+
+def test_find_predictions_parses_conditions(tmp_path):
+    for stem in ("A_B_s01", "A_B_s01_condition_X_Y", "A_B_s02_condition_Z", "other"):
+        np.save(tmp_path / f"{stem}.npy", np.zeros(1))
+    found = find_predictions(tmp_path, ["A_B_s01", "A_B_s02"])
+    assert [c for c, _ in found["A_B_s01"]] == [None, "X_Y"]
+    assert [c for c, _ in found["A_B_s02"]] == ["Z"]
+
+
+def test_baselines_end_to_end_via_cli(corpus, tmp_path, capsys):
+    static, proc = tmp_path / "static", tmp_path / "proc"
+    assert (
+        main(
+            [
+                "baseline",
+                "--dataset",
+                "synth",
+                "--data",
+                str(corpus),
+                "--method",
+                "static",
+                "-o",
+                str(static),
+                "-q",
+            ]
+        )
+        == 0
+    )
+    assert write_baseline("synth", corpus, proc, method="procedural", progress=False) == 1
+    out = tmp_path / "s.json"
+    assert (
+        main(
+            [
+                "evaluate",
+                "--dataset",
+                "synth",
+                "--data",
+                str(corpus),
+                "--pred",
+                str(static),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    table = capsys.readouterr().out
+    assert "LVE (x1e-4, squared)" in table and "static" in table
+    doc = json.loads(out.read_text())
+    assert {"lve", "fdd", "mve", "rows"} <= set(doc) and doc["rows"][0]["name"].startswith(
+        "Synth_03"
+    )
+    s = evaluate("synth", corpus, static, protocol="physical")
+    p = evaluate("synth", corpus, proc, protocol="physical")
+    assert p.lve < s.lve  # recognised-phone lip sync beats a still face
+    assert p.lip_sync > 0.3 and np.isnan(s.lip_sync)
+
+
+def test_wrong_vertex_count_prediction(corpus, tmp_path, capsys):
+    np.save(tmp_path / "Synth_03_chidi_sentence02.npy", np.zeros((5, 30), np.float32))
+    assert (
+        main(["evaluate", "--dataset", "synth", "--data", str(corpus), "--pred", str(tmp_path)])
+        == 2
+    )
+    err = capsys.readouterr().err
+    assert "Synth_03_chidi_sentence02.npy" in err and "4766" in err
+    assert (
+        main(
+            [
+                "evaluate",
+                "--dataset",
+                "synth",
+                "--data",
+                str(corpus),
+                "--pred",
+                str(tmp_path / "none"),
+            ]
+        )
+        == 2
+    )
+    assert len(available_voices()) >= 3
