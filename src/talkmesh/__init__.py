@@ -1,9 +1,9 @@
 """talkmesh: speech-driven 3D facial animation.
 
-    import talkmesh
-    anim = talkmesh.animate("speech.wav")           # procedural lip sync on the bundled head
-    talkmesh.save_animation(anim, "speech.glb")      # glTF morph-target animation
-    talkmesh.render_video(anim, "speech.mp4")        # shaded head, with the audio
+import talkmesh
+anim = talkmesh.animate("speech.wav")           # procedural lip sync on the bundled head
+talkmesh.save_animation(anim, "speech.glb")      # glTF morph-target animation
+talkmesh.render_video(anim, "speech.mp4")        # shaded head, with the audio
 """
 
 from __future__ import annotations
