@@ -120,9 +120,41 @@ def lipsync_figure(clip: Path, text: str | None, out_plot: Path, out_sheet: Path
     print(f"wrote {out_sheet}")
 
 
+def motion_figure(corpus: Path, preds: list[str], out: Path) -> None:
+    """Per-vertex mean and std of inter-frame motion on the synthetic test split (CodeTalker Fig. 4)."""
+    from talkmesh.datasets import open_dataset
+    from talkmesh.metrics import motion_statistics
+
+    ds = open_dataset("synth", corpus, "test")
+    head = load_head()
+    rows = [("ground truth", [ds[i].vertices for i in range(len(ds))])]
+    for item in preds:
+        label, _, directory = item.partition("=")
+        seqs = [np.load(Path(directory) / f"{n}.npy").reshape(-1, head.num_vertices, 3) for n in ds.names]
+        rows.append((label, seqs))
+    stats = [(label, *motion_statistics(seqs)) for label, seqs in rows]
+    top_mean = max(m.max() for _, m, _ in stats) * 1000
+    top_std = max(s.max() for _, _, s in stats) * 1000
+    v = head.template
+    crop = v.copy()
+    front = v[:, 2] > -0.01
+    crop[~front] = v[front].mean(0)
+    fig, axes = plt.subplots(2, len(stats), figsize=(2.6 * len(stats), 5.6), dpi=80, squeeze=False)
+    for k, (label, mean, std) in enumerate(stats):
+        draw_mesh(axes[0, k], crop, head.faces, mean * 1000 / top_mean, "inferno")
+        draw_mesh(axes[1, k], crop, head.faces, std * 1000 / top_std, "inferno")
+        axes[0, k].set_title(f"{label}\nmean (max {mean.max() * 1000:.2f} mm/frame)", fontsize=8)
+        axes[1, k].set_title(f"std (max {std.max() * 1000:.2f} mm/frame)", fontsize=8)
+    fig.suptitle(f"inter-frame motion per vertex, synthetic test split ({len(ds)} sequences)", fontsize=9)
+    fig.tight_layout()
+    save_small(fig, out)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("figure", choices=["regions", "lipsync"])
+    p.add_argument("figure", choices=["regions", "lipsync", "motion"])
+    p.add_argument("--pred", action="append", default=[], help="motion: LABEL=PRED_DIR (repeat)")
+    p.add_argument("--corpus", default="corpus/synth", help="motion: the synthetic corpus")
     p.add_argument(
         "clip", nargs="?", default=str(LIBRIVOX / "sense_and_sensibility_01_austen_64kb-0880.wav")
     )
@@ -131,6 +163,8 @@ def main() -> None:
     DOCS.mkdir(exist_ok=True)
     if args.figure == "regions":
         regions_figure(DOCS / "regions.png")
+    elif args.figure == "motion":
+        motion_figure(Path(args.corpus), args.pred, DOCS / "motion_stats.png")
     else:
         clip = Path(args.clip)
         lipsync_figure(
