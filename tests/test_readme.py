@@ -62,7 +62,9 @@ def workdir(tmp_path, monkeypatch) -> Path:
 
 
 def test_every_cli_example_in_the_readme_runs(workdir):
-    block = code_blocks("Use")[0]  # the data commands below it write gigabytes: docs/data.md has them
+    block = code_blocks("Use")[
+        0
+    ]  # the data commands below it write gigabytes: docs/data.md has them
     lines = [ln.split("  #")[0].strip() for ln in block.splitlines() if ln.strip()]
     assert len(lines) >= 8
     for line in lines:

@@ -340,9 +340,17 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
 
         def on_save_checkpoint(self, checkpoint: dict) -> None:
             checkpoint["talkmesh_recipe"] = to_dict(recipe)
+            # plain types and tensors only: the checkpoint loads with torch.load(weights_only=True)
+            name, keys, pos, has_gauss, cached = np.random.get_state()
             checkpoint["talkmesh_rng"] = {
                 "torch": torch.get_rng_state(),
-                "numpy": np.random.get_state(),
+                "numpy": [
+                    name,
+                    torch.from_numpy(keys.astype(np.int64)),
+                    int(pos),
+                    int(has_gauss),
+                    float(cached),
+                ],
                 "python": random.getstate(),
             }
 
@@ -350,7 +358,8 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
             rng = checkpoint.get("talkmesh_rng")
             if rng:
                 torch.set_rng_state(rng["torch"])
-                np.random.set_state(rng["numpy"])
+                name, keys, pos, has_gauss, cached = rng["numpy"]
+                np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
                 random.setstate(rng["python"])
 
     return MotionSystem()
@@ -436,10 +445,15 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
         precision=recipe.train.precision,
         gradient_clip_val=recipe.train.grad_clip or None,
         log_every_n_steps=recipe.train.log_every,
+        # the deprecation chatter of Lightning's internals is not the user's business
         check_val_every_n_epoch=recipe.train.val_every,
         callbacks=[
             ModelCheckpoint(
-                dirpath=out, filename="epoch{epoch:03d}", save_last=True, every_n_epochs=1
+                dirpath=out,
+                filename="epoch{epoch:03d}",
+                auto_insert_metric_name=False,
+                save_last=True,
+                every_n_epochs=1,
             )
         ],
         logger=loggers,

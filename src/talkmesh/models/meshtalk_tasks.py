@@ -121,10 +121,10 @@ def _step_expression(system: MeshTalkSystem, batch: TorchBatch) -> StepOutput:
     return StepOutput(
         loss.total,
         {
-            "reconstruction": float(loss.reconstruction),
-            "mouth": float(loss.mouth),
-            "upper": float(loss.upper),
-            "eyelid": float(loss.eyelid),
+            "reconstruction": float(loss.reconstruction.detach()),
+            "mouth": float(loss.mouth.detach()),
+            "upper": float(loss.upper.detach()),
+            "eyelid": float(loss.eyelid.detach()),
         },
     )
 
