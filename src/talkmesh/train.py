@@ -373,6 +373,13 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     """
     _require_torch()
     L = _lightning()
+    import warnings
+
+    # Lightning's own deprecation and sizing chatter is not the user's business
+    warnings.filterwarnings("ignore", module=r"lightning(\.|$)")
+    warnings.filterwarnings(
+        "ignore", message=".*(treespec|logging interval|does not have many workers).*"
+    )
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 

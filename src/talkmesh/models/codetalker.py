@@ -1,0 +1,640 @@
+"""CodeTalker (Xing et al., CVPR 2023): a discrete motion prior and a speech-driven code query.
+
+Stage 1 (paper Sec. 3.1, Table 4): a transformer VQ-VAE over facial motion (vertices - template).
+Each frame becomes H face-component tokens of C dims, each snapped to one of N codebook entries.
+Stage 2 (Sec. 3.2): a causal transformer decoder reads speech features (one token per motion frame
+through the alignment mask), a speaker style and the motion so far, and predicts the next frame's
+code features; they are quantised with the frozen codebook and decoded by the frozen decoder.
+
+Fixes of the public code's defects (REFERENCE section 3): the positional encoding differs per frame;
+padding masks work for any batch; no length cap; InstanceNorm is optional (off by default: it fails
+on one frame and cannot stream); generation caches keys/values (``generate(mode="fast")``) next to
+a faithful ``mode="naive"`` that re-runs everything over the whole prefix at each step, like the
+paper's loop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from talkmesh.errors import TalkmeshError
+from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder
+
+# ---------------------------------------------------------------------------------------------
+# Configuration
+
+
+@dataclass(frozen=True)
+class VQConfig:
+    """Stage 1 (Table 4). VOCASET: H=16, C=64; BIWI: H=8, C=128; N=256 codes, P=1 for both."""
+
+    num_vertices: int
+    hidden: int = 1024
+    layers: int = 6
+    heads: int = 8
+    ff: int = 1536
+    components: int = 16  # H: face-component tokens per frame
+    code_dim: int = 64  # C
+    codebook_size: int = 256  # N
+    temporal_unit: int = 1  # P: frames per token (P > 1 pools P frames into one token)
+    instance_norm: bool = False  # the paper's IN over time (Table 5); breaks on 1 frame
+    beta: float = 0.25  # commitment weight
+    ema: bool = False  # exponential-moving-average codebook updates instead of the codebook loss
+    ema_decay: float = 0.99
+    dead_code_restart: bool = False  # re-seed unused codes from the batch (EMA mode)
+
+    def __post_init__(self) -> None:
+        for name in ("num_vertices", "hidden", "heads", "ff", "components", "code_dim",
+                     "codebook_size", "temporal_unit"):  # fmt: skip
+            if getattr(self, name) < 1:
+                raise ValueError(f"vq.{name} must be at least 1")
+        if self.layers < 0:
+            raise ValueError("vq.layers must be >= 0")
+        if self.hidden % self.heads:
+            raise ValueError("vq.hidden must be divisible by vq.heads")
+
+
+@dataclass(frozen=True)
+class Stage2Config:
+    """Stage 2. VOCASET: d=1024, 4 heads, FF 2048, 6 layers, period 30; BIWI: 12 layers, period 25,
+    two audio tokens per frame."""
+
+    d_model: int = 1024
+    heads: int = 4
+    ff: int = 2048
+    layers: int = 6
+    period: int = 30  # frames of the periodic positional encoding and temporal bias
+    audio_tokens_per_frame: int = 1
+    styles: tuple[str, ...] = ()  # training speakers, in one-hot order
+    speech: SpeechEncoderConfig = SpeechEncoderConfig()
+    attention_window: int = 600  # frames of self-attention kept in the cache when generating
+
+    def __post_init__(self) -> None:
+        if self.d_model % self.heads:
+            raise ValueError("stage2.d_model must be divisible by stage2.heads")
+        if not self.styles:
+            raise ValueError("stage2.styles must name at least one training speaker")
+        if self.period < 1 or self.audio_tokens_per_frame < 1 or self.attention_window < 1:
+            raise ValueError(
+                "stage2.period, audio_tokens_per_frame and attention_window must be >= 1"
+            )
+
+
+@dataclass(frozen=True)
+class CodeTalkerConfig:
+    vq: VQConfig
+    stage2: Stage2Config
+    motion_fps: float = 30.0
+
+
+def paper_vocaset_config(
+    styles: tuple[str, ...] = tuple(f"speaker{k}" for k in range(8)),
+) -> CodeTalkerConfig:
+    """Table 4 with the VOCASET settings and the wav2vec 2.0 base speech encoder."""
+    return CodeTalkerConfig(
+        vq=VQConfig(num_vertices=5023, components=16, code_dim=64),
+        stage2=Stage2Config(styles=styles, speech=SpeechEncoderConfig(kind="wav2vec2")),
+    )
+
+
+def small_synth_config(styles: tuple[str, ...], num_vertices: int = 4766) -> CodeTalkerConfig:
+    """A CPU-trainable configuration for the synthetic corpus (mel speech encoder)."""
+    return CodeTalkerConfig(
+        vq=VQConfig(
+            num_vertices=num_vertices,
+            hidden=256,
+            layers=2,
+            heads=4,
+            ff=512,
+            components=8,
+            code_dim=32,
+            codebook_size=256,
+        ),  # fmt: skip
+        stage2=Stage2Config(
+            d_model=256,
+            heads=4,
+            ff=512,
+            layers=2,
+            styles=styles,
+            speech=SpeechEncoderConfig(kind="mel", dim=128),
+        ),  # fmt: skip
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Layers
+
+
+def sinusoid(positions: Tensor, dim: int) -> Tensor:
+    """positions (T,) -> (T, dim) sinusoidal encodings (a different vector per frame)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(10000.0) * torch.arange(half, device=positions.device) / half)
+    angles = positions.float()[:, None] * freqs[None]
+    out = torch.cat([angles.sin(), angles.cos()], dim=-1)
+    return F.pad(out, (0, dim - out.shape[-1]))
+
+
+class KVCache:
+    """Keys and values of one attention layer, (B, heads, T, dh), trimmed to a window."""
+
+    def __init__(self, window: int) -> None:
+        self.k: Tensor | None = None
+        self.v: Tensor | None = None
+        self.window = window
+        self.offset = 0  # absolute index of the first cached position
+
+    def append(self, k: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+        self.k = k if self.k is None else torch.cat([self.k, k], dim=2)
+        self.v = v if self.v is None else torch.cat([self.v, v], dim=2)
+        extra = self.k.shape[2] - self.window
+        if extra > 0:
+            self.k, self.v = self.k[:, :, extra:], self.v[:, :, extra:]
+            self.offset += extra
+        return self.k, self.v
+
+
+class Attention(nn.Module):
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.out = nn.Linear(dim, dim)
+
+    def forward(
+        self, x: Tensor, bias: Tensor | None = None, cache: KVCache | None = None
+    ) -> Tensor:
+        """x (B, T, D); bias broadcastable to (B, heads, T, T_keys) (additive, -inf = masked)."""
+        B, T, D = x.shape
+        q, k, v = self.qkv(x).view(B, T, 3, self.heads, D // self.heads).permute(2, 0, 3, 1, 4)
+        if cache is not None:
+            k, v = cache.append(k, v)
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=bias)
+        return self.out(y.transpose(1, 2).reshape(B, T, D))
+
+
+class Block(nn.Module):
+    """Pre-LN transformer block (self-attention + MLP), optionally with a cross term added."""
+
+    def __init__(self, dim: int, heads: int, ff: int) -> None:
+        super().__init__()
+        self.norm1 = nn.LayerNorm(dim)
+        self.attn = Attention(dim, heads)
+        self.norm2 = nn.LayerNorm(dim)
+        self.mlp = nn.Sequential(nn.Linear(dim, ff), nn.GELU(), nn.Linear(ff, dim))
+
+    def forward(
+        self,
+        x: Tensor,
+        bias: Tensor | None = None,
+        cache: KVCache | None = None,
+        cross: Tensor | None = None,
+    ) -> Tensor:
+        x = x + self.attn(self.norm1(x), bias, cache)
+        if cross is not None:
+            x = x + cross
+        return x + self.mlp(self.norm2(x))
+
+
+def padding_bias(mask: Tensor | None, dtype: torch.dtype) -> Tensor | None:
+    """(B, T) bool valid-frame mask -> (B, 1, 1, T) additive bias hiding padded keys."""
+    if mask is None:
+        return None
+    bias = torch.zeros(mask.shape, dtype=dtype, device=mask.device)
+    return bias.masked_fill(~mask, float("-inf"))[:, None, None, :]
+
+
+# ---------------------------------------------------------------------------------------------
+# Stage 1: the motion VQ-VAE
+
+
+class Quantized(NamedTuple):
+    z_q: Tensor  # (B, T, H, C) straight-through quantised features
+    codes: Tensor  # (B, T, H) int64
+    loss: Tensor  # () codebook + commitment loss
+
+
+class Quantizer(nn.Module):
+    """Nearest-neighbour quantisation into N codes: ``z_q, codes, loss = vq(z)``; ``vq.lookup(codes)``."""
+
+    def __init__(
+        self,
+        size: int,
+        dim: int,
+        beta: float,
+        ema: bool = False,
+        decay: float = 0.99,
+        restart: bool = False,
+    ):
+        super().__init__()
+        self.codebook = nn.Parameter(
+            torch.empty(size, dim).uniform_(-1 / size, 1 / size), requires_grad=not ema
+        )
+        self.beta, self.ema, self.decay, self.restart = beta, ema, decay, restart
+        self.register_buffer("usage", torch.zeros(size))  # running code counts, for logging
+        if ema:
+            self.register_buffer("ema_count", torch.ones(size))
+            self.register_buffer("ema_sum", self.codebook.detach().clone())
+
+    def forward(self, z: Tensor, mask: Tensor | None = None) -> Quantized:
+        """z (B, T, H, C); mask (B, T) -> :class:`Quantized`."""
+        flat = z.reshape(-1, z.shape[-1])
+        dist = (
+            flat.pow(2).sum(1, keepdim=True)
+            - 2 * flat @ self.codebook.t()
+            + self.codebook.pow(2).sum(1)[None]
+        )
+        codes = dist.argmin(1)
+        q = self.codebook[codes].view_as(z)
+        weight = None
+        if mask is not None:
+            weight = mask[:, :, None, None].expand(*z.shape[:3], 1).to(z.dtype)
+        if self.training:
+            self._update(flat.detach(), codes, None if weight is None else weight.reshape(-1))
+        commit = _masked_mse(z, q.detach(), weight)
+        loss = (
+            self.beta * commit
+            if self.ema
+            else _masked_mse(q, z.detach(), weight) + self.beta * commit
+        )
+        z_q = z + (q - z).detach()  # straight-through estimator
+        return Quantized(z_q, codes.view(z.shape[:3]), loss)
+
+    def lookup(self, codes: Tensor) -> Tensor:
+        """codes (..., H) int64 -> (..., H, C) codebook vectors."""
+        return self.codebook[codes]
+
+    @torch.no_grad()
+    def _update(self, flat: Tensor, codes: Tensor, weight: Tensor | None) -> None:
+        w = torch.ones(len(codes), device=flat.device) if weight is None else weight
+        counts = torch.zeros_like(self.usage).index_add_(0, codes, w)
+        self.usage.mul_(0.99).add_(counts)
+        if not self.ema:
+            return
+        sums = torch.zeros_like(self.ema_sum).index_add_(0, codes, flat * w[:, None])
+        self.ema_count.mul_(self.decay).add_(counts, alpha=1 - self.decay)
+        self.ema_sum.mul_(self.decay).add_(sums, alpha=1 - self.decay)
+        self.codebook.data.copy_(self.ema_sum / self.ema_count.clamp(min=1e-5)[:, None])
+        if self.restart:
+            dead = self.ema_count < 1e-3
+            if dead.any() and len(flat):
+                pick = torch.randint(len(flat), (int(dead.sum()),), device=flat.device)
+                self.codebook.data[dead] = flat[pick]
+                self.ema_sum[dead] = flat[pick]
+                self.ema_count[dead] = 1.0
+
+    def perplexity(self) -> float:
+        p = self.usage / self.usage.sum().clamp(min=1e-8)
+        return float(torch.exp(-(p * (p + 1e-12).log()).sum()))
+
+    def used_codes(self, threshold: float = 1e-3) -> int:
+        return int((self.usage > threshold * self.usage.sum()).sum()) if self.usage.sum() > 0 else 0
+
+
+def _masked_mse(a: Tensor, b: Tensor, weight: Tensor | None) -> Tensor:
+    err = (a - b).pow(2)
+    if weight is None:
+        return err.mean()
+    return (err * weight).sum() / (weight.sum() * a.shape[-1]).clamp(min=1.0)
+
+
+def hold_last_frame(x: Tensor, mask: Tensor | None) -> Tensor:
+    """(B, T, D) with padded frames replaced by each sequence's last valid frame, so the convs
+    see the same replicate padding as the sequence alone (padded batch = single samples)."""
+    if mask is None:
+        return x
+    lengths = mask.sum(1).clamp(min=1)
+    idx = torch.minimum(torch.arange(x.shape[1], device=x.device)[None], (lengths - 1)[:, None])
+    return x.gather(1, idx[:, :, None].expand_as(x))
+
+
+class TemporalConv(nn.Module):
+    """Conv1d over time, kernel 5, replicate padding (Table 4); optional InstanceNorm."""
+
+    def __init__(self, dim: int, instance_norm: bool, stride: int = 1) -> None:
+        super().__init__()
+        self.conv = nn.Conv1d(dim, dim, 5, stride=stride)
+        self.norm = nn.InstanceNorm1d(dim, affine=False) if instance_norm else None
+
+    def forward(self, x: Tensor) -> Tensor:
+        """(B, T, D) -> (B, T / stride, D)."""
+        y = self.conv(F.pad(x.transpose(1, 2), (2, 2), mode="replicate"))
+        y = F.leaky_relu(y, 0.2)
+        if self.norm is not None:
+            y = self.norm(y)
+        return y.transpose(1, 2)
+
+
+class MotionEncoder(nn.Module):
+    def __init__(self, cfg: VQConfig) -> None:
+        super().__init__()
+        self.inp = nn.Linear(cfg.num_vertices * 3, cfg.hidden)
+        self.conv = TemporalConv(cfg.hidden, cfg.instance_norm, cfg.temporal_unit)
+        self.mid = nn.Linear(cfg.hidden, cfg.hidden)
+        self.blocks = nn.ModuleList(Block(cfg.hidden, cfg.heads, cfg.ff) for _ in range(cfg.layers))
+        self.norm = nn.LayerNorm(cfg.hidden)
+        self.out = nn.Linear(cfg.hidden, cfg.components * cfg.code_dim)
+        self.cfg = cfg
+
+    def forward(self, motion: Tensor, mask: Tensor | None = None) -> Tensor:
+        """motion (B, T, V*3) -> z (B, T/P, H, C)."""
+        x = self.conv(hold_last_frame(F.leaky_relu(self.inp(motion), 0.2), mask))
+        x = self.mid(x)
+        x = x + sinusoid(torch.arange(x.shape[1], device=x.device), x.shape[-1])
+        bias = padding_bias(
+            mask[:, :: self.cfg.temporal_unit] if mask is not None else None, x.dtype
+        )
+        for block in self.blocks:
+            x = block(x, bias)
+        return self.out(self.norm(x)).view(*x.shape[:2], self.cfg.components, self.cfg.code_dim)
+
+
+class MotionDecoder(nn.Module):
+    def __init__(self, cfg: VQConfig) -> None:
+        super().__init__()
+        self.inp = nn.Linear(cfg.components * cfg.code_dim, cfg.hidden)
+        self.conv = TemporalConv(cfg.hidden, cfg.instance_norm)
+        self.mid = nn.Linear(cfg.hidden, cfg.hidden)
+        self.blocks = nn.ModuleList(Block(cfg.hidden, cfg.heads, cfg.ff) for _ in range(cfg.layers))
+        self.norm = nn.LayerNorm(cfg.hidden)
+        self.out = nn.Linear(cfg.hidden, cfg.num_vertices * 3)
+        self.cfg = cfg
+
+    def hidden(self, z_q: Tensor, mask: Tensor | None = None, causal: bool = False) -> Tensor:
+        """z_q (B, T', H, C) -> (B, T, hidden) before the output map (T = T' * P)."""
+        x = self.inp(z_q.flatten(2))
+        if self.cfg.temporal_unit > 1:
+            x = x.repeat_interleave(self.cfg.temporal_unit, dim=1)
+        x = self.mid(self.conv(hold_last_frame(x, mask)))
+        x = x + sinusoid(torch.arange(x.shape[1], device=x.device), x.shape[-1])
+        bias = padding_bias(mask, x.dtype)
+        if causal:
+            T = x.shape[1]
+            tri = torch.full((T, T), float("-inf"), device=x.device).triu(1)
+            bias = tri if bias is None else bias + tri
+        for block in self.blocks:
+            x = block(x, bias)
+        return self.norm(x)
+
+    def forward(self, z_q: Tensor, mask: Tensor | None = None) -> Tensor:
+        """z_q (B, T', H, C) -> motion (B, T, V*3)."""
+        return self.out(self.hidden(z_q, mask))
+
+
+class VQOutput(NamedTuple):
+    motion: Tensor  # (B, T, V*3) reconstructed motion
+    codes: Tensor  # (B, T', H)
+    loss: Tensor  # () L_VQ (Eq. 3): L1 reconstruction + codebook + commitment
+    reconstruction: Tensor
+    quantization: Tensor
+
+
+class MotionVQVAE(nn.Module):
+    """Stage 1: motion (B, T, V*3) -> codes (B, T/P, H) -> motion."""
+
+    def __init__(self, cfg: VQConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = MotionEncoder(cfg)
+        self.quantizer = Quantizer(
+            cfg.codebook_size, cfg.code_dim, cfg.beta, cfg.ema, cfg.ema_decay, cfg.dead_code_restart
+        )
+        self.decoder = MotionDecoder(cfg)
+
+    def forward(self, motion: Tensor, mask: Tensor | None = None) -> VQOutput:
+        P = self.cfg.temporal_unit
+        T = motion.shape[1]
+        if T % P:
+            motion = F.pad(motion, (0, 0, 0, P - T % P), mode="replicate" if T else "constant")
+            if mask is not None:
+                mask = F.pad(mask, (0, P - T % P))
+        z = self.encoder(motion, mask)
+        q = self.quantizer(z, mask[:, ::P] if mask is not None else None)
+        recon = self.decoder(q.z_q, mask)
+        err = (recon - motion).abs()
+        if mask is not None:
+            rec = (err * mask[:, :, None]).sum() / (mask.sum() * err.shape[-1]).clamp(min=1)
+        else:
+            rec = err.mean()
+        return VQOutput(recon[:, :T], q.codes, rec + q.loss, rec, q.loss)
+
+    def encode(self, motion: Tensor, mask: Tensor | None = None) -> Quantized:
+        return self.quantizer(self.encoder(motion, mask), mask)
+
+    def decode(self, codes: Tensor) -> Tensor:
+        """codes (B, T', H) -> motion (B, T, V*3)."""
+        return self.decoder(self.quantizer.lookup(codes))
+
+
+# ---------------------------------------------------------------------------------------------
+# Stage 2: speech-driven code query
+
+
+def temporal_bias(
+    num_heads: int, q_len: int, k_len: int, period: int, device=None, q_offset: int = 0
+) -> Tensor:
+    """(heads, q_len, k_len): -slope_h * floor((i - j) / period) for j <= i, -inf above (causal).
+
+    Slopes 1/4, 1/16, 1/64, 1/256, ... (the geometric ALiBi sequence used by FaceFormer/CodeTalker).
+    """
+    slopes = torch.tensor([2.0 ** (-2 * (h + 1)) for h in range(num_heads)], device=device)
+    i = torch.arange(q_len, device=device)[:, None] + q_offset
+    j = torch.arange(k_len, device=device)[None]
+    dist = torch.div(i - j, period, rounding_mode="floor").float()
+    bias = -slopes[:, None, None] * dist[None]
+    return bias.masked_fill((j > i)[None], float("-inf"))
+
+
+def periodic_encoding(
+    num_frames: int, dim: int, period: int, device=None, offset: int = 0
+) -> Tensor:
+    """PPE (FaceFormer): the sinusoid of (t mod period) -> (T, dim)."""
+    t = (torch.arange(num_frames, device=device) + offset) % period
+    return sinusoid(t, dim)
+
+
+class Stage2Output(NamedTuple):
+    motion: Tensor  # (B, T, V*3) predicted motion (teacher forced)
+    loss: Tensor  # () Eq. 6
+    feature_loss: Tensor
+    motion_loss: Tensor
+
+
+class CodeTalker(nn.Module):
+    """Both stages; stage 1 is frozen while stage 2 trains."""
+
+    def __init__(self, cfg: CodeTalkerConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        s2, vq = cfg.stage2, cfg.vq
+        self.vqvae = MotionVQVAE(vq)
+        self.speech = build_speech_encoder(s2.speech)
+        self.audio_map = nn.Linear(self.speech.dim, s2.d_model)
+        self.style = nn.Embedding(len(s2.styles), s2.d_model)
+        self.motion_map = nn.Linear(vq.num_vertices * 3, s2.d_model)  # vertice_map
+        self.blocks = nn.ModuleList(Block(s2.d_model, s2.heads, s2.ff) for _ in range(s2.layers))
+        self.cross = nn.ModuleList(nn.Linear(s2.d_model, s2.d_model) for _ in range(s2.layers))
+        self.norm = nn.LayerNorm(s2.d_model)
+        self.feat_map = nn.Linear(s2.d_model, vq.components * vq.code_dim)
+        nn.init.zeros_(self.feat_map.weight)  # zero-initialised output map (Sec. 3.2)
+        nn.init.zeros_(self.feat_map.bias)
+
+    # -- pieces ---------------------------------------------------------------------------------
+
+    def style_vector(self, styles: Tensor | None, weights: Tensor | None = None) -> Tensor:
+        """(B,) style ids, or (B, S) weights over the training styles (Eq. 4) -> (B, d)."""
+        if weights is not None:
+            return weights.to(self.style.weight.dtype) @ self.style.weight
+        if styles is None or (styles < 0).any():
+            raise TalkmeshError("an unseen speaker needs style weights (e.g. --style A:0.5,B:0.5)")
+        return self.style(styles)
+
+    def audio_tokens(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
+        """(B, S) -> (B, T, d) one token per motion frame (the alignment mask: frame t sees token t;
+        with k tokens per frame their mean, which equals attending uniformly to them)."""
+        k = self.cfg.stage2.audio_tokens_per_frame
+        feats = self.speech(audio, audio_lengths, num_frames * k)
+        feats = self.audio_map(feats)
+        if k > 1:
+            feats = feats.view(feats.shape[0], num_frames, k, -1).mean(2)
+        return feats
+
+    def _cross(self, audio_tokens: Tensor) -> list[Tensor]:
+        """Cross-attention of frame t onto its own audio token(s) only: with one key the softmax is
+        1, so the output is a linear map of the token - exact and computed for all frames at once."""
+        return [layer(audio_tokens) for layer in self.cross]
+
+    def _decoder(
+        self, x: Tensor, cross: list[Tensor], bias: Tensor, caches: list[KVCache] | None = None
+    ) -> Tensor:
+        for n, block in enumerate(self.blocks):
+            x = block(x, bias, caches[n] if caches else None, cross[n])
+        return self.feat_map(self.norm(x))
+
+    # -- training (teacher forcing) ------------------------------------------------------------
+
+    def forward(
+        self,
+        audio: Tensor,
+        audio_lengths: Tensor | None,
+        vertices: Tensor,
+        templates: Tensor,
+        styles: Tensor,
+        motion_mask: Tensor | None = None,
+    ) -> Stage2Output:
+        """audio (B, S), vertices (B, T, V, 3), templates (B, V, 3), styles (B,) -> Eq. 6 loss."""
+        B, T = vertices.shape[:2]
+        motion = (vertices - templates[:, None]).flatten(2)
+        with torch.no_grad():
+            target = self.vqvae.encode(motion, motion_mask).z_q  # (B, T, H, C)
+        style = self.style_vector(styles)
+        prev = torch.cat([style[:, None], self.motion_map(motion[:, :-1]) + style[:, None]], dim=1)
+        s2 = self.cfg.stage2
+        x = prev + periodic_encoding(T, s2.d_model, s2.period, prev.device)
+        bias = temporal_bias(s2.heads, T, T, s2.period, x.device)[None]
+        if motion_mask is not None:
+            bias = bias + padding_bias(motion_mask, x.dtype)
+        feats = self._decoder(x, self._cross(self.audio_tokens(audio, audio_lengths, T)), bias)
+        feats = feats.view(B, T, self.cfg.vq.components, self.cfg.vq.code_dim)
+        q = self.vqvae.quantizer(feats)
+        pred = self.vqvae.decoder(q.z_q, motion_mask)
+        w = (
+            motion_mask[:, :, None].to(feats.dtype)
+            if motion_mask is not None
+            else torch.ones(B, T, 1, device=feats.device)
+        )
+        f_loss = ((feats - target).pow(2).flatten(2) * w).sum() / (
+            w.sum() * feats[0, 0].numel()
+        ).clamp(min=1)
+        m_loss = ((pred - motion).pow(2) * w).sum() / (w.sum() * motion.shape[-1]).clamp(min=1)
+        return Stage2Output(pred, f_loss + m_loss, f_loss, m_loss)
+
+    # -- generation -----------------------------------------------------------------------------
+
+    @torch.inference_mode()
+    def generate(
+        self,
+        audio: Tensor,
+        template: Tensor,
+        *,
+        styles: Tensor | None = None,
+        style_weights: Tensor | None = None,
+        audio_lengths: Tensor | None = None,
+        num_frames: int | None = None,
+        mode: str = "fast",
+    ) -> Tensor:
+        """audio (B, S) at 16 kHz, template (B, V, 3) -> vertices (B, T, V, 3).
+
+        ``mode="naive"`` is the paper's loop: at every step the whole decoder runs over the whole
+        prefix, the whole quantised prefix is decoded by the VQ decoder and its last frame fed back.
+        ``mode="fast"`` keeps key/value caches: the stage-2 decoder sees exactly the same inputs
+        (causal), but the VQ decoder's feedback frame comes from a causal, cached pass (its frame t
+        attends to frames <= t as computed when they were last, instead of re-running bidirectional
+        attention over the prefix); final vertices come from one bidirectional decode of all codes.
+        """
+        if mode not in ("fast", "naive"):
+            raise TalkmeshError(f"unknown generation mode '{mode}': use fast or naive")
+        B = audio.shape[0]
+        fps = self.cfg.motion_fps
+        if num_frames is None:
+            num_frames = max(1, round(audio.shape[1] / 16_000 * fps))
+        s2, vq = self.cfg.stage2, self.cfg.vq
+        style = self.style_vector(styles, style_weights)
+        cross = self._cross(self.audio_tokens(audio, audio_lengths, num_frames))
+        H, C = vq.components, vq.code_dim
+        if mode == "naive":
+            inputs = style[:, None]
+            codes = []
+            for t in range(num_frames):
+                x = inputs + periodic_encoding(t + 1, s2.d_model, s2.period, inputs.device)
+                bias = temporal_bias(s2.heads, t + 1, t + 1, s2.period, x.device)[None]
+                feats = self._decoder(x, [c[:, : t + 1] for c in cross], bias)
+                q = self.vqvae.quantizer(feats.view(B, t + 1, H, C))
+                motion = self.vqvae.decoder(q.z_q)
+                codes.append(q.codes[:, -1])
+                nxt = self.motion_map(motion[:, -1]) + style
+                inputs = torch.cat([inputs, nxt[:, None]], dim=1)
+            all_codes = torch.stack(codes, dim=1)
+        else:
+            all_codes = self._generate_fast(style, cross, num_frames)
+        motion = self.vqvae.decode(all_codes)[:, :num_frames]
+        return template[:, None] + motion.view(B, num_frames, vq.num_vertices, 3)
+
+    def _generate_fast(self, style: Tensor, cross: list[Tensor], num_frames: int) -> Tensor:
+        s2, vq = self.cfg.stage2, self.cfg.vq
+        B = style.shape[0]
+        window = s2.attention_window
+        caches = [KVCache(window) for _ in self.blocks]
+        vq_caches = [KVCache(window) for _ in self.vqvae.decoder.blocks]
+        dec = self.vqvae.decoder
+        # The VQ decoder's output map followed by the motion map is one linear map: fold them.
+        fold_w = self.motion_map.weight @ dec.out.weight  # (d, hidden)
+        fold_b = self.motion_map.weight @ dec.out.bias + self.motion_map.bias
+        conv_inputs: list[Tensor] = []
+        codes = []
+        x_in = style[:, None]
+        for t in range(num_frames):
+            x = x_in + periodic_encoding(1, s2.d_model, s2.period, x_in.device, offset=t)
+            keys = min(t + 1, window)
+            bias = temporal_bias(s2.heads, 1, keys, s2.period, x.device, q_offset=keys - 1)[None]
+            feats = self._decoder(x, [c[:, t : t + 1] for c in cross], bias, caches)
+            q = self.vqvae.quantizer(feats.view(B, 1, vq.components, vq.code_dim))
+            codes.append(q.codes[:, 0])
+            # causal VQ-decoder step: conv over the last frames (replicate padding on the right)
+            conv_inputs.append(dec.inp(q.z_q.flatten(2)))
+            conv_inputs = conv_inputs[-3:]
+            hist = torch.cat(conv_inputs, dim=1)
+            h = dec.mid(dec.conv(hist)[:, -1:])
+            h = h + sinusoid(torch.tensor([t], device=h.device), h.shape[-1])
+            vkeys = min(t + 1, window)
+            vbias = torch.zeros(1, 1, 1, vkeys, device=h.device) if vkeys else None
+            for n, block in enumerate(dec.blocks):
+                h = block(h, vbias, vq_caches[n])
+            h = dec.norm(h)
+            x_in = F.linear(h, fold_w, fold_b) + style[:, None]
+        return torch.stack(codes, dim=1)

@@ -1,0 +1,125 @@
+"""How ``talkmesh train`` builds, steps and releases CodeTalker's two stages.
+
+``task: codetalker-stage1`` trains the motion VQ-VAE (L_VQ, Eq. 3); ``task: codetalker-stage2``
+trains the speech-driven code query (Eq. 6) with stage 1 frozen, starting from ``init`` (the stage-1
+release). The model section is ``{preset: small|vocaset|biwi, vq: {...}, stage2: {...}}``; the
+vertex count and the training speakers come from the data.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from talkmesh.config import from_dict, to_dict
+from talkmesh.errors import TalkmeshError
+from talkmesh.models.codetalker import (
+    CodeTalker,
+    CodeTalkerConfig,
+    paper_vocaset_config,
+    small_synth_config,
+)
+from talkmesh.models.release import load_model, save_model
+from talkmesh.train import DatasetInfo, StepOutput, Task, TorchBatch
+
+STATISTICS_SAMPLES = 64
+
+
+def _merge(base: dict, override: dict) -> dict:
+    out = dict(base)
+    for k, v in override.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def build_config(model: dict[str, Any], info: DatasetInfo) -> CodeTalkerConfig:
+    model = dict(model)
+    preset = model.pop("preset", "small")
+    styles = tuple(info.train_subjects)
+    if preset == "small":
+        base = small_synth_config(styles, info.num_vertices)
+    elif preset == "vocaset":
+        base = paper_vocaset_config(styles)
+    else:
+        raise TalkmeshError(f"model.preset must be small or vocaset, got {preset!r}")
+    data = _merge(to_dict(base), model)
+    data["vq"]["num_vertices"] = info.num_vertices
+    data["stage2"]["styles"] = list(styles)
+    data["motion_fps"] = info.motion_fps
+    data["stage2"]["speech"]["frame_rate"] = (
+        info.motion_fps * data["stage2"]["audio_tokens_per_frame"]
+    )
+    return from_dict(CodeTalkerConfig, data, "model")
+
+
+def _build_stage1(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
+    net = CodeTalker(build_config(model, info))
+    if init is not None:
+        net.load_state_dict(load_model(init).state_dict(), strict=True)
+    return net
+
+
+def _step_stage1(net: CodeTalker, batch: TorchBatch) -> StepOutput:
+    motion = (batch.vertices - batch.templates[:, None]).flatten(2)
+    out = net.vqvae(motion, batch.motion_mask)
+    q = net.vqvae.quantizer
+    return StepOutput(out.loss, {"reconstruction": float(out.reconstruction.detach()),
+                                 "quantization": float(out.quantization.detach()),
+                                 "perplexity": q.perplexity(), "codes_used": float(q.used_codes())})  # fmt: skip
+
+
+def _build_stage2(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
+    if init is None:
+        raise TalkmeshError("task codetalker-stage2 needs init: the stage-1 release (.safetensors)")
+    stage1 = load_model(init)
+    cfg = build_config(model, info)
+    if to_dict(cfg.vq) != to_dict(stage1.cfg.vq):
+        raise TalkmeshError(f"{init}: its VQ-VAE config differs from this recipe's model.vq")
+    net = CodeTalker(cfg)
+    net.vqvae.load_state_dict(stage1.vqvae.state_dict(), strict=True)
+    net.vqvae.requires_grad_(False)
+    return net
+
+
+def _step_stage2(net: CodeTalker, batch: TorchBatch) -> StepOutput:
+    net.vqvae.eval()  # frozen: no codebook usage updates
+    out = net(
+        batch.audio,
+        batch.audio_lengths,
+        batch.vertices,
+        batch.templates,
+        batch.styles,
+        batch.motion_mask,
+    )
+    return StepOutput(
+        out.loss,
+        {"feature": float(out.feature_loss.detach()), "motion": float(out.motion_loss.detach())},
+    )
+
+
+def _prepare(net: CodeTalker, dataset) -> None:
+    """The mel encoder's normalisation (a buffer) from training audio."""
+    if not hasattr(net.speech, "set_statistics"):
+        return
+    step = max(1, len(dataset) // STATISTICS_SAMPLES)
+    audio = torch.cat([torch.from_numpy(dataset[i].audio) for i in range(0, len(dataset), step)])
+    net.speech.set_statistics(audio[None])
+
+
+STAGE1 = Task(
+    name="codetalker-stage1",
+    build=_build_stage1,
+    step=_step_stage1,
+    parameters=lambda net: net.vqvae.parameters(),
+    save=save_model,
+)
+STAGE2 = Task(
+    name="codetalker-stage2",
+    build=_build_stage2,
+    step=_step_stage2,
+    parameters=lambda net: (p for n, p in net.named_parameters() if not n.startswith("vqvae.")),
+    save=save_model,
+    prepare=_prepare,
+)

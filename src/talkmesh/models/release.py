@@ -1,0 +1,92 @@
+"""Released models: one self-describing ``.safetensors`` file (weights + JSON config + format
+version in the metadata), loaded with ``strict=True`` and no pickle.
+
+    model = talkmesh.load_model("runs/ct2/model.safetensors")   # or a bundled name
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from talkmesh.config import from_dict, to_dict
+from talkmesh.errors import MissingDependencyError, TalkmeshError
+
+FORMAT_VERSION = 1
+MODELS_DIR = Path(__file__).resolve().parents[1] / "data" / "models"
+
+
+def _families():
+    from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig
+
+    return {"codetalker": (CodeTalker, CodeTalkerConfig)}
+
+
+def save_model(model: nn.Module, path: str | Path, *, dtype: torch.dtype | None = None) -> Path:
+    """Write ``model`` (its ``cfg`` travels in the metadata); ``dtype`` e.g. torch.float16 to ship."""
+    try:
+        from safetensors.torch import save_file
+    except ImportError:
+        raise MissingDependencyError("safetensors", "models", "saving models") from None
+    family = next((name for name, (cls, _) in _families().items() if isinstance(model, cls)), None)
+    if family is None:
+        raise TalkmeshError(f"cannot release a {type(model).__name__}")
+    state = {}
+    for k, v in model.state_dict().items():
+        v = v.detach().cpu().contiguous()
+        state[k] = v.to(dtype) if dtype is not None and v.is_floating_point() else v
+    meta = {"format": "talkmesh-model", "format_version": str(FORMAT_VERSION), "family": family,
+            "config": json.dumps(to_dict(model.cfg))}  # fmt: skip
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(state, str(tmp), metadata=meta)
+    tmp.replace(path)
+    return path
+
+
+def resolve(name_or_path: str | Path) -> Path:
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    bundled = MODELS_DIR / f"{name_or_path}.safetensors"
+    if bundled.is_file():
+        return bundled
+    names = sorted(p.stem for p in MODELS_DIR.glob("*.safetensors")) if MODELS_DIR.is_dir() else []
+    raise TalkmeshError(
+        f"model '{name_or_path}' is neither a file nor a bundled model"
+        + (f" ({', '.join(names)})" if names else "")
+    )
+
+
+def load_model(name_or_path: str | Path, *, dtype: torch.dtype = torch.float32) -> nn.Module:
+    """Rebuild a released model offline from its file alone (``strict=True``), in eval mode."""
+    try:
+        from safetensors import safe_open
+        from safetensors.torch import load_file
+    except ImportError:
+        raise MissingDependencyError("safetensors", "models", "loading models") from None
+    path = resolve(name_or_path)
+    try:
+        with safe_open(str(path), "pt") as f:
+            meta = f.metadata() or {}
+        state = load_file(str(path))
+    except Exception as e:  # safetensors raises its own error types on corrupt files
+        raise TalkmeshError(
+            f"{path}: not a readable .safetensors model ({type(e).__name__})"
+        ) from None
+    if meta.get("format") != "talkmesh-model":
+        raise TalkmeshError(f"{path}: not a talkmesh model release")
+    if int(meta.get("format_version", 0)) > FORMAT_VERSION:
+        raise TalkmeshError(
+            f"{path}: written by a newer talkmesh (format {meta['format_version']}): upgrade"
+        )
+    cls, cfg_cls = _families()[meta["family"]]
+    model = cls(from_dict(cfg_cls, json.loads(meta["config"])))
+    model.load_state_dict(
+        {k: v.to(dtype) if v.is_floating_point() else v for k, v in state.items()}, strict=True
+    )
+    return model.to(dtype).eval()

@@ -1,0 +1,105 @@
+"""Speech encoders behind one interface: ``forward(audio (B, S), audio_lengths (B,) | None,
+num_frames) -> (B, T, D)`` at the motion frame rate, resampled generally (no dataset branches).
+
+* ``mel``: MeshTalk's log-mel convolutional encoder, trained from scratch (fast, no weights needed).
+* ``wav2vec2``: transformers' ``Wav2Vec2Model`` (CodeTalker's choice) from a local path or hub id
+  (``source``), or a random model from ``hf_config`` (tests); its CNN feature extractor is frozen;
+  features (50 Hz) are linearly interpolated to the motion frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from talkmesh.errors import MissingDependencyError, TalkmeshError
+
+
+@dataclass(frozen=True)
+class SpeechEncoderConfig:
+    kind: str = "mel"  # "mel" | "wav2vec2"
+    dim: int = 128  # mel: output width (wav2vec2: taken from the model)
+    frame_rate: float = (
+        30.0  # tokens per second the caller asks for (motion fps x tokens per frame)
+    )
+    source: str | None = None  # wav2vec2: local path or hub id for from_pretrained
+    hf_config: dict[str, Any] = field(default_factory=dict)  # wav2vec2: a config for random weights
+    lookahead_ms: float = 100.0  # mel: audio after the frame it may see
+    freeze_cnn: bool = True
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("mel", "wav2vec2"):
+            raise ValueError(f"speech.kind must be mel or wav2vec2, got {self.kind!r}")
+
+
+def interpolate_frames(features: Tensor, num_frames: int) -> Tensor:
+    """(B, N, D) features at any rate -> (B, T, D), linear interpolation over time."""
+    return F.interpolate(
+        features.transpose(1, 2), size=num_frames, mode="linear", align_corners=True
+    ).transpose(1, 2)
+
+
+class Wav2Vec2Encoder(nn.Module):
+    def __init__(self, cfg: SpeechEncoderConfig) -> None:
+        super().__init__()
+        try:
+            from transformers import Wav2Vec2Config, Wav2Vec2Model
+        except ImportError:
+            raise MissingDependencyError(
+                "transformers", "models", "the wav2vec2 speech encoder"
+            ) from None
+        if cfg.source:
+            try:
+                self.model = Wav2Vec2Model.from_pretrained(cfg.source)
+            except OSError as e:
+                raise TalkmeshError(f"cannot load wav2vec2 from {cfg.source}: {e}") from None
+        else:
+            self.model = Wav2Vec2Model(Wav2Vec2Config(**cfg.hf_config))
+        if cfg.freeze_cnn:
+            self.model.feature_extractor._freeze_parameters()
+        self.dim = self.model.config.hidden_size
+
+    def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
+        mask = None
+        if audio_lengths is not None:
+            mask = (
+                torch.arange(audio.shape[1], device=audio.device)[None] < audio_lengths[:, None]
+            ).long()
+        hidden = self.model(audio, attention_mask=mask).last_hidden_state
+        if audio_lengths is None:
+            return interpolate_frames(hidden, num_frames)
+        # each sample is interpolated over its own valid features, so padding changes nothing
+        rates = hidden.shape[1] / audio.shape[1]
+        out = []
+        for b in range(audio.shape[0]):
+            n = max(1, int(round(float(audio_lengths[b]) * rates)))
+            out.append(interpolate_frames(hidden[b : b + 1, :n], num_frames))
+        return torch.cat(out)
+
+
+class MelEncoder(nn.Module):
+    def __init__(self, cfg: SpeechEncoderConfig) -> None:
+        super().__init__()
+        from talkmesh.models.meshtalk import MelAudioEncoder, MelConfig
+
+        self.encoder = MelAudioEncoder(
+            MelConfig(out_dim=cfg.dim, lookahead_ms=cfg.lookahead_ms), cfg.frame_rate
+        )
+        self.dim = cfg.dim
+
+    def set_statistics(self, audio: Tensor) -> None:
+        self.encoder.set_statistics(audio)
+
+    def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
+        return self.encoder(audio, audio_lengths, num_frames)
+
+
+def build_speech_encoder(cfg: SpeechEncoderConfig) -> nn.Module:
+    """The encoder for ``cfg.kind``; it has ``.dim`` and the forward described in the module doc."""
+    if cfg.kind == "wav2vec2":
+        return Wav2Vec2Encoder(cfg)
+    return MelEncoder(cfg)

@@ -1,0 +1,189 @@
+"""CodeTalker invariants on tiny configurations."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from talkmesh.errors import TalkmeshError
+from talkmesh.models.codetalker import (
+    CodeTalker,
+    CodeTalkerConfig,
+    Quantizer,
+    Stage2Config,
+    VQConfig,
+    temporal_bias,
+)
+from talkmesh.models.release import load_model, save_model
+from talkmesh.models.speech import SpeechEncoderConfig
+
+SR = 16_000
+FPS = 30
+
+
+def tiny(vq_layers: int = 1, speech: str = "mel") -> CodeTalker:
+    torch.manual_seed(0)
+    hf = dict(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, intermediate_size=32,
+              conv_dim=(8, 8), conv_stride=(5, 64), conv_kernel=(10, 64), num_feat_extract_layers=2,
+              num_conv_pos_embeddings=4, num_conv_pos_embedding_groups=2)  # fmt: skip
+    cfg = CodeTalkerConfig(
+        vq=VQConfig(
+            num_vertices=20,
+            hidden=32,
+            layers=vq_layers,
+            heads=2,
+            ff=64,
+            components=4,
+            code_dim=8,
+            codebook_size=16,
+        ),
+        stage2=Stage2Config(
+            d_model=32,
+            heads=2,
+            ff=64,
+            layers=2,
+            period=5,
+            styles=("a", "b"),
+            speech=SpeechEncoderConfig(kind=speech, dim=16, hf_config=hf),
+        ),  # fmt: skip
+    )
+    model = CodeTalker(cfg)
+    for p in (
+        model.feat_map.parameters()
+    ):  # the zero-initialised output map would make every frame alike
+        torch.nn.init.normal_(p, std=0.5)
+    return model.eval()
+
+
+def clip(frames: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(1, frames * SR // FPS, generator=g), torch.randn(
+        1, frames, 20, 3, generator=g
+    ) * 0.01
+
+
+def test_quantize_lookup_round_trip():
+    vq = Quantizer(16, 8, 0.25).eval()
+    codes = torch.randint(0, 16, (2, 5, 4))
+    z = vq.lookup(codes) + 1e-4 * torch.randn(2, 5, 4, 8)  # near the codebook entries
+    z_q, found, loss = vq(z)
+    assert torch.equal(found, codes)
+    torch.testing.assert_close(z_q, vq.lookup(found))
+    assert loss.item() < 1e-6
+
+
+def test_quantizer_straight_through_and_ema():
+    vq = Quantizer(16, 8, 0.25, ema=True, restart=True).train()
+    z = torch.randn(2, 5, 4, 8, requires_grad=True)
+    z_q, _, loss = vq(z)
+    (z_q.sum() + loss).backward()
+    assert z.grad is not None and torch.isfinite(z.grad).all()
+    assert vq.usage.sum() > 0 and 1 <= vq.perplexity() <= 16
+
+
+def test_vqvae_reconstructs_after_a_few_steps():
+    model = tiny()
+    motion = clip(10)[1].flatten(2)
+    opt = torch.optim.Adam(model.vqvae.parameters(), lr=3e-3)
+    model.train()
+    first = model.vqvae(motion).loss.item()
+    for _ in range(30):
+        opt.zero_grad()
+        out = model.vqvae(motion)
+        out.loss.backward()
+        opt.step()
+    assert out.loss.item() < first
+    assert out.motion.shape == motion.shape
+
+
+def test_padded_batch_equals_single_samples():
+    model = tiny()
+    (a_audio, a_v), (b_audio, b_v) = clip(7, 1), clip(11, 2)
+    audio = torch.zeros(2, b_audio.shape[1])
+    audio[0, : a_audio.shape[1]], audio[1] = a_audio[0], b_audio[0]
+    verts = torch.zeros(2, 11, 20, 3)
+    verts[0, :7], verts[1] = a_v[0], b_v[0]
+    mask = torch.zeros(2, 11, dtype=torch.bool)
+    mask[0, :7], mask[1] = True, True
+    lengths = torch.tensor([a_audio.shape[1], b_audio.shape[1]])
+    templ = torch.zeros(2, 20, 3)
+    styles = torch.tensor([0, 1])
+    with torch.no_grad():
+        batch = model(audio, lengths, verts, templ, styles, mask)
+        alone_a = model(a_audio, None, a_v, templ[:1], styles[:1])
+        alone_b = model(b_audio, None, b_v, templ[:1], styles[1:])
+    torch.testing.assert_close(batch.motion[0, :7], alone_a.motion[0], atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(batch.motion[1], alone_b.motion[0], atol=1e-5, rtol=1e-4)
+
+
+def test_fast_generation_equals_naive_when_the_vq_decoder_has_no_attention():
+    model = tiny(vq_layers=0)  # then the only difference (bidirectional attention) is gone
+    audio, _ = clip(15)
+    templ = torch.zeros(1, 20, 3)
+    naive = model.generate(audio, templ, styles=torch.tensor([1]), mode="naive")
+    fast = model.generate(audio, templ, styles=torch.tensor([1]), mode="fast")
+    torch.testing.assert_close(fast, naive)
+    assert naive.shape == (1, 15, 20, 3) and naive.std(dim=1).max() > 0
+
+
+def test_fast_generation_is_causal_in_its_codes():
+    model = tiny()
+    audio, _ = clip(20)
+    t, lookahead = 9, 4  # the mel encoder sees 100 ms (3 frames) ahead
+    changed = audio.clone()
+    start = (t + lookahead) * SR // FPS
+    changed[:, start:] = torch.randn_like(changed[:, start:])
+    style = torch.tensor([0])
+    tok_a, tok_b = model.audio_tokens(audio, None, 20), model.audio_tokens(changed, None, 20)
+    assert torch.equal(tok_a[:, : t + 1], tok_b[:, : t + 1])  # the speech features are causal
+    assert not torch.allclose(tok_a[:, t + 1 + lookahead :], tok_b[:, t + 1 + lookahead :])
+    # ... and the decoder sees nothing later: change every later token and the codes up to t stay
+    tok_c = tok_a.clone()
+    tok_c[:, t + 1 :] = torch.randn_like(tok_c[:, t + 1 :]) * 10
+    a = model._generate_fast(model.style_vector(style), model._cross(tok_a), 20)
+    c = model._generate_fast(model.style_vector(style), model._cross(tok_c), 20)
+    assert torch.equal(a[:, : t + 1], c[:, : t + 1])
+    assert not torch.equal(a, c)
+
+
+def test_style_interpolation_and_unseen_speakers():
+    model = tiny()
+    audio, _ = clip(6)
+    templ = torch.zeros(1, 20, 3)
+    pure = model.generate(audio, templ, styles=torch.tensor([0]))
+    mixed = model.generate(audio, templ, style_weights=torch.tensor([[1.0, 0.0]]))
+    torch.testing.assert_close(pure, mixed)
+    with pytest.raises(TalkmeshError, match="unseen speaker"):
+        model.generate(audio, templ, styles=torch.tensor([-1]))
+
+
+def test_temporal_bias_is_periodic_and_causal():
+    b = temporal_bias(2, 4, 4, period=2)
+    assert (
+        torch.isinf(b[0, 0, 1])
+        and b[0, 3, 0] == -0.25
+        and b[1, 3, 0] == -1 / 16
+        and b[0, 1, 0] == 0
+    )
+
+
+def test_save_load_gives_identical_output(tmp_path):
+    model = tiny()
+    path = save_model(model, tmp_path / "m.safetensors")
+    again = load_model(path)
+    audio, _ = clip(8)
+    templ = torch.zeros(1, 20, 3)
+    torch.testing.assert_close(again.generate(audio, templ, styles=torch.tensor([0])),
+                               model.generate(audio, templ, styles=torch.tensor([0])))  # fmt: skip
+    (tmp_path / "bad.safetensors").write_bytes(b"not a model")
+    with pytest.raises(TalkmeshError, match="bad.safetensors"):
+        load_model(tmp_path / "bad.safetensors")
+
+
+def test_wav2vec2_encoder_behind_the_same_interface():
+    model = tiny(speech="wav2vec2")
+    audio, verts = clip(9)
+    out = model(audio, None, verts, torch.zeros(1, 20, 3), torch.tensor([0]))
+    assert out.motion.shape == (1, 9, 60) and torch.isfinite(out.loss)
+    cnn = model.speech.model.feature_extractor
+    assert not any(p.requires_grad for p in cnn.parameters())  # the CNN stays frozen
