@@ -77,7 +77,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from talkmesh.assets import load_head, load_template
-    from talkmesh.pipeline import animate
+    from talkmesh.pipeline import animate, parse_style
 
     inputs = [Path(a) for a in args.audio]
     outputs = _parse_outputs(args.output or [DEFAULT_OUTPUT], inputs)
@@ -89,7 +89,13 @@ def cmd_animate(args: argparse.Namespace) -> int:
         bar.set_description(audio.name)
         try:
             anim = animate(
-                audio, head=head, text=args.text, fps=args.fps, seed=args.seed, model=args.model
+                audio,
+                head=head,
+                text=args.text,
+                fps=args.fps,
+                seed=args.seed,
+                model=args.model,
+                style_mix=parse_style(args.style),
             )
             for p in paths:
                 write_animation(anim, p, overwrite=args.overwrite, size=args.size)
@@ -151,7 +157,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     import shutil
 
     from talkmesh.assets import default_identity, list_identities, load_head
-    from talkmesh.pipeline import MODELS
+    from talkmesh.pipeline import available_models
 
     head = load_head()
     print(f"talkmesh {__version__}")
@@ -162,7 +168,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     )
     ids = list_identities()
     print(f"identities ({len(ids)}, default {default_identity()}): {', '.join(ids)}")
-    print(f"models   {', '.join(MODELS)}")
+    print(f"models   {', '.join(available_models())}")
     try:
         import torch
 
@@ -295,7 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     a.add_argument("--seed", type=int, default=0, help="seed of blinks and other free motion")
     a.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
-    a.add_argument("--model", default="procedural", help="animator (default procedural)")
+    a.add_argument("--model", default="procedural",
+                   help="procedural, a bundled model or a .safetensors release (default procedural)")  # fmt: skip
+    a.add_argument("--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)")
     common(a)
     a.set_defaults(func=cmd_animate)
 

@@ -19,6 +19,14 @@ MAX_FPS = 240.0
 MODELS = ("procedural",)
 
 
+def available_models() -> list[str]:
+    """``procedural`` plus the bundled learned models (``talkmesh/data/models/*.safetensors``)."""
+    from talkmesh.models.release import MODELS_DIR
+
+    bundled = sorted(p.stem for p in MODELS_DIR.glob("*.safetensors")) if MODELS_DIR.is_dir() else []
+    return [*MODELS, *bundled]
+
+
 def num_frames_for(num_samples: int, sr: int, fps: float) -> int:
     """Frames covering the audio (at least one)."""
     return max(1, int(round(num_samples / sr * fps)))
@@ -34,6 +42,7 @@ def animate(
     seed: int = 0,
     style: SpeakingStyle | None = None,
     model: str = "procedural",
+    style_mix: dict[str, float] | None = None,
 ) -> Animation:
     """Animate a face from speech.
 
@@ -45,19 +54,21 @@ def animate(
         fps: output frame rate.
         seed: seed of the audio-independent motion (blinks, brow drift, gaze).
         style: the speaker's style.
-        model: the animator (``procedural``; learned models plug in here).
+        model: ``procedural`` or a learned model: a bundled name or a ``.safetensors`` release.
+        style_mix: learned models: weights over the training speakers (``{"A": 0.7, "B": 0.3}``);
+            default the mean of all of them (the model has never heard this speaker).
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
     """
-    if model not in MODELS:
-        raise TalkmeshError(f"unknown model '{model}': available models are {', '.join(MODELS)}")
     if not (0 < fps <= MAX_FPS):
         raise TalkmeshError(f"--fps must be in (0, {MAX_FPS:g}], got {fps:g}")
     head = head or load_head()
     wave = load_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
     if wave.ndim != 1 or not len(wave):
         raise TalkmeshError("audio must be a non-empty mono waveform")
+    if model != "procedural":
+        return animate_learned(wave, head, model, fps=fps, style_mix=style_mix)
     if phones is None:
         phones = recognize_phones(wave, SAMPLE_RATE, text=text)
     num_frames = num_frames_for(len(wave), SAMPLE_RATE, fps)
@@ -74,4 +85,70 @@ def animate(
         weight_names=list(ARKIT_NAMES),
         template=head.template,
         basis=head.blendshapes,
+    )
+
+
+def parse_style(text: str | None) -> dict[str, float] | None:
+    """``A:0.7,B:0.3`` -> {"A": 0.7, "B": 0.3}; a bare name means weight 1."""
+    if not text:
+        return None
+    out: dict[str, float] = {}
+    for item in text.split(","):
+        name, _, weight = item.strip().partition(":")
+        try:
+            out[name] = float(weight) if weight else 1.0
+        except ValueError:
+            raise TalkmeshError(f"--style {text}: '{item}' must look like NAME:WEIGHT") from None
+    return out
+
+
+def animate_learned(
+    wave: np.ndarray, head: Head, model: str, *, fps: float, style_mix: dict[str, float] | None
+) -> Animation:
+    """Animate with a released learned model (CodeTalker) on ``head``'s neutral face."""
+    try:
+        import torch
+    except ImportError:
+        raise TalkmeshError("learned models need torch: run `make setup`") from None
+    from talkmesh.models.release import load_model
+
+    net = load_model(model)
+    cfg = net.cfg
+    if cfg.vq.num_vertices != head.num_vertices:
+        raise TalkmeshError(
+            f"model {model} animates {cfg.vq.num_vertices}-vertex meshes but the face has {head.num_vertices}"
+        )
+    styles = list(cfg.stage2.styles)
+    weights = np.full(len(styles), 1.0 / len(styles), np.float32)
+    if style_mix:
+        unknown = sorted(set(style_mix) - set(styles))
+        if unknown:
+            raise TalkmeshError(f"--style: unknown speaker {unknown[0]}; the model knows {', '.join(styles)}")
+        total = sum(style_mix.values())
+        if total <= 0:
+            raise TalkmeshError("--style weights must add up to more than 0")
+        weights = np.array([style_mix.get(s, 0.0) / total for s in styles], np.float32)
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    with torch.inference_mode():
+        verts = net.generate(
+            torch.from_numpy(wave)[None],
+            torch.from_numpy(head.template)[None],
+            style_weights=torch.from_numpy(weights)[None],
+            num_frames=num_frames_for(len(wave), SAMPLE_RATE, cfg.motion_fps),
+        )[0].numpy()
+    if abs(fps - cfg.motion_fps) > 1e-6:  # resample the motion to the requested frame rate
+        t_in = np.arange(len(verts)) / cfg.motion_fps
+        t_out = np.arange(num_frames_for(len(wave), SAMPLE_RATE, fps)) / fps
+        pos = np.clip(t_out * cfg.motion_fps, 0, len(t_in) - 1)
+        i0 = np.floor(pos).astype(int)
+        i1 = np.minimum(i0 + 1, len(t_in) - 1)
+        w = (pos - i0)[:, None, None].astype(np.float32)
+        verts = verts[i0] * (1 - w) + verts[i1] * w
+    return Animation(
+        vertices=verts.astype(np.float32),
+        faces=head.faces,
+        fps=fps,
+        audio=wave,
+        sample_rate=SAMPLE_RATE,
+        template=head.template,
     )

@@ -618,23 +618,23 @@ class CodeTalker(nn.Module):
         conv_inputs: list[Tensor] = []
         codes = []
         x_in = style[:, None]
+        device = style.device
+        # everything that does not depend on the generated motion is computed once, up front
+        ppe = periodic_encoding(num_frames, s2.d_model, s2.period, device)[:, None]  # (T, 1, d)
+        vq_pos = sinusoid(torch.arange(num_frames, device=device), dec.cfg.hidden)[:, None]
+        full_bias = temporal_bias(s2.heads, 1, window, s2.period, device, q_offset=window - 1)[None]
         for t in range(num_frames):
-            x = x_in + periodic_encoding(1, s2.d_model, s2.period, x_in.device, offset=t)
+            x = x_in + ppe[t]
             keys = min(t + 1, window)
-            bias = temporal_bias(s2.heads, 1, keys, s2.period, x.device, q_offset=keys - 1)[None]
+            bias = full_bias[..., window - keys :]
             feats = self._decoder(x, [c[:, t : t + 1] for c in cross], bias, caches)
             q = self.vqvae.quantizer(feats.view(B, 1, vq.components, vq.code_dim))
             codes.append(q.codes[:, 0])
             # causal VQ-decoder step: conv over the last frames (replicate padding on the right)
             conv_inputs.append(dec.inp(q.z_q.flatten(2)))
             conv_inputs = conv_inputs[-3:]
-            hist = torch.cat(conv_inputs, dim=1)
-            h = dec.mid(dec.conv(hist)[:, -1:])
-            h = h + sinusoid(torch.tensor([t], device=h.device), h.shape[-1])
-            vkeys = min(t + 1, window)
-            vbias = torch.zeros(1, 1, 1, vkeys, device=h.device) if vkeys else None
+            h = dec.mid(dec.conv(torch.cat(conv_inputs, dim=1))[:, -1:]) + vq_pos[t]
             for n, block in enumerate(dec.blocks):
-                h = block(h, vbias, vq_caches[n])
-            h = dec.norm(h)
-            x_in = F.linear(h, fold_w, fold_b) + style[:, None]
+                h = block(h, None, vq_caches[n])
+            x_in = F.linear(dec.norm(h), fold_w, fold_b) + style[:, None]
         return torch.stack(codes, dim=1)
