@@ -251,6 +251,18 @@ def cmd_baseline(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_predict(args: argparse.Namespace) -> int:
+    from talkmesh.evaluate import write_model_predictions
+
+    n = write_model_predictions(
+        args.dataset, args.data, args.out, args.model, split=args.split,
+        conditions=args.conditions, mode=args.mode, progress=not args.quiet,
+    )  # fmt: skip
+    if not args.quiet:
+        print(f"wrote {n} predictions to {args.out}")
+    return 0
+
+
 def cmd_prepare_biwi(args: argparse.Namespace) -> int:
     from talkmesh.biwi import prepare_biwi
 
@@ -303,7 +315,9 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
     a.add_argument("--model", default="procedural",
                    help="procedural, a bundled model or a .safetensors release (default procedural)")  # fmt: skip
-    a.add_argument("--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)")
+    a.add_argument(
+        "--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)"
+    )
     common(a)
     a.set_defaults(func=cmd_animate)
 
@@ -360,6 +374,19 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("-o", "--out", required=True, help="output directory for the .npy predictions")
     bl.add_argument("-q", "--quiet", action="store_true")
     bl.set_defaults(func=cmd_baseline)
+
+    pr = sub.add_parser("predict", help="write a learned model's predictions for a dataset split")
+    pr.add_argument("--model", required=True, help="a .safetensors release or a bundled model")
+    pr.add_argument("--dataset", required=True, help="dataset kind")
+    pr.add_argument("--data", required=True, help="dataset root")
+    pr.add_argument("--split", default="test")
+    pr.add_argument(
+        "--conditions", action="store_true", help="unseen speakers: one file per training style"
+    )
+    pr.add_argument("--mode", choices=("fast", "naive"), default="fast", help="generation mode")
+    pr.add_argument("-o", "--out", required=True, help="output directory")
+    pr.add_argument("-q", "--quiet", action="store_true")
+    pr.set_defaults(func=cmd_predict)
 
     pb = sub.add_parser(
         "prepare-biwi", help="CodeTalker's BIWI preprocessing into the VOCASET layout"

@@ -225,3 +225,71 @@ def write_baseline(
         np.save(path, pred.reshape(len(pred), -1).astype(np.float32))
         written += 1
     return written
+
+
+def write_model_predictions(
+    kind: str,
+    data: str | Path,
+    out_dir: str | Path,
+    model: str,
+    *,
+    split: str = "test",
+    conditions: bool = False,
+    mode: str = "fast",
+    progress: bool = True,
+) -> int:
+    """Predictions of a learned model (a release file or bundled name) for a split.
+
+    Speakers seen in training use their own style. Unseen speakers get the mean of the training
+    styles (``SUBJECT_SENTENCE.npy``) or, with ``conditions``, one prediction per training style
+    (``SUBJECT_SENTENCE_condition_STYLE.npy``), as the anchors evaluate them.
+    """
+    import torch
+    from tqdm import tqdm
+
+    from talkmesh.models.release import load_model
+
+    net = load_model(model)
+    styles = list(net.cfg.stage2.styles)
+    dataset = open_dataset(kind, data, split)
+    if net.cfg.vq.num_vertices != len(dataset.templates[next(iter(dataset.templates))]):
+        raise TalkmeshError(f"model {model} and the {kind} data at {data} differ in vertex count")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = 0
+    for index in tqdm(range(len(dataset)), desc="predict", unit="seq", disable=not progress):
+        sample = dataset[index]
+        if sample.subject in styles:
+            jobs = [
+                (
+                    f"{sample.name}.npy",
+                    torch.nn.functional.one_hot(
+                        torch.tensor(styles.index(sample.subject)), len(styles)
+                    ),
+                )
+            ]
+        elif conditions:
+            jobs = [
+                (
+                    f"{sample.name}_condition_{s}.npy",
+                    torch.nn.functional.one_hot(torch.tensor(k), len(styles)),
+                )
+                for k, s in enumerate(styles)
+            ]
+        else:
+            jobs = [(f"{sample.name}.npy", torch.full((len(styles),), 1.0 / len(styles)))]
+        for filename, weights in jobs:
+            path = out / filename
+            if path.exists():
+                raise TalkmeshError(f"{path} already exists: choose an empty output directory")
+            with torch.inference_mode():
+                verts = net.generate(
+                    torch.from_numpy(sample.audio)[None],
+                    torch.from_numpy(sample.template)[None],
+                    style_weights=weights.float()[None],
+                    num_frames=len(sample.vertices),
+                    mode=mode,
+                )[0].numpy()
+            np.save(path, verts.reshape(len(verts), -1).astype(np.float32))
+            written += 1
+    return written

@@ -23,7 +23,9 @@ def available_models() -> list[str]:
     """``procedural`` plus the bundled learned models (``talkmesh/data/models/*.safetensors``)."""
     from talkmesh.models.release import MODELS_DIR
 
-    bundled = sorted(p.stem for p in MODELS_DIR.glob("*.safetensors")) if MODELS_DIR.is_dir() else []
+    bundled = (
+        sorted(p.stem for p in MODELS_DIR.glob("*.safetensors")) if MODELS_DIR.is_dir() else []
+    )
     return [*MODELS, *bundled]
 
 
@@ -123,7 +125,9 @@ def animate_learned(
     if style_mix:
         unknown = sorted(set(style_mix) - set(styles))
         if unknown:
-            raise TalkmeshError(f"--style: unknown speaker {unknown[0]}; the model knows {', '.join(styles)}")
+            raise TalkmeshError(
+                f"--style: unknown speaker {unknown[0]}; the model knows {', '.join(styles)}"
+            )
         total = sum(style_mix.values())
         if total <= 0:
             raise TalkmeshError("--style weights must add up to more than 0")

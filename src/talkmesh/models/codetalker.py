@@ -340,10 +340,12 @@ class MotionEncoder(nn.Module):
         self.norm = nn.LayerNorm(cfg.hidden)
         self.out = nn.Linear(cfg.hidden, cfg.components * cfg.code_dim)
         self.cfg = cfg
+        # motion normalisation (set from training data; a buffer, so it travels with the weights)
+        self.register_buffer("scale", torch.ones(()))
 
     def forward(self, motion: Tensor, mask: Tensor | None = None) -> Tensor:
         """motion (B, T, V*3) -> z (B, T/P, H, C)."""
-        x = self.conv(hold_last_frame(F.leaky_relu(self.inp(motion), 0.2), mask))
+        x = self.conv(hold_last_frame(F.leaky_relu(self.inp(motion / self.scale), 0.2), mask))
         x = self.mid(x)
         x = x + sinusoid(torch.arange(x.shape[1], device=x.device), x.shape[-1])
         bias = padding_bias(
@@ -364,6 +366,7 @@ class MotionDecoder(nn.Module):
         self.norm = nn.LayerNorm(cfg.hidden)
         self.out = nn.Linear(cfg.hidden, cfg.num_vertices * 3)
         self.cfg = cfg
+        self.register_buffer("scale", torch.ones(()))
 
     def hidden(self, z_q: Tensor, mask: Tensor | None = None, causal: bool = False) -> Tensor:
         """z_q (B, T', H, C) -> (B, T, hidden) before the output map (T = T' * P)."""
@@ -383,7 +386,7 @@ class MotionDecoder(nn.Module):
 
     def forward(self, z_q: Tensor, mask: Tensor | None = None) -> Tensor:
         """z_q (B, T', H, C) -> motion (B, T, V*3)."""
-        return self.out(self.hidden(z_q, mask))
+        return self.out(self.hidden(z_q, mask)) * self.scale
 
 
 class VQOutput(NamedTuple):
@@ -416,12 +419,19 @@ class MotionVQVAE(nn.Module):
         z = self.encoder(motion, mask)
         q = self.quantizer(z, mask[:, ::P] if mask is not None else None)
         recon = self.decoder(q.z_q, mask)
-        err = (recon - motion).abs()
+        err = (recon - motion).abs() / self.decoder.scale  # L1 in units of the motion's spread
         if mask is not None:
             rec = (err * mask[:, :, None]).sum() / (mask.sum() * err.shape[-1]).clamp(min=1)
         else:
             rec = err.mean()
         return VQOutput(recon[:, :T], q.codes, rec + q.loss, rec, q.loss)
+
+    @torch.no_grad()
+    def set_scale(self, motion: Tensor) -> None:
+        """Normalise motion by its standard deviation over training data (..., V*3)."""
+        scale = motion.float().std().clamp(min=1e-8)
+        self.encoder.scale.copy_(scale)
+        self.decoder.scale.copy_(scale)
 
     def encode(self, motion: Tensor, mask: Tensor | None = None) -> Quantized:
         return self.quantizer(self.encoder(motion, mask), mask)
@@ -533,7 +543,10 @@ class CodeTalker(nn.Module):
         with torch.no_grad():
             target = self.vqvae.encode(motion, motion_mask).z_q  # (B, T, H, C)
         style = self.style_vector(styles)
-        prev = torch.cat([style[:, None], self.motion_map(motion[:, :-1]) + style[:, None]], dim=1)
+        scale = self.vqvae.decoder.scale  # the motion map reads normalised motion
+        prev = torch.cat(
+            [style[:, None], self.motion_map(motion[:, :-1] / scale) + style[:, None]], dim=1
+        )
         s2 = self.cfg.stage2
         x = prev + periodic_encoding(T, s2.d_model, s2.period, prev.device)
         bias = temporal_bias(s2.heads, T, T, s2.period, x.device)[None]
@@ -551,7 +564,10 @@ class CodeTalker(nn.Module):
         f_loss = ((feats - target).pow(2).flatten(2) * w).sum() / (
             w.sum() * feats[0, 0].numel()
         ).clamp(min=1)
-        m_loss = ((pred - motion).pow(2) * w).sum() / (w.sum() * motion.shape[-1]).clamp(min=1)
+        scale = self.vqvae.decoder.scale
+        m_loss = (((pred - motion) / scale).pow(2) * w).sum() / (w.sum() * motion.shape[-1]).clamp(
+            min=1
+        )
         return Stage2Output(pred, f_loss + m_loss, f_loss, m_loss)
 
     # -- generation -----------------------------------------------------------------------------
@@ -597,7 +613,7 @@ class CodeTalker(nn.Module):
                 q = self.vqvae.quantizer(feats.view(B, t + 1, H, C))
                 motion = self.vqvae.decoder(q.z_q)
                 codes.append(q.codes[:, -1])
-                nxt = self.motion_map(motion[:, -1]) + style
+                nxt = self.motion_map(motion[:, -1] / self.vqvae.decoder.scale) + style
                 inputs = torch.cat([inputs, nxt[:, None]], dim=1)
             all_codes = torch.stack(codes, dim=1)
         else:
@@ -613,6 +629,7 @@ class CodeTalker(nn.Module):
         vq_caches = [KVCache(window) for _ in self.vqvae.decoder.blocks]
         dec = self.vqvae.decoder
         # The VQ decoder's output map followed by the motion map is one linear map: fold them.
+        # (normalised motion in, so the decoder's scale cancels)
         fold_w = self.motion_map.weight @ dec.out.weight  # (d, hidden)
         fold_b = self.motion_map.weight @ dec.out.bias + self.motion_map.bias
         conv_inputs: list[Tensor] = []

@@ -108,12 +108,20 @@ def _prepare(net: CodeTalker, dataset) -> None:
     net.speech.set_statistics(audio[None])
 
 
+def _prepare_stage1(net: CodeTalker, dataset) -> None:
+    step = max(1, len(dataset) // STATISTICS_SAMPLES)
+    motion = torch.cat([torch.from_numpy(dataset[i].vertices - dataset[i].template).flatten(1)
+                        for i in range(0, len(dataset), step)])  # fmt: skip
+    net.vqvae.set_scale(motion)
+
+
 STAGE1 = Task(
     name="codetalker-stage1",
     build=_build_stage1,
     step=_step_stage1,
     parameters=lambda net: net.vqvae.parameters(),
     save=save_model,
+    prepare=_prepare_stage1,
 )
 STAGE2 = Task(
     name="codetalker-stage2",
