@@ -101,3 +101,31 @@ def test_wrong_vertex_count_prediction(corpus, tmp_path, capsys):
         == 2
     )
     assert len(available_voices()) >= 3
+
+
+def test_learned_model_predictions_named_like_the_anchors(corpus, tmp_path):
+    from talkmesh.models.codetalker import CodeTalker
+    from talkmesh.models.codetalker_tasks import build_config
+    from talkmesh.models.release import save_model
+    from talkmesh.train import DatasetInfo
+
+    tiny = {"preset": "small",
+            "vq": {"hidden": 32, "layers": 1, "heads": 2, "ff": 64, "components": 4, "code_dim": 8, "codebook_size": 16},
+            "stage2": {"d_model": 32, "heads": 2, "ff": 64, "layers": 1, "speech": {"dim": 16}}}  # fmt: skip
+    info = DatasetInfo(
+        num_vertices=4766, motion_fps=30.0, train_subjects=("Synth_01_ada", "Synth_02_bo")
+    )
+    release = save_model(CodeTalker(build_config(tiny, info)), tmp_path / "m.safetensors")
+    out = tmp_path / "pred"
+    assert main(["predict", "--model", str(release), "--dataset", "synth", "--data", str(corpus),
+                 "--conditions", "-o", str(out), "-q"]) == 0  # fmt: skip
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [
+        "Synth_03_chidi_sentence02_condition_Synth_01_ada.npy",
+        "Synth_03_chidi_sentence02_condition_Synth_02_bo.npy",
+    ]
+    scores = evaluate("synth", corpus, out)
+    assert scores.n_sequences == 2 and {r.condition for r in scores.rows} == {
+        "Synth_01_ada",
+        "Synth_02_bo",
+    }
