@@ -80,11 +80,13 @@ def regions_figure(out: Path) -> None:
     save_small(fig, out)
 
 
-def lipsync_figure(clip: Path, text: str | None, out_plot: Path, out_sheet: Path) -> None:
+def lipsync_figure(
+    clip: Path, text: str | None, out_plot: Path, out_sheet: Path, model: str = "procedural"
+) -> None:
     from talkmesh.pipeline import animate
     from talkmesh.render import contact_sheet
 
-    anim = animate(clip, text=text)
+    anim = animate(clip, text=text, model=model)
     head = load_head()
     opening = lip_opening(anim.vertices, head.regions) * 1000
     from talkmesh.audio import load_audio
@@ -111,7 +113,8 @@ def lipsync_figure(clip: Path, text: str | None, out_plot: Path, out_sheet: Path
     ax.set_xlabel("time (s)")
     ax.set_ylabel("mm")
     ax.set_title(
-        f"{clip.name}: lip opening; red = /p b m/, blue = open vowels ({'aligned to transcript' if text else 'recognised'})"
+        f"{clip.name} ({model}): lip opening; red = /p b m/, blue = open vowels "
+        f"({'aligned to transcript' if text else 'recognised'} phones)"
     )
     ax.set_xlim(0, t[-1])
     fig.tight_layout()
@@ -130,7 +133,10 @@ def motion_figure(corpus: Path, preds: list[str], out: Path) -> None:
     rows = [("ground truth", [ds[i].vertices for i in range(len(ds))])]
     for item in preds:
         label, _, directory = item.partition("=")
-        seqs = [np.load(Path(directory) / f"{n}.npy").reshape(-1, head.num_vertices, 3) for n in ds.names]
+        seqs = [
+            np.load(Path(directory) / f"{n}.npy").reshape(-1, head.num_vertices, 3)
+            for n in ds.names
+        ]
         rows.append((label, seqs))
     stats = [(label, *motion_statistics(seqs)) for label, seqs in rows]
     top_mean = max(m.max() for _, m, _ in stats) * 1000
@@ -145,14 +151,55 @@ def motion_figure(corpus: Path, preds: list[str], out: Path) -> None:
         draw_mesh(axes[1, k], crop, head.faces, std * 1000 / top_std, "inferno")
         axes[0, k].set_title(f"{label}\nmean (max {mean.max() * 1000:.2f} mm/frame)", fontsize=8)
         axes[1, k].set_title(f"std (max {std.max() * 1000:.2f} mm/frame)", fontsize=8)
-    fig.suptitle(f"inter-frame motion per vertex, synthetic test split ({len(ds)} sequences)", fontsize=9)
+    fig.suptitle(
+        f"inter-frame motion per vertex, synthetic test split ({len(ds)} sequences)", fontsize=9
+    )
+    fig.tight_layout()
+    save_small(fig, out)
+
+
+def style_figure(model: str, clip: Path, a: str, b: str, out: Path) -> None:
+    """Paper Fig. 5: lip distance over time while the style moves from speaker a to speaker b."""
+    from talkmesh.pipeline import animate
+
+    head = load_head()
+    fig, (ax, ax2) = plt.subplots(
+        1, 2, figsize=(12, 3.4), dpi=80, gridspec_kw={"width_ratios": [3, 1]}
+    )
+    weights = np.linspace(0, 1, 6)
+    means = []
+    for w in weights:
+        anim = animate(
+            clip,
+            model=model,
+            style_mix={a: 1 - w, b: w} if 0 < w < 1 else {(a if w == 0 else b): 1.0},
+        )
+        opening = lip_opening(anim.vertices, head.regions) * 1000
+        means.append(opening.mean())
+        t = np.arange(anim.num_frames) / anim.fps
+        ax.plot(
+            t,
+            opening,
+            color=plt.get_cmap("coolwarm")(w),
+            lw=1.2,
+            label=f"{1 - w:.1f} {a} + {w:.1f} {b}",
+        )
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("lip opening (mm)")
+    ax.legend(fontsize=7)
+    ax.set_title(f"{clip.name}: style interpolation ({Path(model).stem})", fontsize=9)
+    ax2.plot(weights, means, "o-")
+    ax2.set_xlabel(f"weight of {b}")
+    ax2.set_ylabel("mean lip opening (mm)")
     fig.tight_layout()
     save_small(fig, out)
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("figure", choices=["regions", "lipsync", "motion"])
+    p.add_argument("figure", choices=["regions", "lipsync", "motion", "style"])
+    p.add_argument("--model", default="procedural", help="lipsync/style: the animator")
+    p.add_argument("--styles", default="", help="style: two training speakers A,B")
     p.add_argument("--pred", action="append", default=[], help="motion: LABEL=PRED_DIR (repeat)")
     p.add_argument("--corpus", default="corpus/synth", help="motion: the synthetic corpus")
     p.add_argument(
@@ -167,8 +214,17 @@ def main() -> None:
         motion_figure(Path(args.corpus), args.pred, DOCS / "motion_stats.png")
     else:
         clip = Path(args.clip)
+        tag = "" if args.model == "procedural" else f"{Path(args.model).stem}_"
+        if args.figure == "style":
+            a, b = args.styles.split(",")
+            style_figure(args.model, clip, a, b, DOCS / f"style_{tag}{clip.stem}.png")
+            return
         lipsync_figure(
-            clip, args.text, DOCS / f"lipsync_{clip.stem}.png", DOCS / f"contact_{clip.stem}.png"
+            clip,
+            args.text,
+            DOCS / f"lipsync_{tag}{clip.stem}.png",
+            DOCS / f"contact_{tag}{clip.stem}.png",
+            args.model,
         )
 
 
