@@ -542,7 +542,9 @@ class CodeTalker(nn.Module):
         motion = (vertices - templates[:, None]).flatten(2)
         with torch.no_grad():
             target = self.vqvae.encode(motion, motion_mask).z_q  # (B, T, H, C)
-        style = self.style_vector(styles)
+        # validation speakers outside the training set get the mean style (as in generation)
+        seen = styles.clamp(min=0)
+        style = torch.where((styles >= 0)[:, None], self.style(seen), self.style.weight.mean(0)[None])
         scale = self.vqvae.decoder.scale  # the motion map reads normalised motion
         prev = torch.cat(
             [style[:, None], self.motion_map(motion[:, :-1] / scale) + style[:, None]], dim=1
