@@ -212,6 +212,8 @@ def padding_bias(mask: Tensor | None, dtype: torch.dtype) -> Tensor | None:
 # ---------------------------------------------------------------------------------------------
 # Stage 1: the motion VQ-VAE
 
+SCALE_FLOOR = 0.05  # smallest per-coordinate motion scale, relative to the largest
+
 
 class Quantized(NamedTuple):
     z_q: Tensor  # (B, T, H, C) straight-through quantised features
@@ -237,6 +239,10 @@ class Quantizer(nn.Module):
         )
         self.beta, self.ema, self.decay, self.restart = beta, ema, decay, restart
         self.register_buffer("usage", torch.zeros(size))  # running code counts, for logging
+        # The codebook starts as encoder outputs of the first training batch: a codebook far from
+        # them (the usual tiny uniform init) leaves every frame on the same few codes for hundreds
+        # of steps while the decoder learns only the mean motion.
+        self.register_buffer("initialised", torch.zeros((), dtype=torch.bool))
         if ema:
             self.register_buffer("ema_count", torch.ones(size))
             self.register_buffer("ema_sum", self.codebook.detach().clone())
@@ -264,6 +270,16 @@ class Quantizer(nn.Module):
         )
         z_q = z + (q - z).detach()  # straight-through estimator
         return Quantized(z_q, codes.view(z.shape[:3]), loss)
+
+    @torch.no_grad()
+    def _init_from(self, vectors: Tensor) -> None:
+        if not len(vectors):
+            return
+        pick = torch.randint(len(vectors), (len(self.codebook),), device=vectors.device)
+        self.codebook.data.copy_(vectors[pick] + 1e-3 * torch.randn_like(self.codebook))
+        if self.ema:
+            self.ema_sum.copy_(self.codebook.data)
+        self.initialised.fill_(True)
 
     def lookup(self, codes: Tensor) -> Tensor:
         """codes (..., H) int64 -> (..., H, C) codebook vectors."""
@@ -340,8 +356,9 @@ class MotionEncoder(nn.Module):
         self.norm = nn.LayerNorm(cfg.hidden)
         self.out = nn.Linear(cfg.hidden, cfg.components * cfg.code_dim)
         self.cfg = cfg
-        # motion normalisation (set from training data; a buffer, so it travels with the weights)
-        self.register_buffer("scale", torch.ones(()))
+        # per-coordinate motion normalisation (set from training data; a buffer, so it travels with
+        # the weights): lips and nearly static vertices weigh alike in the L1 loss
+        self.register_buffer("scale", torch.ones(cfg.num_vertices * 3))
 
     def forward(self, motion: Tensor, mask: Tensor | None = None) -> Tensor:
         """motion (B, T, V*3) -> z (B, T/P, H, C)."""
@@ -366,7 +383,7 @@ class MotionDecoder(nn.Module):
         self.norm = nn.LayerNorm(cfg.hidden)
         self.out = nn.Linear(cfg.hidden, cfg.num_vertices * 3)
         self.cfg = cfg
-        self.register_buffer("scale", torch.ones(()))
+        self.register_buffer("scale", torch.ones(cfg.num_vertices * 3))
 
     def hidden(self, z_q: Tensor, mask: Tensor | None = None, causal: bool = False) -> Tensor:
         """z_q (B, T', H, C) -> (B, T, hidden) before the output map (T = T' * P)."""
@@ -427,9 +444,11 @@ class MotionVQVAE(nn.Module):
         return VQOutput(recon[:, :T], q.codes, rec + q.loss, rec, q.loss)
 
     @torch.no_grad()
-    def set_scale(self, motion: Tensor) -> None:
-        """Normalise motion by its standard deviation over training data (..., V*3)."""
-        scale = motion.float().std().clamp(min=1e-8)
+    def set_scale(self, motion: Tensor, floor: float = SCALE_FLOOR) -> None:
+        """Per-coordinate standard deviation of training motion (N, V*3), floored at ``floor`` x the
+        largest one, so nearly static vertices are not amplified into noise."""
+        std = motion.float().reshape(-1, motion.shape[-1]).std(0)
+        scale = std.clamp(min=float(std.max()) * floor)
         self.encoder.scale.copy_(scale)
         self.decoder.scale.copy_(scale)
 
