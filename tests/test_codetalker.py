@@ -187,3 +187,19 @@ def test_wav2vec2_encoder_behind_the_same_interface():
     assert out.motion.shape == (1, 9, 60) and torch.isfinite(out.loss)
     cnn = model.speech.model.feature_extractor
     assert not any(p.requires_grad for p in cnn.parameters())  # the CNN stays frozen
+
+
+def test_codebook_starts_at_encoder_outputs_and_motion_scale_is_per_coordinate():
+    vq = Quantizer(16, 8, 0.25).train()
+    z = torch.randn(2, 5, 4, 8) * 3
+    vq(z)
+    assert bool(vq.initialised)
+    dist = torch.cdist(vq.codebook.detach(), z.reshape(-1, 8)).min(1).values
+    assert dist.max() < 0.1  # every code sits on an encoder output
+    model = tiny()
+    motion = torch.zeros(50, 60)
+    motion[:, 0] = torch.randn(50) * 2.0  # one moving coordinate, the rest still
+    model.vqvae.set_scale(motion)
+    scale = model.vqvae.encoder.scale
+    assert scale[0] == pytest.approx(float(motion[:, 0].std()), rel=1e-5)
+    assert torch.allclose(scale[1:], scale[0] * 0.05)  # still coordinates get the floor
