@@ -250,6 +250,8 @@ class Quantizer(nn.Module):
     def forward(self, z: Tensor, mask: Tensor | None = None) -> Quantized:
         """z (B, T, H, C); mask (B, T) -> :class:`Quantized`."""
         flat = z.reshape(-1, z.shape[-1])
+        if self.training and not bool(self.initialised):
+            self._init_from(flat.detach() if mask is None else z.detach()[mask].reshape(-1, z.shape[-1]))
         dist = (
             flat.pow(2).sum(1, keepdim=True)
             - 2 * flat @ self.codebook.t()
