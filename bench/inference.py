@@ -20,7 +20,9 @@ import torch
 from talkmesh.models.codetalker import CodeTalker, paper_vocaset_config, small_synth_config
 
 SR = 16_000
-WAV2VEC2_BASE = dict(hidden_size=768, num_hidden_layers=12, num_attention_heads=12, intermediate_size=3072)
+WAV2VEC2_BASE = dict(
+    hidden_size=768, num_hidden_layers=12, num_attention_heads=12, intermediate_size=3072
+)
 
 
 def build(config: str) -> CodeTalker:
@@ -29,7 +31,9 @@ def build(config: str) -> CodeTalker:
     else:
         cfg = paper_vocaset_config()
         speech = cfg.stage2.speech.__class__(kind="wav2vec2", hf_config=WAV2VEC2_BASE)
-        cfg = cfg.__class__(vq=cfg.vq, stage2=cfg.stage2.__class__(**{**cfg.stage2.__dict__, "speech": speech}))
+        cfg = cfg.__class__(
+            vq=cfg.vq, stage2=cfg.stage2.__class__(**{**cfg.stage2.__dict__, "speech": speech})
+        )
     torch.manual_seed(0)
     model = CodeTalker(cfg).eval()
     for p in model.feat_map.parameters():  # zero-initialised in training; random here for real work
@@ -59,7 +63,9 @@ def main() -> None:
     model = build(args.config)
     params = sum(p.numel() for p in model.parameters()) / 1e6
     print(f"config {args.config}: {params:.0f} M parameters, {args.threads} threads")
-    rows = [("fast", 4.0), ("naive", 4.0), ("fast", 30.0)] + ([] if args.quick else [("fast", 600.0)])
+    rows = [("fast", 4.0), ("naive", 4.0), ("fast", 30.0)] + (
+        [] if args.quick else [("fast", 600.0)]
+    )
     run(model, 1.0, "fast")  # warm-up
     results = {}
     print("| mode | audio | time (s) | real-time factor | peak RSS (MB) |")
@@ -67,7 +73,10 @@ def main() -> None:
     for mode, seconds in rows:
         wall, mem = run(model, seconds, mode)
         results[(mode, seconds)] = wall
-        print(f"| {mode} | {seconds:g} s | {wall:.2f} | {wall / seconds:.3f} | {mem:.0f} |", flush=True)
+        print(
+            f"| {mode} | {seconds:g} s | {wall:.2f} | {wall / seconds:.3f} | {mem:.0f} |",
+            flush=True,
+        )
     print(f"\nnaive / fast at 4 s: {results[('naive', 4.0)] / results[('fast', 4.0)]:.1f}x")
 
 

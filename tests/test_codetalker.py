@@ -190,7 +190,8 @@ def test_wav2vec2_encoder_behind_the_same_interface():
 
 
 def test_codebook_starts_at_encoder_outputs_and_motion_scale_is_per_coordinate():
-    vq = Quantizer(16, 8, 0.25).train()
+    assert bool(Quantizer(16, 8, 0.25).initialised)  # default: the paper's random codebook
+    vq = Quantizer(16, 8, 0.25, init_from_data=True).train()
     z = torch.randn(2, 5, 4, 8) * 3
     vq(z)
     assert bool(vq.initialised)

@@ -48,6 +48,8 @@ class VQConfig:
     ema: bool = False  # exponential-moving-average codebook updates instead of the codebook loss
     ema_decay: float = 0.99
     dead_code_restart: bool = False  # re-seed unused codes from the batch (EMA mode)
+    codebook_from_data: bool = False  # start the codebook at the first batch's encoder outputs
+    # (off: on the synthetic corpus it collapsed usage to 13 of 256 codes)
 
     def __post_init__(self) -> None:
         for name in ("num_vertices", "hidden", "heads", "ff", "components", "code_dim",
@@ -232,6 +234,7 @@ class Quantizer(nn.Module):
         ema: bool = False,
         decay: float = 0.99,
         restart: bool = False,
+        init_from_data: bool = False,
     ):
         super().__init__()
         self.codebook = nn.Parameter(
@@ -242,7 +245,7 @@ class Quantizer(nn.Module):
         # The codebook starts as encoder outputs of the first training batch: a codebook far from
         # them (the usual tiny uniform init) leaves every frame on the same few codes for hundreds
         # of steps while the decoder learns only the mean motion.
-        self.register_buffer("initialised", torch.zeros((), dtype=torch.bool))
+        self.register_buffer("initialised", torch.tensor(not init_from_data))
         if ema:
             self.register_buffer("ema_count", torch.ones(size))
             self.register_buffer("ema_sum", self.codebook.detach().clone())
@@ -251,7 +254,9 @@ class Quantizer(nn.Module):
         """z (B, T, H, C); mask (B, T) -> :class:`Quantized`."""
         flat = z.reshape(-1, z.shape[-1])
         if self.training and not bool(self.initialised):
-            self._init_from(flat.detach() if mask is None else z.detach()[mask].reshape(-1, z.shape[-1]))
+            self._init_from(
+                flat.detach() if mask is None else z.detach()[mask].reshape(-1, z.shape[-1])
+            )
         dist = (
             flat.pow(2).sum(1, keepdim=True)
             - 2 * flat @ self.codebook.t()
@@ -424,7 +429,13 @@ class MotionVQVAE(nn.Module):
         self.cfg = cfg
         self.encoder = MotionEncoder(cfg)
         self.quantizer = Quantizer(
-            cfg.codebook_size, cfg.code_dim, cfg.beta, cfg.ema, cfg.ema_decay, cfg.dead_code_restart
+            cfg.codebook_size,
+            cfg.code_dim,
+            cfg.beta,
+            cfg.ema,
+            cfg.ema_decay,
+            cfg.dead_code_restart,
+            cfg.codebook_from_data,
         )
         self.decoder = MotionDecoder(cfg)
 
@@ -565,7 +576,9 @@ class CodeTalker(nn.Module):
             target = self.vqvae.encode(motion, motion_mask).z_q  # (B, T, H, C)
         # validation speakers outside the training set get the mean style (as in generation)
         seen = styles.clamp(min=0)
-        style = torch.where((styles >= 0)[:, None], self.style(seen), self.style.weight.mean(0)[None])
+        style = torch.where(
+            (styles >= 0)[:, None], self.style(seen), self.style.weight.mean(0)[None]
+        )
         scale = self.vqvae.decoder.scale  # the motion map reads normalised motion
         prev = torch.cat(
             [style[:, None], self.motion_map(motion[:, :-1] / scale) + style[:, None]], dim=1
