@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -18,6 +20,7 @@ from talkmesh.models.release import load_model, save_model
 from talkmesh.models.speech import SpeechEncoderConfig
 
 SR = 16_000
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 FPS = 30
 
 
@@ -204,3 +207,75 @@ def test_codebook_starts_at_encoder_outputs_and_motion_scale_is_per_coordinate()
     scale = model.vqvae.encoder.scale
     assert scale[0] == pytest.approx(float(motion[:, 0].std()), rel=1e-5)
     assert torch.allclose(scale[1:], scale[0] * 0.05)  # still coordinates get the floor
+
+
+@pytest.mark.parametrize("name", ["codetalker_synth", "codetalker_vocaset", "codetalker_biwi"])
+def test_recipes_have_two_stages_and_the_paper_sizes(name):
+    pytest.importorskip("yaml")
+    from talkmesh.models.codetalker_tasks import build_config
+    from talkmesh.train import DatasetInfo, load_recipes
+
+    stages = load_recipes(CONFIGS / f"{name}.yaml", ["train.seed=3", "stages.speech.train.lr=2e-4"])
+    assert [r.task for _, r in stages] == ["codetalker-stage1", "codetalker-stage2"]
+    assert all(r.train.seed == 3 for _, r in stages) and stages[1][1].train.lr == 2e-4
+    assert stages[1][1].init == f"{stages[0][1].train.out_dir}/model.safetensors"
+    info = DatasetInfo(num_vertices=100, motion_fps=25.0, train_subjects=("a", "b"))
+    cfg = build_config(stages[1][1].model, info)
+    assert cfg.vq.num_vertices == 100 and cfg.stage2.styles == ("a", "b")
+    if name == "codetalker_vocaset":
+        assert (cfg.vq.components, cfg.vq.code_dim, cfg.stage2.layers) == (16, 64, 6)
+    if name == "codetalker_biwi":
+        assert (cfg.vq.components, cfg.vq.code_dim, cfg.stage2.layers) == (8, 128, 12)
+        assert cfg.stage2.period == 25 and cfg.stage2.audio_tokens_per_frame == 2
+        assert cfg.stage2.speech.frame_rate == 50.0  # 25 fps x 2 tokens
+    if name != "codetalker_synth":
+        assert stages[0][1].train.epochs == 200 and stages[1][1].train.epochs == 100
+        assert cfg.stage2.speech.kind == "wav2vec2" and cfg.vq.loss == "l1"
+
+
+def test_recipe_stage_errors(tmp_path):
+    pytest.importorskip("yaml")
+    from talkmesh.train import load_recipes
+
+    bad = tmp_path / "r.yaml"
+    bad.write_text("stages:\n  a: {task: nothing}\n")
+    with pytest.raises(TalkmeshError, match="unknown task"):
+        load_recipes(bad)
+    bad.write_text("stages: [1, 2]\n")
+    with pytest.raises(TalkmeshError, match="must map stage names"):
+        load_recipes(bad)
+
+
+def test_windowed_vq_decode_equals_whole_decode_without_attention():
+    model = tiny(vq_layers=0)  # the conv sees 2 frames each side: 3 frames of context suffice
+    codes = torch.randint(0, 16, (2, 40, 4))
+    whole = model.vqvae.decode(codes)
+    torch.testing.assert_close(model.vqvae.decode(codes, window=7, context=3), whole)
+    attn = tiny(vq_layers=1)  # with attention the windows differ a little, but shapes agree
+    assert attn.vqvae.decode(codes, window=7, context=3).shape == whole.shape
+
+
+def test_long_audio_goes_through_wav2vec2_in_windows(monkeypatch):
+    from dataclasses import replace
+
+    model = tiny(speech="wav2vec2")
+    enc = model.speech
+    enc.cfg = replace(enc.cfg, window_seconds=0.5, context_seconds=0.25)
+    seen = []
+    inner = enc.model.forward
+    monkeypatch.setattr(
+        enc.model, "forward", lambda a, **k: seen.append(a.shape[1]) or inner(a, **k)
+    )
+    audio = torch.randn(1, 3 * SR)
+    with torch.no_grad():
+        feats = enc(audio, None, 90)
+        full = inner(audio).last_hidden_state
+    assert feats.shape == (1, 90, enc.dim) and len(seen) == 6 and max(seen) <= 1.0 * SR
+    windowed = enc.features(audio)
+    assert abs(windowed.shape[1] - full.shape[1]) <= 1  # the same feature rate as one pass
+    lengths = torch.tensor([3 * SR, 2 * SR])  # a padded batch: each sample on its own windows
+    batch = torch.cat([audio, torch.cat([audio[:, : 2 * SR], torch.zeros(1, SR)], 1)])
+    with torch.no_grad():
+        out = enc(batch, lengths, 90)
+        alone = enc(audio[:, : 2 * SR], None, 90)
+    torch.testing.assert_close(out[1:], alone)

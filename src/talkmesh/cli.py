@@ -273,17 +273,27 @@ def cmd_prepare_biwi(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from talkmesh.train import load_recipe, train
+    from talkmesh.train import load_recipes, train
 
     overrides = list(args.overrides)
     if args.devices is not None:
         overrides.append(f"train.devices={args.devices}")
     if args.num_nodes is not None:
         overrides.append(f"train.num_nodes={args.num_nodes}")
-    recipe = load_recipe(args.recipe, overrides)
-    release = train(recipe, resume=args.resume, progress=not args.quiet)
-    if not args.quiet:
-        print(f"wrote {release}")
+    stages = load_recipes(args.recipe, overrides)
+    names = [name for name, _ in stages]
+    if args.stage is not None:
+        if args.stage not in names:
+            raise TalkmeshError(
+                f"{args.recipe} has no stage {args.stage!r}: its stages are {', '.join(names)}"
+            )
+        stages = [s for s in stages if s[0] == args.stage]
+    for name, recipe in stages:
+        if len(names) > 1 and not args.quiet:
+            print(f"stage {name}: {recipe.task} -> {recipe.train.out_dir}")
+        release = train(recipe, resume=args.resume, progress=not args.quiet)
+        if not args.quiet:
+            print(f"wrote {release}")
     return 0
 
 
@@ -383,7 +393,12 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument(
         "--conditions", action="store_true", help="unseen speakers: one file per training style"
     )
-    pr.add_argument("--mode", choices=("fast", "naive"), default="fast", help="generation mode")
+    pr.add_argument(
+        "--mode",
+        choices=("fast", "naive", "reconstruct"),
+        default="fast",
+        help="generation mode; reconstruct: pass the true motion through the stage-1 VQ-VAE",
+    )
     pr.add_argument("-o", "--out", required=True, help="output directory")
     pr.add_argument("-q", "--quiet", action="store_true")
     pr.set_defaults(func=cmd_predict)
@@ -402,6 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
         "overrides", nargs="*", help="dotted overrides, e.g. train.lr=3e-4 data.batch_size=8"
     )
     tr.add_argument("--resume", action="store_true", help="continue the run in train.out_dir")
+    tr.add_argument("--stage", help="train only this stage of a multi-stage recipe")
     tr.add_argument("--devices", type=int, help="processes/GPUs per node (DDP when > 1)")
     tr.add_argument("--num-nodes", type=int, help="number of machines")
     tr.add_argument("-q", "--quiet", action="store_true")

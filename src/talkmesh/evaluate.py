@@ -283,13 +283,21 @@ def write_model_predictions(
             if path.exists():
                 raise TalkmeshError(f"{path} already exists: choose an empty output directory")
             with torch.inference_mode():
-                verts = net.generate(
-                    torch.from_numpy(sample.audio)[None],
-                    torch.from_numpy(sample.template)[None],
-                    style_weights=weights.float()[None],
-                    num_frames=len(sample.vertices),
-                    mode=mode,
-                )[0].numpy()
+                if (
+                    mode == "reconstruct"
+                ):  # stage 1 alone: how much of the motion the codebook keeps
+                    template = torch.from_numpy(sample.template)
+                    motion = (torch.from_numpy(sample.vertices) - template).flatten(1)[None]
+                    recon = net.vqvae(motion).motion[0]
+                    verts = (recon.reshape(len(recon), -1, 3) + template).numpy()
+                else:
+                    verts = net.generate(
+                        torch.from_numpy(sample.audio)[None],
+                        torch.from_numpy(sample.template)[None],
+                        style_weights=weights.float()[None],
+                        num_frames=len(sample.vertices),
+                        mode=mode,
+                    )[0].numpy()
             np.save(path, verts.reshape(len(verts), -1).astype(np.float32))
             written += 1
     return written

@@ -28,7 +28,7 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-from talkmesh.config import from_dict, load_config, to_dict
+from talkmesh.config import apply_overrides, from_dict, load_config, read_yaml, to_dict
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
 try:
@@ -106,6 +106,43 @@ def load_recipe(path: str | Path | None, overrides: list[str] = ()) -> Recipe:
     recipe = load_config(Recipe, path, overrides)
     task_spec(recipe.task)  # fail early on an unknown task
     return recipe
+
+
+def _merged(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in override.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_recipes(path: str | Path, overrides: list[str] = ()) -> list[tuple[str, Recipe]]:
+    """A recipe file -> its stages as ``(name, Recipe)``, in training order.
+
+    A plain recipe is one stage named after its task. A file with ``stages:`` (a mapping of stage
+    name -> recipe sections) holds several, e.g. CodeTalker's VQ-VAE then its speech stage; the
+    other top-level sections are shared defaults under each stage, and the overrides apply to
+    every stage (``stages.NAME.train.lr=...`` reaches one).
+    """
+    data = read_yaml(path)
+    if "stages" not in data:
+        recipe = load_recipe(path, overrides)
+        return [(recipe.task, recipe)]
+    data = apply_overrides(data, [o for o in overrides if o.startswith("stages.")])
+    common = [o for o in overrides if not o.startswith("stages.")]
+    stages = data.pop("stages")
+    if not isinstance(stages, dict) or not stages:
+        raise TalkmeshError(f"{path}: 'stages' must map stage names to recipe sections")
+    out = []
+    for name, stage in stages.items():
+        if not isinstance(stage, dict):
+            raise TalkmeshError(f"{path}: stage {name!r} must be a mapping of recipe sections")
+        try:
+            recipe = from_dict(Recipe, apply_overrides(_merged(data, stage), common))
+        except TalkmeshError as e:
+            raise TalkmeshError(f"{path}: stage {name}: {e}") from None
+        task_spec(recipe.task)
+        out.append((str(name), recipe))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------

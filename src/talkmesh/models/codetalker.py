@@ -45,6 +45,8 @@ class VQConfig:
     temporal_unit: int = 1  # P: frames per token (P > 1 pools P frames into one token)
     instance_norm: bool = False  # the paper's IN over time (Table 5); breaks on 1 frame
     beta: float = 0.25  # commitment weight
+    loss: str = "l1"  # reconstruction term: "l1" (the paper) or "mse" (keeps rare motion such as
+    # blinks, which an L1 fit treats as outliers), in units of each coordinate's spread
     ema: bool = False  # exponential-moving-average codebook updates instead of the codebook loss
     ema_decay: float = 0.99
     dead_code_restart: bool = False  # re-seed unused codes from the batch (EMA mode)
@@ -60,6 +62,8 @@ class VQConfig:
             raise ValueError("vq.layers must be >= 0")
         if self.hidden % self.heads:
             raise ValueError("vq.hidden must be divisible by vq.heads")
+        if self.loss not in ("l1", "mse"):
+            raise ValueError(f"vq.loss must be l1 or mse, got {self.loss!r}")
 
 
 @dataclass(frozen=True)
@@ -102,6 +106,24 @@ def paper_vocaset_config(
     return CodeTalkerConfig(
         vq=VQConfig(num_vertices=5023, components=16, code_dim=64),
         stage2=Stage2Config(styles=styles, speech=SpeechEncoderConfig(kind="wav2vec2")),
+    )
+
+
+def paper_biwi_config(
+    styles: tuple[str, ...] = tuple(f"speaker{k}" for k in range(6)),
+) -> CodeTalkerConfig:
+    """Table 4 with the BIWI settings: H=8, C=128; 12 decoder layers, period 25, two wav2vec 2.0
+    tokens per frame (BIWI's motion is 25 fps, wav2vec 2.0's features 50 Hz)."""
+    return CodeTalkerConfig(
+        vq=VQConfig(num_vertices=23370, components=8, code_dim=128),
+        stage2=Stage2Config(
+            layers=12,
+            period=25,
+            audio_tokens_per_frame=2,
+            styles=styles,
+            speech=SpeechEncoderConfig(kind="wav2vec2", frame_rate=50.0),
+        ),
+        motion_fps=25.0,
     )
 
 
@@ -392,13 +414,16 @@ class MotionDecoder(nn.Module):
         self.cfg = cfg
         self.register_buffer("scale", torch.ones(cfg.num_vertices * 3))
 
-    def hidden(self, z_q: Tensor, mask: Tensor | None = None, causal: bool = False) -> Tensor:
-        """z_q (B, T', H, C) -> (B, T, hidden) before the output map (T = T' * P)."""
+    def hidden(
+        self, z_q: Tensor, mask: Tensor | None = None, causal: bool = False, offset: int = 0
+    ) -> Tensor:
+        """z_q (B, T', H, C) -> (B, T, hidden) before the output map (T = T' * P); ``offset`` is
+        the position of the first frame (for windows of a longer sequence)."""
         x = self.inp(z_q.flatten(2))
         if self.cfg.temporal_unit > 1:
             x = x.repeat_interleave(self.cfg.temporal_unit, dim=1)
         x = self.mid(self.conv(hold_last_frame(x, mask)))
-        x = x + sinusoid(torch.arange(x.shape[1], device=x.device), x.shape[-1])
+        x = x + sinusoid(torch.arange(offset, offset + x.shape[1], device=x.device), x.shape[-1])
         bias = padding_bias(mask, x.dtype)
         if causal:
             T = x.shape[1]
@@ -408,9 +433,9 @@ class MotionDecoder(nn.Module):
             x = block(x, bias)
         return self.norm(x)
 
-    def forward(self, z_q: Tensor, mask: Tensor | None = None) -> Tensor:
+    def forward(self, z_q: Tensor, mask: Tensor | None = None, offset: int = 0) -> Tensor:
         """z_q (B, T', H, C) -> motion (B, T, V*3)."""
-        return self.out(self.hidden(z_q, mask)) * self.scale
+        return self.out(self.hidden(z_q, mask, offset=offset)) * self.scale
 
 
 class VQOutput(NamedTuple):
@@ -449,7 +474,8 @@ class MotionVQVAE(nn.Module):
         z = self.encoder(motion, mask)
         q = self.quantizer(z, mask[:, ::P] if mask is not None else None)
         recon = self.decoder(q.z_q, mask)
-        err = (recon - motion).abs() / self.decoder.scale  # L1 in units of the motion's spread
+        err = (recon - motion) / self.decoder.scale  # in units of each coordinate's spread
+        err = err.abs() if self.cfg.loss == "l1" else err.square()
         if mask is not None:
             rec = (err * mask[:, :, None]).sum() / (mask.sum() * err.shape[-1]).clamp(min=1)
         else:
@@ -468,9 +494,24 @@ class MotionVQVAE(nn.Module):
     def encode(self, motion: Tensor, mask: Tensor | None = None) -> Quantized:
         return self.quantizer(self.encoder(motion, mask), mask)
 
-    def decode(self, codes: Tensor) -> Tensor:
-        """codes (B, T', H) -> motion (B, T, V*3)."""
-        return self.decoder(self.quantizer.lookup(codes))
+    def decode(self, codes: Tensor, window: int | None = None, context: int = 30) -> Tensor:
+        """codes (B, T', H) -> motion (B, T, V*3).
+
+        With ``window`` (in tokens), sequences longer than it are decoded in windows of that many
+        tokens, each with ``context`` tokens of neighbours on both sides that are decoded and then
+        dropped, so memory stays bounded for any length (the decoder attends over whole windows).
+        """
+        z_q = self.quantizer.lookup(codes)
+        T = z_q.shape[1]
+        if window is None or T <= window + 2 * context:
+            return self.decoder(z_q)
+        P = self.cfg.temporal_unit
+        parts = []
+        for start in range(0, T, window):
+            a, b = max(0, start - context), min(T, start + window + context)
+            out = self.decoder(z_q[:, a:b], offset=a * P)
+            parts.append(out[:, (start - a) * P : (min(start + window, T) - a) * P])
+        return torch.cat(parts, dim=1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -627,7 +668,9 @@ class CodeTalker(nn.Module):
         ``mode="fast"`` keeps key/value caches: the stage-2 decoder sees exactly the same inputs
         (causal), but the VQ decoder's feedback frame comes from a causal, cached pass (its frame t
         attends to frames <= t as computed when they were last, instead of re-running bidirectional
-        attention over the prefix); final vertices come from one bidirectional decode of all codes.
+        attention over the prefix); final vertices come from a bidirectional decode of all codes,
+        in windows of ``attention_window`` frames (with 30 frames of context each side) when the
+        audio is longer, so that memory stays bounded.
         """
         if mode not in ("fast", "naive"):
             raise TalkmeshError(f"unknown generation mode '{mode}': use fast or naive")
@@ -654,7 +697,8 @@ class CodeTalker(nn.Module):
             all_codes = torch.stack(codes, dim=1)
         else:
             all_codes = self._generate_fast(style, cross, num_frames)
-        motion = self.vqvae.decode(all_codes)[:, :num_frames]
+        window = None if mode == "naive" else max(1, s2.attention_window // vq.temporal_unit)
+        motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
         return template[:, None] + motion.view(B, num_frames, vq.num_vertices, 3)
 
     def _generate_fast(self, style: Tensor, cross: list[Tensor], num_frames: int) -> Tensor:

@@ -18,6 +18,7 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.models.codetalker import (
     CodeTalker,
     CodeTalkerConfig,
+    paper_biwi_config,
     paper_vocaset_config,
     small_synth_config,
 )
@@ -42,8 +43,10 @@ def build_config(model: dict[str, Any], info: DatasetInfo) -> CodeTalkerConfig:
         base = small_synth_config(styles, info.num_vertices)
     elif preset == "vocaset":
         base = paper_vocaset_config(styles)
+    elif preset == "biwi":
+        base = paper_biwi_config(styles)
     else:
-        raise TalkmeshError(f"model.preset must be small or vocaset, got {preset!r}")
+        raise TalkmeshError(f"model.preset must be small, vocaset or biwi, got {preset!r}")
     data = _merge(to_dict(base), model)
     data["vq"]["num_vertices"] = info.num_vertices
     data["stage2"]["styles"] = list(styles)

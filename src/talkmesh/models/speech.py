@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from talkmesh.audio import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
 
@@ -30,6 +31,8 @@ class SpeechEncoderConfig:
     hf_config: dict[str, Any] = field(default_factory=dict)  # wav2vec2: a config for random weights
     lookahead_ms: float = 100.0  # mel: audio after the frame it may see
     freeze_cnn: bool = True
+    window_seconds: float = 20.0  # wav2vec2: longer audio is encoded in windows of this length,
+    context_seconds: float = 2.0  # each with this much audio either side, so memory is bounded
 
     def __post_init__(self) -> None:
         if self.kind not in ("mel", "wav2vec2"):
@@ -62,8 +65,39 @@ class Wav2Vec2Encoder(nn.Module):
         if cfg.freeze_cnn:
             self.model.feature_extractor._freeze_parameters()
         self.dim = self.model.config.hidden_size
+        self.cfg = cfg
+
+    def features(self, audio: Tensor) -> Tensor:
+        """(1, S) unpadded audio -> (1, N, D) features; audio longer than the window is encoded in
+        windows with context on both sides that is dropped (the transformer's attention is
+        quadratic in length: 10 minutes at once would need tens of GB)."""
+        window = int(self.cfg.window_seconds * SAMPLE_RATE)
+        context = int(self.cfg.context_seconds * SAMPLE_RATE)
+        S = audio.shape[1]
+        if S <= window + 2 * context:
+            return self.model(audio).last_hidden_state
+        parts = []
+        for start in range(0, S, window):
+            a, b = max(0, start - context), min(S, start + window + context)
+            hidden = self.model(audio[:, a:b]).last_hidden_state
+            rate = hidden.shape[1] / (b - a)  # features per sample
+            i0 = round((start - a) * rate)
+            i1 = round((min(start + window, S) - a) * rate)
+            parts.append(hidden[:, i0:i1])
+        return torch.cat(parts, dim=1)
 
     def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
+        longest = int(audio_lengths.max()) if audio_lengths is not None else audio.shape[1]
+        if longest > int((self.cfg.window_seconds + 2 * self.cfg.context_seconds) * SAMPLE_RATE):
+            lengths = (
+                audio_lengths.tolist()
+                if audio_lengths is not None
+                else [audio.shape[1]] * len(audio)
+            )
+            return torch.cat([
+                interpolate_frames(self.features(audio[b : b + 1, : int(n)]), num_frames)
+                for b, n in enumerate(lengths)
+            ])  # fmt: skip
         mask = None
         if audio_lengths is not None:
             mask = (
