@@ -103,7 +103,9 @@ def test_wrong_vertex_count_prediction(corpus, tmp_path, capsys):
     assert len(available_voices()) >= 3
 
 
-def test_learned_model_predictions_named_like_the_anchors(corpus, tmp_path):
+def tiny_release(path):
+    import torch
+
     from talkmesh.models.codetalker import CodeTalker
     from talkmesh.models.codetalker_tasks import build_config
     from talkmesh.models.release import save_model
@@ -115,7 +117,14 @@ def test_learned_model_predictions_named_like_the_anchors(corpus, tmp_path):
     info = DatasetInfo(
         num_vertices=4766, motion_fps=30.0, train_subjects=("Synth_01_ada", "Synth_02_bo")
     )
-    release = save_model(CodeTalker(build_config(tiny, info)), tmp_path / "m.safetensors")
+    torch.manual_seed(0)
+    net = CodeTalker(build_config(tiny, info))
+    torch.nn.init.normal_(net.feat_map.weight, std=0.5)  # zero-initialised: every frame alike
+    return save_model(net, path)
+
+
+def test_learned_model_predictions_named_like_the_anchors(corpus, tmp_path):
+    release = tiny_release(tmp_path / "m.safetensors")
     out = tmp_path / "pred"
     assert main(["predict", "--model", str(release), "--dataset", "synth", "--data", str(corpus),
                  "--conditions", "-o", str(out), "-q"]) == 0  # fmt: skip
@@ -129,3 +138,30 @@ def test_learned_model_predictions_named_like_the_anchors(corpus, tmp_path):
         "Synth_01_ada",
         "Synth_02_bo",
     }
+
+
+def test_stage1_reconstructions_are_scored_like_predictions(corpus, tmp_path):
+    release = tiny_release(tmp_path / "m.safetensors")
+    out = tmp_path / "recon"
+    assert main(["predict", "--model", str(release), "--dataset", "synth", "--data", str(corpus),
+                 "--mode", "reconstruct", "-o", str(out), "-q"]) == 0  # fmt: skip
+    assert sorted(p.name for p in out.iterdir()) == ["Synth_03_chidi_sentence02.npy"]
+    assert evaluate("synth", corpus, out).n_sequences == 1
+
+
+def test_learned_models_get_procedural_blinks_only_around_the_eyes(tmp_path):
+    from talkmesh.assets import load_head
+    from talkmesh.pipeline import animate
+
+    release = tiny_release(tmp_path / "m.safetensors")
+    wave = np.random.default_rng(0).standard_normal(16_000 * 6).astype(np.float32) * 0.1
+    plain = animate(wave, model=str(release), blinks=False)
+    eyes = animate(wave, model=str(release), seed=1)
+    assert plain.vertices.shape == eyes.vertices.shape == (180, 4766, 3)
+    moved = np.abs(eyes.vertices - plain.vertices).max(axis=(0, 2)) > 1e-5
+    head = load_head()
+    blink = np.abs(
+        head.blendshapes[[i for i, n in enumerate(head.blendshape_names) if "Blink" in n]]
+    )
+    assert moved.any() and not moved[np.abs(head.blendshapes).max(axis=(0, 2)) == 0].any()
+    assert moved[blink.max(axis=(0, 2)) > 1e-3].mean() > 0.5  # the eyelids move

@@ -96,6 +96,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 model=args.model,
                 style_mix=parse_style(args.style),
+                blinks=not args.no_blinks,
             )
             for p in paths:
                 write_animation(anim, p, overwrite=args.overwrite, size=args.size)
@@ -327,6 +328,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="procedural, a bundled model or a .safetensors release (default procedural)")  # fmt: skip
     a.add_argument(
         "--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)"
+    )
+    a.add_argument(
+        "--no-blinks",
+        action="store_true",
+        help="learned models: do not add the procedural blinks and gaze (speech cannot predict them)",
     )
     common(a)
     a.set_defaults(func=cmd_animate)

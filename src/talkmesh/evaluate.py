@@ -287,7 +287,7 @@ def write_model_predictions(
                     mode == "reconstruct"
                 ):  # stage 1 alone: how much of the motion the codebook keeps
                     template = torch.from_numpy(sample.template)
-                    motion = (torch.from_numpy(sample.vertices) - template).flatten(1)[None]
+                    motion = (torch.tensor(sample.vertices) - template).flatten(1)[None]
                     recon = net.vqvae(motion).motion[0]
                     verts = (recon.reshape(len(recon), -1, 3) + template).numpy()
                 else:

@@ -327,6 +327,22 @@ def upper_face_curves(
     return w
 
 
+BLINK_GAZE = tuple(n for n in ARKIT if n.startswith(("eyeBlink", "eyeLook")))
+
+
+def blink_gaze_weights(
+    num_frames: int, fps: float, *, seed: int = 0, style: SpeakingStyle | None = None
+) -> np.ndarray:
+    """Only the audio-independent eye motion (blinks and gaze saccades) -> (T, 52) ARKit weights,
+    every other channel 0: what a speech-driven model cannot predict, to add to its output."""
+    times = frame_times(num_frames, fps)
+    full = upper_face_curves(times, np.random.default_rng(seed), style or SpeakingStyle(), [])
+    out = np.zeros_like(full)
+    keep = [INDEX[n] for n in BLINK_GAZE]
+    out[:, keep] = full[:, keep]
+    return out
+
+
 def phones_to_weights(
     phones: list[Phone],
     num_frames: int,

@@ -11,7 +11,7 @@ from talkmesh.arkit import ARKIT_NAMES
 from talkmesh.assets import Head, load_head
 from talkmesh.audio import SAMPLE_RATE, load_audio
 from talkmesh.errors import TalkmeshError
-from talkmesh.lipsync import SpeakingStyle, phones_to_weights
+from talkmesh.lipsync import SpeakingStyle, blink_gaze_weights, phones_to_weights
 from talkmesh.phonemes import Phone, recognize_phones
 
 DEFAULT_FPS = 30.0
@@ -45,6 +45,7 @@ def animate(
     style: SpeakingStyle | None = None,
     model: str = "procedural",
     style_mix: dict[str, float] | None = None,
+    blinks: bool = True,
 ) -> Animation:
     """Animate a face from speech.
 
@@ -59,6 +60,8 @@ def animate(
         model: ``procedural`` or a learned model: a bundled name or a ``.safetensors`` release.
         style_mix: learned models: weights over the training speakers (``{"A": 0.7, "B": 0.3}``);
             default the mean of all of them (the model has never heard this speaker).
+        blinks: learned models: add the procedural animator's blinks and gaze saccades (seeded by
+            ``seed``), which speech cannot predict and a speech-driven model does not make.
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
@@ -70,7 +73,12 @@ def animate(
     if wave.ndim != 1 or not len(wave):
         raise TalkmeshError("audio must be a non-empty mono waveform")
     if model != "procedural":
-        return animate_learned(wave, head, model, fps=fps, style_mix=style_mix)
+        anim = animate_learned(wave, head, model, fps=fps, style_mix=style_mix)
+        if blinks:
+            eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
+            delta = eyes @ head.blendshapes.reshape(len(ARKIT_NAMES), -1)
+            anim.vertices += delta.reshape(anim.vertices.shape)
+        return anim
     if phones is None:
         phones = recognize_phones(wave, SAMPLE_RATE, text=text)
     num_frames = num_frames_for(len(wave), SAMPLE_RATE, fps)
