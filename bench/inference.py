@@ -1,23 +1,34 @@
 """CodeTalker inference speed: fast (cached) against naive (the paper's loop), one run, one table.
 
-    python bench/inference.py                 # paper VOCASET config, 4 s / 30 s / 10 min fast, 4 s naive
-    python bench/inference.py --quick         # skip 10 min
+    python bench/inference.py                 # paper VOCASET config: 4 s / 30 s / 10 min fast, 4 s naive
+    python bench/inference.py --quick         # skip the 10-minute rows
     python bench/inference.py --config small  # the synthetic-corpus config
+    python bench/inference.py --int8          # also fast mode with int8 weights (quantize_int8)
 
 Random weights (no pretrained weights exist on this machine): timings do not depend on the values.
-The paper config uses a wav2vec2-base-sized random speech encoder. Peak memory is the process's
-maximum resident set size after each row (it never goes down, so rows are run shortest first).
+The paper config uses a wav2vec2-base-sized random speech encoder (windows of 20 s with 2 s of
+context for long audio). Each row runs in its own process, so its peak memory (maximum resident
+set size, model weights included) is its own; the time covers speech encoding, generation and
+decoding the vertices, not building the model.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import resource
+import subprocess
+import sys
 import time
 
 import torch
 
-from talkmesh.models.codetalker import CodeTalker, paper_vocaset_config, small_synth_config
+from talkmesh.models.codetalker import (
+    CodeTalker,
+    paper_vocaset_config,
+    quantize_int8,
+    small_synth_config,
+)
 
 SR = 16_000
 WAV2VEC2_BASE = dict(
@@ -41,42 +52,54 @@ def build(config: str) -> CodeTalker:
     return model
 
 
-def peak_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def run(model: CodeTalker, seconds: float, mode: str) -> tuple[float, float]:
-    audio = torch.randn(1, int(seconds * SR)) * 0.1
+def row(config: str, mode: str, seconds: float, threads: int) -> dict:
+    """One measurement, in this process."""
+    torch.set_num_threads(threads)
+    model = build(config)
+    if mode == "fast-int8":
+        model = quantize_int8(model)
+    gen_mode = "naive" if mode == "naive" else "fast"
     template = torch.zeros(1, model.cfg.vq.num_vertices, 3)
+    model.generate(torch.randn(1, SR) * 0.1, template, styles=torch.tensor([0]), mode=gen_mode)
+    audio = torch.randn(1, int(seconds * SR)) * 0.1
     start = time.perf_counter()
-    model.generate(audio, template, styles=torch.tensor([0]), mode=mode)
-    return time.perf_counter() - start, peak_mb()
+    out = model.generate(audio, template, styles=torch.tensor([0]), mode=gen_mode)
+    wall = time.perf_counter() - start
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"wall": wall, "frames": out.shape[1], "peak_mb": peak}
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--config", choices=["paper", "small"], default="paper")
-    p.add_argument("--quick", action="store_true", help="skip the 10-minute row")
+    p.add_argument("--quick", action="store_true", help="skip the 10-minute rows")
+    p.add_argument("--int8", action="store_true", help="also fast mode with int8 weights")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--row", help=argparse.SUPPRESS)  # internal: MODE,SECONDS
     args = p.parse_args()
-    torch.set_num_threads(args.threads)
-    model = build(args.config)
-    params = sum(p.numel() for p in model.parameters()) / 1e6
-    print(f"config {args.config}: {params:.0f} M parameters, {args.threads} threads")
-    rows = [("fast", 4.0), ("naive", 4.0), ("fast", 30.0)] + (
-        [] if args.quick else [("fast", 600.0)]
+    if args.row:
+        mode, seconds = args.row.split(",")
+        print(json.dumps(row(args.config, mode, float(seconds), args.threads)))
+        return
+    rows = [("fast", 4.0), ("naive", 4.0), ("fast", 30.0)]
+    if args.int8:
+        rows += [("fast-int8", 4.0), ("fast-int8", 30.0)]
+    if not args.quick:
+        rows += [("fast", 600.0)] + ([("fast-int8", 600.0)] if args.int8 else [])
+    params = sum(p.numel() for p in build(args.config).parameters()) / 1e6
+    print(
+        f"config {args.config}: {params:.0f} M parameters, {args.threads} threads, torch {torch.__version__}"
     )
-    run(model, 1.0, "fast")  # warm-up
+    print("| mode | audio | frames | time (s) | real-time factor | peak RSS (MB) |")
+    print("|---|---|---|---|---|---|")
     results = {}
-    print("| mode | audio | time (s) | real-time factor | peak RSS (MB) |")
-    print("|---|---|---|---|---|")
     for mode, seconds in rows:
-        wall, mem = run(model, seconds, mode)
-        results[(mode, seconds)] = wall
-        print(
-            f"| {mode} | {seconds:g} s | {wall:.2f} | {wall / seconds:.3f} | {mem:.0f} |",
-            flush=True,
-        )
+        cmd = [sys.executable, __file__, "--config", args.config, "--threads", str(args.threads),
+               "--row", f"{mode},{seconds}"]  # fmt: skip
+        r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
+        results[(mode, seconds)] = r["wall"]
+        print(f"| {mode} | {seconds:g} s | {r['frames']} | {r['wall']:.2f} | "
+              f"{r['wall'] / seconds:.3f} | {r['peak_mb']:.0f} |", flush=True)  # fmt: skip
     print(f"\nnaive / fast at 4 s: {results[('naive', 4.0)] / results[('fast', 4.0)]:.1f}x")
 
 

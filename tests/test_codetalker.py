@@ -279,3 +279,27 @@ def test_long_audio_goes_through_wav2vec2_in_windows(monkeypatch):
         out = enc(batch, lengths, 90)
         alone = enc(audio[:, : 2 * SR], None, 90)
     torch.testing.assert_close(out[1:], alone)
+
+
+def test_kv_cache_keeps_the_last_window_in_place():
+    from talkmesh.models.codetalker import KVCache
+
+    cache, ks = KVCache(window=5), []
+    for step in range(23):
+        k = torch.full((1, 2, 1, 3), float(step))
+        ks.append(k)
+        got_k, got_v = cache.append(k, -k)
+        want = torch.cat(ks, dim=2)[:, :, -5:]
+        torch.testing.assert_close(got_k, want)
+        torch.testing.assert_close(got_v, -want)
+    assert cache.k.shape[2] == 10  # twice the window, never more
+
+
+def test_fast_generation_with_a_short_attention_window_runs_past_it():
+    from dataclasses import replace
+
+    model = tiny(vq_layers=0)
+    model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, attention_window=4))
+    audio, _ = clip(15)
+    out = model.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([0]))
+    assert out.shape == (1, 15, 20, 3) and torch.isfinite(out).all()
