@@ -303,3 +303,30 @@ def test_fast_generation_with_a_short_attention_window_runs_past_it():
     audio, _ = clip(15)
     out = model.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([0]))
     assert out.shape == (1, 15, 20, 3) and torch.isfinite(out).all()
+
+
+def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(tmp_path):
+    transformers = pytest.importorskip("transformers")
+    from dataclasses import replace
+
+    tiny_whisper = dict(d_model=16, encoder_layers=1, encoder_attention_heads=2,
+                        encoder_ffn_dim=32, num_mel_bins=80, max_source_positions=1500)  # fmt: skip
+    source = tmp_path / "whisper"
+    from transformers.models.whisper.modeling_whisper import WhisperEncoder
+
+    WhisperEncoder(transformers.WhisperConfig(**tiny_whisper)).save_pretrained(source)
+    base = tiny()
+    speech = SpeechEncoderConfig(kind="whisper", source=str(source), frozen=True)
+    cfg = replace(base.cfg, stage2=replace(base.cfg.stage2, speech=speech))
+    model = CodeTalker(cfg).eval()
+    assert model.cfg.stage2.speech.source is None  # the release needs no path
+    assert model.cfg.stage2.speech.hf_config["d_model"] == 16
+    assert not any(p.requires_grad for p in model.speech.parameters())
+    audio, verts = clip(9)
+    out = model(audio, None, verts, torch.zeros(1, 20, 3), torch.tensor([0]))
+    assert out.motion.shape == (1, 9, 60) and torch.isfinite(out.loss)
+    path = save_model(model, tmp_path / "m.safetensors")
+    source.rename(tmp_path / "gone")  # loading must not need the source directory
+    again = load_model(path)
+    a = model.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([1]))
+    torch.testing.assert_close(again.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([1])), a)

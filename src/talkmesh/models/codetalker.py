@@ -16,7 +16,7 @@ paper's loop.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder
+from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
 
 # ---------------------------------------------------------------------------------------------
 # Configuration
@@ -571,6 +571,10 @@ class CodeTalker(nn.Module):
         s2, vq = cfg.stage2, cfg.vq
         self.vqvae = MotionVQVAE(vq)
         self.speech = build_speech_encoder(s2.speech)
+        # a pretrained encoder loaded from a path: the release keeps its config, not the path
+        speech_cfg = release_config(s2.speech, self.speech)
+        if speech_cfg is not s2.speech:
+            self.cfg = replace(cfg, stage2=replace(s2, speech=speech_cfg))
         self.audio_map = nn.Linear(self.speech.dim, s2.d_model)
         self.style = nn.Embedding(len(s2.styles), s2.d_model)
         self.motion_map = nn.Linear(vq.num_vertices * 3, s2.d_model)  # vertice_map

@@ -5,11 +5,17 @@ num_frames) -> (B, T, D)`` at the motion frame rate, resampled generally (no dat
 * ``wav2vec2``: transformers' ``Wav2Vec2Model`` (CodeTalker's choice) from a local path or hub id
   (``source``), or a random model from ``hf_config`` (tests); its CNN feature extractor is frozen;
   features (50 Hz) are linearly interpolated to the motion frames.
+* ``whisper``: transformers' ``WhisperEncoder`` (tiny.en, 8.2 M parameters, 384-d at 50 Hz),
+  converted offline with ``talkmesh convert-whisper`` (``source``: the converted directory), or
+  random from ``hf_config``; ``frozen: true`` keeps its pretrained weights fixed.
+
+A model built from ``source`` records the encoder's full config in ``hf_config`` and drops
+``source`` (see :meth:`release_config`), so a release rebuilds it from its own file alone.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -20,9 +26,12 @@ from talkmesh.audio import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
 
+KINDS = ("mel", "wav2vec2", "whisper")
+
+
 @dataclass(frozen=True)
 class SpeechEncoderConfig:
-    kind: str = "mel"  # "mel" | "wav2vec2"
+    kind: str = "mel"  # "mel" | "wav2vec2" | "whisper"
     dim: int = 128  # mel: output width (wav2vec2: taken from the model)
     frame_rate: float = (
         30.0  # tokens per second the caller asks for (motion fps x tokens per frame)
@@ -34,9 +43,11 @@ class SpeechEncoderConfig:
     window_seconds: float = 20.0  # wav2vec2: longer audio is encoded in windows of this length,
     context_seconds: float = 2.0  # each with this much audio either side, so memory is bounded
 
+    frozen: bool = False  # wav2vec2/whisper: keep the whole pretrained encoder fixed
+
     def __post_init__(self) -> None:
-        if self.kind not in ("mel", "wav2vec2"):
-            raise ValueError(f"speech.kind must be mel or wav2vec2, got {self.kind!r}")
+        if self.kind not in KINDS:
+            raise ValueError(f"speech.kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
 
 
 def interpolate_frames(features: Tensor, num_frames: int) -> Tensor:
@@ -64,8 +75,13 @@ class Wav2Vec2Encoder(nn.Module):
             self.model = Wav2Vec2Model(Wav2Vec2Config(**cfg.hf_config))
         if cfg.freeze_cnn:
             self.model.feature_extractor._freeze_parameters()
+        if cfg.frozen:
+            self.model.requires_grad_(False)
         self.dim = self.model.config.hidden_size
         self.cfg = cfg
+
+    def hf_config(self) -> dict[str, Any]:
+        return self.model.config.to_dict()
 
     def features(self, audio: Tensor) -> Tensor:
         """(1, S) unpadded audio -> (1, N, D) features; audio longer than the window is encoded in
@@ -132,8 +148,56 @@ class MelEncoder(nn.Module):
         return self.encoder(audio, audio_lengths, num_frames)
 
 
+class WhisperEncoder(nn.Module):
+    def __init__(self, cfg: SpeechEncoderConfig) -> None:
+        super().__init__()
+        from talkmesh.models.whisper import WhisperFeatures, _transformers, load_whisper_encoder
+
+        config_cls, encoder_cls = _transformers()
+
+        if cfg.source:
+            encoder = load_whisper_encoder(cfg.source)
+        elif cfg.hf_config:
+            encoder = encoder_cls(config_cls(**cfg.hf_config)).eval()
+        else:
+            raise TalkmeshError(
+                "speech.kind whisper needs speech.source (a directory written by "
+                "`talkmesh convert-whisper`) or speech.hf_config"
+            )
+        self.features = WhisperFeatures(encoder)
+        self.dim = self.features.dim
+        self.frozen = cfg.frozen
+        if cfg.frozen:
+            self.features.requires_grad_(False)
+
+    def hf_config(self) -> dict[str, Any]:
+        return self.features.encoder.config.to_dict()
+
+    def train(self, mode: bool = True) -> WhisperEncoder:
+        super().train(mode)
+        if self.frozen:
+            self.features.eval()  # a frozen encoder never runs dropout
+        return self
+
+    def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
+        if self.frozen:
+            with torch.no_grad():
+                return self.features(audio, audio_lengths, num_frames)
+        return self.features(audio, audio_lengths, num_frames)
+
+
 def build_speech_encoder(cfg: SpeechEncoderConfig) -> nn.Module:
     """The encoder for ``cfg.kind``; it has ``.dim`` and the forward described in the module doc."""
     if cfg.kind == "wav2vec2":
         return Wav2Vec2Encoder(cfg)
+    if cfg.kind == "whisper":
+        return WhisperEncoder(cfg)
     return MelEncoder(cfg)
+
+
+def release_config(cfg: SpeechEncoderConfig, encoder: nn.Module) -> SpeechEncoderConfig:
+    """The config a release stores: a pretrained encoder's full config instead of its source path
+    (the weights travel in the release), so loading needs neither the path nor the network."""
+    if cfg.source and hasattr(encoder, "hf_config"):
+        return replace(cfg, source=None, hf_config=encoder.hf_config())
+    return cfg
