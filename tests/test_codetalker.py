@@ -329,4 +329,6 @@ def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(t
     source.rename(tmp_path / "gone")  # loading must not need the source directory
     again = load_model(path)
     a = model.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([1]))
-    torch.testing.assert_close(again.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([1])), a)
+    torch.testing.assert_close(
+        again.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([1])), a
+    )

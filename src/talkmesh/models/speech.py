@@ -25,7 +25,6 @@ from torch import Tensor, nn
 from talkmesh.audio import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
-
 KINDS = ("mel", "wav2vec2", "whisper")
 
 

@@ -431,7 +431,9 @@ def convert_whisper(
             f.chmod(0o644)
         if out.exists() or out.is_symlink():
             if not overwrite:
-                raise TalkmeshError(f"{out} already exists: choose another directory or pass --overwrite (overwrite=True)")
+                raise TalkmeshError(
+                    f"{out} already exists: choose another directory or pass --overwrite (overwrite=True)"
+                )
             old = out.with_name(f"{tmp.name}.old")
             out.rename(old)
         tmp.rename(out)
