@@ -165,3 +165,5 @@ def test_learned_models_get_procedural_blinks_only_around_the_eyes(tmp_path):
     )
     assert moved.any() and not moved[np.abs(head.blendshapes).max(axis=(0, 2)) == 0].any()
     assert moved[blink.max(axis=(0, 2)) > 1e-3].mean() > 0.5  # the eyelids move
+    assert eyes.weights.shape == (180, 52) and 0 <= eyes.weights.min() <= eyes.weights.max() <= 1
+    assert eyes.basis is not None and len(eyes.weight_names) == 52  # ARKit exports work

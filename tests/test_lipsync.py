@@ -112,3 +112,17 @@ def test_long_input_is_fast_and_bounded():
     w = phones_to_weights(phones, 600 * 30, 30)
     assert w.shape == (18000, 52) and w.dtype == np.float32
     assert np.isfinite(w).all() and w[:, JAW].max() > 0.2
+
+
+def test_arkit_weights_are_recovered_from_vertices():
+    from talkmesh.arkit import fit_weights
+    from talkmesh.assets import load_head
+
+    head = load_head()
+    rng = np.random.default_rng(0)
+    weights = np.clip(rng.uniform(-0.3, 1.0, size=(7, 52)), 0, 1).astype(np.float32)
+    offsets = head.vertices_from_weights(weights) - head.template
+    np.testing.assert_allclose(fit_weights(offsets, head.blendshapes), weights, atol=1e-3)
+    pushed = fit_weights(offsets * 3.0, head.blendshapes)  # outside the box: clipped to [0, 1]
+    assert pushed.min() >= 0.0 and pushed.max() <= 1.0
+    assert fit_weights(offsets[:0], head.blendshapes).shape == (0, 52)

@@ -85,3 +85,30 @@ def to_arkit_order(weights: np.ndarray, names: Sequence[str]) -> np.ndarray:
             + (", ..." if len(missing) > 3 else "")
         )
     return weights[:, [column[n.lower()] for n in ARKIT_NAMES]]
+
+
+def fit_weights(
+    offsets: np.ndarray, basis: np.ndarray, iterations: int = 200, block: int = 2048
+) -> np.ndarray:
+    """Per-frame vertex offsets (T, V, 3) -> the ARKit weights (T, 52) in [0, 1] whose blend
+    ``weights @ basis`` is closest to them in the least-squares sense.
+
+    For models that output vertices (CodeTalker, MeshTalk) on the bundled topology, so that their
+    animations export to ARKit consumers (Live Link CSV, glTF morph targets). Solved as a box-
+    constrained least-squares problem by projected gradient descent from the clipped unconstrained
+    solution, all frames at once; frames are projected onto the basis in blocks, so memory stays
+    at a few blocks of vertices.
+    """
+    k = basis.shape[0]
+    b = np.asarray(basis, np.float64).reshape(k, -1)
+    gram = b @ b.T
+    proj = np.concatenate([
+        np.asarray(offsets[i : i + block], np.float64).reshape(-1, b.shape[1]) @ b.T
+        for i in range(0, len(offsets), block)
+    ]) if len(offsets) else np.zeros((0, k))  # fmt: skip
+    reg = gram + np.eye(k) * 1e-9 * np.trace(gram) / k
+    w = np.clip(np.linalg.solve(reg, proj.T).T, 0.0, 1.0)
+    step = 1.0 / np.linalg.eigvalsh(gram)[-1]
+    for _ in range(iterations):
+        w = np.clip(w - step * (w @ gram - proj), 0.0, 1.0)
+    return w.astype(np.float32)

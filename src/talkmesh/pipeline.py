@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from talkmesh.animation import Animation
-from talkmesh.arkit import ARKIT_NAMES
+from talkmesh.arkit import ARKIT_NAMES, fit_weights
 from talkmesh.assets import Head, load_head
 from talkmesh.audio import SAMPLE_RATE, load_audio
 from talkmesh.errors import TalkmeshError
@@ -78,6 +78,10 @@ def animate(
             eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
             delta = eyes @ head.blendshapes.reshape(len(ARKIT_NAMES), -1)
             anim.vertices += delta.reshape(anim.vertices.shape)
+        # ARKit weights that best explain the motion, so ARKit exports work for learned models
+        anim.weights = fit_weights(anim.vertices - head.template, head.blendshapes)
+        anim.weight_names = list(ARKIT_NAMES)
+        anim.basis = head.blendshapes
         return anim
     if phones is None:
         phones = recognize_phones(wave, SAMPLE_RATE, text=text)
