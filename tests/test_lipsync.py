@@ -123,6 +123,8 @@ def test_arkit_weights_are_recovered_from_vertices():
     weights = np.clip(rng.uniform(-0.3, 1.0, size=(7, 52)), 0, 1).astype(np.float32)
     offsets = head.vertices_from_weights(weights) - head.template
     np.testing.assert_allclose(fit_weights(offsets, head.blendshapes), weights, atol=1e-3)
+    blocks = fit_weights(offsets + head.template, head.blendshapes, head.template, block=3)
+    np.testing.assert_allclose(blocks, weights, atol=1e-3)
     pushed = fit_weights(offsets * 3.0, head.blendshapes)  # outside the box: clipped to [0, 1]
     assert pushed.min() >= 0.0 and pushed.max() <= 1.0
     assert fit_weights(offsets[:0], head.blendshapes).shape == (0, 52)

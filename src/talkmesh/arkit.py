@@ -88,10 +88,15 @@ def to_arkit_order(weights: np.ndarray, names: Sequence[str]) -> np.ndarray:
 
 
 def fit_weights(
-    offsets: np.ndarray, basis: np.ndarray, iterations: int = 200, block: int = 2048
+    vertices: np.ndarray,
+    basis: np.ndarray,
+    template: np.ndarray | None = None,
+    iterations: int = 200,
+    block: int = 2048,
 ) -> np.ndarray:
-    """Per-frame vertex offsets (T, V, 3) -> the ARKit weights (T, 52) in [0, 1] whose blend
-    ``weights @ basis`` is closest to them in the least-squares sense.
+    """Per-frame vertices (T, V, 3) -> the ARKit weights (T, 52) in [0, 1] whose blend
+    ``template + weights @ basis`` is closest to them in the least-squares sense (``template``
+    None: the vertices are already offsets).
 
     For models that output vertices (CodeTalker, MeshTalk) on the bundled topology, so that their
     animations export to ARKit consumers (Live Link CSV, glTF morph targets). Solved as a box-
@@ -102,10 +107,11 @@ def fit_weights(
     k = basis.shape[0]
     b = np.asarray(basis, np.float64).reshape(k, -1)
     gram = b @ b.T
-    proj = np.concatenate([
-        np.asarray(offsets[i : i + block], np.float64).reshape(-1, b.shape[1]) @ b.T
-        for i in range(0, len(offsets), block)
-    ]) if len(offsets) else np.zeros((0, k))  # fmt: skip
+    base = 0.0 if template is None else np.asarray(template, np.float64)
+    proj = np.zeros((len(vertices), k))
+    for i in range(0, len(vertices), block):
+        offsets = np.asarray(vertices[i : i + block], np.float64) - base
+        proj[i : i + block] = offsets.reshape(len(offsets), -1) @ b.T
     reg = gram + np.eye(k) * 1e-9 * np.trace(gram) / k
     w = np.clip(np.linalg.solve(reg, proj.T).T, 0.0, 1.0)
     step = 1.0 / np.linalg.eigvalsh(gram)[-1]

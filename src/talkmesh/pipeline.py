@@ -17,6 +17,7 @@ from talkmesh.phonemes import Phone, recognize_phones
 DEFAULT_FPS = 30.0
 MAX_FPS = 240.0
 MODELS = ("procedural",)
+BLOCK = 2048  # frames processed at once on long animations
 
 
 def available_models() -> list[str]:
@@ -76,10 +77,12 @@ def animate(
         anim = animate_learned(wave, head, model, fps=fps, style_mix=style_mix)
         if blinks:
             eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
-            delta = eyes @ head.blendshapes.reshape(len(ARKIT_NAMES), -1)
-            anim.vertices += delta.reshape(anim.vertices.shape)
+            basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
+            for i in range(0, len(eyes), BLOCK):  # in place, in blocks: bounded memory
+                block = anim.vertices[i : i + BLOCK]
+                block += (eyes[i : i + BLOCK] @ basis).reshape(block.shape)
         # ARKit weights that best explain the motion, so ARKit exports work for learned models
-        anim.weights = fit_weights(anim.vertices - head.template, head.blendshapes)
+        anim.weights = fit_weights(anim.vertices, head.blendshapes, head.template)
         anim.weight_names = list(ARKIT_NAMES)
         anim.basis = head.blendshapes
         return anim
