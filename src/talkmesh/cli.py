@@ -257,7 +257,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
 
     n = write_model_predictions(
         args.dataset, args.data, args.out, args.model, split=args.split,
-        conditions=args.conditions, mode=args.mode, progress=not args.quiet,
+        conditions=args.conditions, mode=args.mode, blinks=args.blinks, progress=not args.quiet,
     )  # fmt: skip
     if not args.quiet:
         print(f"wrote {n} predictions to {args.out}")
@@ -413,6 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("fast", "naive", "reconstruct"),
         default="fast",
         help="generation mode; reconstruct: pass the true motion through the stage-1 VQ-VAE",
+    )
+    pr.add_argument(
+        "--blinks", action="store_true", help="add the procedural blinks and gaze, as animate does"
     )
     pr.add_argument("-o", "--out", required=True, help="output directory")
     pr.add_argument("-q", "--quiet", action="store_true")

@@ -236,9 +236,13 @@ def write_model_predictions(
     split: str = "test",
     conditions: bool = False,
     mode: str = "fast",
+    blinks: bool = False,
     progress: bool = True,
 ) -> int:
     """Predictions of a learned model (a release file or bundled name) for a split.
+
+    With ``blinks``, the procedural animator's blinks and gaze (seeded by the sequence index, as
+    ``talkmesh animate`` adds them) are added through the bundled head's blendshapes.
 
     Speakers seen in training use their own style. Unseen speakers get the mean of the training
     styles (``SUBJECT_SENTENCE.npy``) or, with ``conditions``, one prediction per training style
@@ -254,6 +258,14 @@ def write_model_predictions(
     dataset = open_dataset(kind, data, split)
     if net.cfg.vq.num_vertices != len(dataset.templates[next(iter(dataset.templates))]):
         raise TalkmeshError(f"model {model} and the {kind} data at {data} differ in vertex count")
+    if blinks:
+        from talkmesh.assets import load_head
+        from talkmesh.lipsync import blink_gaze_weights
+
+        head = load_head()
+        if head.num_vertices != net.cfg.vq.num_vertices:
+            raise TalkmeshError("blinks need the bundled head's topology (its blendshapes)")
+        basis = head.blendshapes.reshape(len(head.blendshape_names), -1)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = 0
@@ -298,6 +310,9 @@ def write_model_predictions(
                         num_frames=len(sample.vertices),
                         mode=mode,
                     )[0].numpy()
+            if blinks:
+                eyes = blink_gaze_weights(len(verts), dataset.spec.motion_fps, seed=index)
+                verts = verts + (eyes @ basis).reshape(verts.shape)
             np.save(path, verts.reshape(len(verts), -1).astype(np.float32))
             written += 1
     return written
