@@ -24,7 +24,7 @@ DEMO_TEXT ?= Bob bought a big blue map, and we all peeked at the moon above the 
 demo: setup
 	mkdir -p out
 	espeak-ng -v en-us -s 150 -w out/demo.wav "$(DEMO_TEXT)"
-	$(VENV)/bin/talkmesh animate out/demo.wav --text "$(DEMO_TEXT)" -o out/demo.mp4 -o out/demo.glb --overwrite
+	$(VENV)/bin/talkmesh animate out/demo.wav -o out/demo.mp4 -o out/demo.glb --overwrite
 	@echo "demo: out/demo.mp4 (video with sound) and out/demo.glb (open in three.js or Blender)"
 
 test: setup

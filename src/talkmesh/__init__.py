@@ -1,7 +1,7 @@
 """talkmesh: speech-driven 3D facial animation.
 
 import talkmesh
-anim = talkmesh.animate("speech.wav")           # procedural lip sync on the bundled head
+anim = talkmesh.animate("speech.wav")           # the bundled CodeTalker on the bundled head
 talkmesh.save_animation(anim, "speech.glb")      # glTF morph-target animation
 talkmesh.render_video(anim, "speech.mp4")        # shaded head, with the audio
 """

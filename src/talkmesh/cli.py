@@ -333,8 +333,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     a.add_argument("--seed", type=int, default=0, help="seed of blinks and other free motion")
     a.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
-    a.add_argument("--model", default="procedural",
-                   help="procedural, a bundled model or a .safetensors release (default procedural)")  # fmt: skip
+    a.add_argument("--model", default=None,
+                   help="a bundled model (default codetalker-synth), procedural, or a .safetensors "
+                   "release")  # fmt: skip
     a.add_argument(
         "--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)"
     )

@@ -20,6 +20,18 @@ MODELS = ("procedural",)
 BLOCK = 2048  # frames processed at once on long animations
 
 
+DEFAULT_MODEL = "codetalker-synth"  # the bundled CodeTalker (src/talkmesh/data/models/)
+
+
+def default_model() -> str:
+    """The bundled CodeTalker when it is installed (and torch with it), else ``procedural``."""
+    from importlib.util import find_spec
+
+    if find_spec("torch") is None or find_spec("safetensors") is None:
+        return "procedural"
+    return DEFAULT_MODEL if DEFAULT_MODEL in available_models() else "procedural"
+
+
 def available_models() -> list[str]:
     """``procedural`` plus the bundled learned models (``talkmesh/data/models/*.safetensors``)."""
     from talkmesh.models.release import MODELS_DIR
@@ -44,7 +56,7 @@ def animate(
     fps: float = DEFAULT_FPS,
     seed: int = 0,
     style: SpeakingStyle | None = None,
-    model: str = "procedural",
+    model: str | None = None,
     style_mix: dict[str, float] | None = None,
     blinks: bool = True,
 ) -> Animation:
@@ -53,12 +65,14 @@ def animate(
     Args:
         audio: a speech file (any format ffmpeg reads) or a (S,) float32 waveform at 16 kHz.
         head: the face to animate (default: the bundled default identity).
-        text: the transcript, if known: phones are then force-aligned instead of recognised.
+        text: the transcript, if known: phones are then force-aligned instead of recognised
+            (procedural animator; with ``model`` None it selects it).
         phones: timed phones, if already known (skips recognition).
         fps: output frame rate.
         seed: seed of the audio-independent motion (blinks, brow drift, gaze).
         style: the speaker's style.
-        model: ``procedural`` or a learned model: a bundled name or a ``.safetensors`` release.
+        model: ``procedural`` or a learned model: a bundled name or a ``.safetensors`` release
+            (default: the bundled CodeTalker, ``codetalker-synth``; ``procedural`` without it).
         style_mix: learned models: weights over the training speakers (``{"A": 0.7, "B": 0.3}``);
             default the mean of all of them (the model has never heard this speaker).
         blinks: learned models: add the procedural animator's blinks and gaze saccades (seeded by
@@ -73,7 +87,14 @@ def animate(
     wave = load_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
     if wave.ndim != 1 or not len(wave):
         raise TalkmeshError("audio must be a non-empty mono waveform")
+    if model is None:  # a transcript or phones ask for the phone-driven animator
+        model = "procedural" if text is not None or phones is not None else default_model()
     if model != "procedural":
+        if text is not None or phones is not None:
+            raise TalkmeshError(
+                f"--text and phones drive the procedural animator, not {model}: drop them or "
+                "pass --model procedural"
+            )
         anim = animate_learned(wave, head, model, fps=fps, style_mix=style_mix)
         if blinks:
             eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
