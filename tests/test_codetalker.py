@@ -332,3 +332,20 @@ def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(t
     torch.testing.assert_close(
         again.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([1])), a
     )
+
+
+def test_history_dropout_only_acts_in_training():
+    from dataclasses import replace
+
+    model = tiny()
+    model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, history_dropout=0.5))
+    audio, verts = clip(12)
+    args = (audio, None, verts, torch.zeros(1, 20, 3), torch.tensor([0]))
+    with torch.no_grad():
+        plain = model(*args).loss
+        torch.testing.assert_close(model(*args).loss, plain)  # eval: deterministic, no dropout
+        model.train()
+        torch.manual_seed(1)
+        assert not torch.allclose(model(*args).loss, plain)
+    with pytest.raises(ValueError, match="history_dropout"):
+        Stage2Config(styles=("a",), history_dropout=1.0)

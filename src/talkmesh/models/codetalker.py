@@ -80,12 +80,17 @@ class Stage2Config:
     styles: tuple[str, ...] = ()  # training speakers, in one-hot order
     speech: SpeechEncoderConfig = SpeechEncoderConfig()
     attention_window: int = 600  # frames of self-attention kept in the cache when generating
+    history_dropout: float = 0.0  # training: probability that a frame's fed-back motion is
+    # withheld (only the style remains), so the decoder cannot lean on the true past alone;
+    # 0 is the paper's plain teacher forcing (docs/codetalker.md measures the exposure bias)
 
     def __post_init__(self) -> None:
         if self.d_model % self.heads:
             raise ValueError("stage2.d_model must be divisible by stage2.heads")
         if not self.styles:
             raise ValueError("stage2.styles must name at least one training speaker")
+        if not 0.0 <= self.history_dropout < 1.0:
+            raise ValueError("stage2.history_dropout must be in [0, 1)")
         if self.period < 1 or self.audio_tokens_per_frame < 1 or self.attention_window < 1:
             raise ValueError(
                 "stage2.period, audio_tokens_per_frame and attention_window must be >= 1"
@@ -641,10 +646,12 @@ class CodeTalker(nn.Module):
             (styles >= 0)[:, None], self.style(seen), self.style.weight.mean(0)[None]
         )
         scale = self.vqvae.decoder.scale  # the motion map reads normalised motion
-        prev = torch.cat(
-            [style[:, None], self.motion_map(motion[:, :-1] / scale) + style[:, None]], dim=1
-        )
+        history = self.motion_map(motion[:, :-1] / scale)
         s2 = self.cfg.stage2
+        if self.training and s2.history_dropout > 0:
+            keep = torch.rand(B, T - 1, 1, device=history.device) >= s2.history_dropout
+            history = history * keep
+        prev = torch.cat([style[:, None], history + style[:, None]], dim=1)
         x = prev + periodic_encoding(T, s2.d_model, s2.period, prev.device)
         bias = temporal_bias(s2.heads, T, T, s2.period, x.device)[None]
         if motion_mask is not None:
