@@ -185,7 +185,7 @@ def animate_learned(
         w = (pos - i0)[:, None, None].astype(np.float32)
         verts = verts[i0] * (1 - w) + verts[i1] * w
     return Animation(
-        vertices=verts.astype(np.float32),
+        vertices=verts.astype(np.float32, copy=False),
         faces=head.faces,
         fps=fps,
         audio=wave,
