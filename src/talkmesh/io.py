@@ -625,7 +625,7 @@ def principal_components(
     if data.dtype not in (np.float32, np.float64):
         data = data.astype(np.float64)
     basis = _row_space(data, max_components)  # (3V, R), most important first
-    coeffs = data @ basis
+    coeffs = data @ basis.astype(data.dtype, copy=False)
 
     def max_error(k: int) -> float:
         err = 0.0
@@ -654,13 +654,20 @@ def _row_space(data: np.ndarray, max_components: int) -> np.ndarray:
         return vt[:max_components].T
     # Randomised SVD with power iterations (Halko et al. 2011, Alg. 4.4); the caller measures the
     # reconstruction error itself, so an approximate subspace only costs extra components.
+    # Small factors take the data's dtype: mixing float32 data with float64 factors would make
+    # numpy upcast a float64 copy of the whole data (2 GB at 10 minutes) in every product.
     rank = min(max_components + 16, *data.shape)
     rng = np.random.default_rng(0)
-    q = np.linalg.qr(data.T @ rng.standard_normal((data.shape[0], rank)))[0]
+    dt = data.dtype
+
+    def orth(x: np.ndarray) -> np.ndarray:
+        return np.linalg.qr(x)[0].astype(dt, copy=False)
+
+    q = orth(data.T @ rng.standard_normal((data.shape[0], rank)).astype(dt))
     for _ in range(4):
-        q = np.linalg.qr(data.T @ np.linalg.qr(data @ q)[0])[0]
+        q = orth(data.T @ orth(data @ q))
     _, _, vt = np.linalg.svd(data @ q, full_matrices=False)
-    return (q @ vt.T)[:, :max_components]
+    return (q @ vt.T.astype(dt))[:, :max_components]
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
