@@ -140,6 +140,14 @@ def _parse_scalar(text: str) -> Any:
             return text
 
 
+def merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``override`` on top, recursively for nested mappings (neither is changed)."""
+    out = dict(base)
+    for k, v in override.items():
+        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
     """Apply ``a.b.c=value`` overrides to a nested dict (a new dict; the input is unchanged)."""
     out = json.loads(json.dumps(data))

@@ -28,7 +28,7 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-from talkmesh.config import apply_overrides, from_dict, load_config, read_yaml, to_dict
+from talkmesh.config import apply_overrides, from_dict, load_config, merge, read_yaml, to_dict
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
 try:
@@ -108,13 +108,6 @@ def load_recipe(path: str | Path | None, overrides: list[str] = ()) -> Recipe:
     return recipe
 
 
-def _merged(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in override.items():
-        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 def load_recipes(path: str | Path, overrides: list[str] = ()) -> list[tuple[str, Recipe]]:
     """A recipe file -> its stages as ``(name, Recipe)``, in training order.
 
@@ -137,7 +130,7 @@ def load_recipes(path: str | Path, overrides: list[str] = ()) -> list[tuple[str,
         if not isinstance(stage, dict):
             raise TalkmeshError(f"{path}: stage {name!r} must be a mapping of recipe sections")
         try:
-            recipe = from_dict(Recipe, apply_overrides(_merged(data, stage), common))
+            recipe = from_dict(Recipe, apply_overrides(merge(data, stage), common))
         except TalkmeshError as e:
             raise TalkmeshError(f"{path}: stage {name}: {e}") from None
         task_spec(recipe.task)

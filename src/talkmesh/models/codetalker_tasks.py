@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from talkmesh.config import from_dict, to_dict
+from talkmesh.config import from_dict, merge, to_dict
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.codetalker import (
     CodeTalker,
@@ -28,13 +28,6 @@ from talkmesh.train import DatasetInfo, StepOutput, Task, TorchBatch
 STATISTICS_SAMPLES = 64
 
 
-def _merge(base: dict, override: dict) -> dict:
-    out = dict(base)
-    for k, v in override.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 def build_config(model: dict[str, Any], info: DatasetInfo) -> CodeTalkerConfig:
     model = dict(model)
     preset = model.pop("preset", "small")
@@ -47,7 +40,7 @@ def build_config(model: dict[str, Any], info: DatasetInfo) -> CodeTalkerConfig:
         base = paper_biwi_config(styles)
     else:
         raise TalkmeshError(f"model.preset must be small, vocaset or biwi, got {preset!r}")
-    data = _merge(to_dict(base), model)
+    data = merge(to_dict(base), model)
     data["vq"]["num_vertices"] = info.num_vertices
     data["stage2"]["styles"] = list(styles)
     data["motion_fps"] = info.motion_fps
