@@ -11,6 +11,7 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.models.codetalker import (
     CodeTalker,
     CodeTalkerConfig,
+    DecoderStep,
     Quantizer,
     Stage2Config,
     VQConfig,
@@ -24,7 +25,7 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 FPS = 30
 
 
-def tiny(vq_layers: int = 1, speech: str = "mel") -> CodeTalker:
+def tiny(vq_layers: int = 1, speech: str = "mel", causal: bool = False) -> CodeTalker:
     torch.manual_seed(0)
     hf = dict(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, intermediate_size=32,
               conv_dim=(8, 8), conv_stride=(5, 64), conv_kernel=(10, 64), num_feat_extract_layers=2,
@@ -39,6 +40,8 @@ def tiny(vq_layers: int = 1, speech: str = "mel") -> CodeTalker:
             components=4,
             code_dim=8,
             codebook_size=16,
+            causal=causal,
+            causal_window=6,
         ),
         stage2=Stage2Config(
             d_model=32,
@@ -143,8 +146,8 @@ def test_fast_generation_is_causal_in_its_codes():
     # ... and the decoder sees nothing later: change every later token and the codes up to t stay
     tok_c = tok_a.clone()
     tok_c[:, t + 1 :] = torch.randn_like(tok_c[:, t + 1 :]) * 10
-    a = model._generate_fast(model.style_vector(style), model._cross(tok_a), 20)
-    c = model._generate_fast(model.style_vector(style), model._cross(tok_c), 20)
+    a, _ = model._generate_fast(model.style_vector(style), model._cross(tok_a), 20)
+    c, _ = model._generate_fast(model.style_vector(style), model._cross(tok_c), 20)
     assert torch.equal(a[:, : t + 1], c[:, : t + 1])
     assert not torch.equal(a, c)
 
@@ -349,3 +352,32 @@ def test_history_dropout_only_acts_in_training():
         assert not torch.allclose(model(*args).loss, plain)
     with pytest.raises(ValueError, match="history_dropout"):
         Stage2Config(styles=("a",), history_dropout=1.0)
+
+
+def test_causal_vq_decoder_steps_equal_the_full_pass_and_ignore_later_codes():
+    model = tiny(vq_layers=2, causal=True)
+    dec = model.vqvae.decoder
+    torch.manual_seed(1)
+    z = torch.randn(2, 15, 4, 8)  # longer than the decoder's 6-frame attention window
+    full = dec(z)
+    later = z.clone()
+    later[:, 9:] = torch.randn_like(later[:, 9:])
+    torch.testing.assert_close(dec(later)[:, :9], full[:, :9])  # frames <= 8 ignore codes >= 9
+    assert not torch.allclose(dec(later)[:, 9:], full[:, 9:])
+    step = DecoderStep(dec)
+    steps = torch.cat([dec.out(step.hidden(z[:, t : t + 1])) * dec.scale for t in range(15)], 1)
+    torch.testing.assert_close(steps, full, atol=1e-5, rtol=1e-4)
+    with pytest.raises(TalkmeshError, match="causal"):
+        DecoderStep(tiny().vqvae.decoder)
+    with pytest.raises(ValueError, match="causal"):
+        VQConfig(num_vertices=4, causal=True, instance_norm=True)
+
+
+def test_fast_generation_equals_naive_with_a_causal_vq_decoder():
+    model = tiny(vq_layers=2, causal=True)
+    audio, _ = clip(14)
+    templ = torch.randn(1, 20, 3)
+    style = torch.tensor([1])
+    fast = model.generate(audio, templ, styles=style, mode="fast")
+    naive = model.generate(audio, templ, styles=style, mode="naive")
+    torch.testing.assert_close(fast, naive, atol=1e-5, rtol=1e-4)

@@ -104,17 +104,30 @@ def fit_weights(
     solution, all frames at once; frames are projected onto the basis in blocks, so memory stays
     at a few blocks of vertices.
     """
-    k = basis.shape[0]
-    b = np.asarray(basis, np.float64).reshape(k, -1)
-    gram = b @ b.T
+    fitter = WeightFitter(basis, iterations)
     base = 0.0 if template is None else np.asarray(template, np.float64)
-    proj = np.zeros((len(vertices), k))
+    out = np.zeros((len(vertices), basis.shape[0]), np.float32)
     for i in range(0, len(vertices), block):
-        offsets = np.asarray(vertices[i : i + block], np.float64) - base
-        proj[i : i + block] = offsets.reshape(len(offsets), -1) @ b.T
-    reg = gram + np.eye(k) * 1e-9 * np.trace(gram) / k
-    w = np.clip(np.linalg.solve(reg, proj.T).T, 0.0, 1.0)
-    step = 1.0 / np.linalg.eigvalsh(gram)[-1]
-    for _ in range(iterations):
-        w = np.clip(w - step * (w @ gram - proj), 0.0, 1.0)
-    return w.astype(np.float32)
+        out[i : i + block] = fitter(np.asarray(vertices[i : i + block], np.float64) - base)
+    return out
+
+
+class WeightFitter:
+    """:func:`fit_weights` with the basis factorised once: call it on (T, V, 3) offsets (streaming
+    calls it on one frame at a time)."""
+
+    def __init__(self, basis: np.ndarray, iterations: int = 200) -> None:
+        k = basis.shape[0]
+        self.basis = np.asarray(basis, np.float64).reshape(k, -1)
+        self.gram = self.basis @ self.basis.T
+        reg = self.gram + np.eye(k) * 1e-9 * np.trace(self.gram) / k
+        self.inverse = np.linalg.inv(reg)
+        self.step = 1.0 / np.linalg.eigvalsh(self.gram)[-1]
+        self.iterations = iterations
+
+    def __call__(self, offsets: np.ndarray) -> np.ndarray:
+        proj = np.asarray(offsets, np.float64).reshape(len(offsets), -1) @ self.basis.T
+        w = np.clip(proj @ self.inverse.T, 0.0, 1.0)
+        for _ in range(self.iterations):
+            w = np.clip(w - self.step * (w @ self.gram - proj), 0.0, 1.0)
+        return w.astype(np.float32)

@@ -370,7 +370,12 @@ def phones_to_weights(
     rng = np.random.default_rng(seed)
     times = frame_times(num_frames, fps)
     weights = upper_face_curves(times, rng, style, pitch_accents(audio, sr))
-    mouth = mouth_curves(phones, times, style)
+    return add_mouth(weights, mouth_curves(phones, times, style), style)
+
+
+def add_mouth(weights: np.ndarray, mouth: np.ndarray, style: SpeakingStyle) -> np.ndarray:
+    """Upper-face ARKit weights (T, 52) and mouth curves (T, len(MOUTH)) -> all (T, 52) weights,
+    clipped to [0, 1] (``weights`` is changed in place)."""
     scale = np.full(len(MOUTH), style.articulation)
     scale[MOUTH.index("jaw")] *= style.jaw
     mouth = mouth * scale
@@ -379,4 +384,4 @@ def phones_to_weights(
             weights[:, INDEX[name]] = mouth[:, k]
     for side in ("Left", "Right"):
         weights[:, INDEX[f"mouthSmile{side}"]] += style.smile
-    return np.clip(weights, 0.0, 1.0)
+    return np.clip(weights, 0.0, 1.0, out=weights)

@@ -52,6 +52,10 @@ class VQConfig:
     dead_code_restart: bool = False  # re-seed unused codes from the batch (EMA mode)
     codebook_from_data: bool = False  # start the codebook at the first batch's encoder outputs
     # (off: on the synthetic corpus it collapsed usage to 13 of 256 codes)
+    causal: bool = False  # streaming decoder: causal conv, causal attention over the last
+    # ``causal_window`` frames with relative (ALiBi) positions instead of absolute ones, so frame t
+    # never depends on later codes and a cached step equals the full pass (not in the paper)
+    causal_window: int = 64
 
     def __post_init__(self) -> None:
         for name in ("num_vertices", "hidden", "heads", "ff", "components", "code_dim",
@@ -64,6 +68,10 @@ class VQConfig:
             raise ValueError("vq.hidden must be divisible by vq.heads")
         if self.loss not in ("l1", "mse"):
             raise ValueError(f"vq.loss must be l1 or mse, got {self.loss!r}")
+        if self.causal and (self.instance_norm or self.temporal_unit != 1):
+            raise ValueError("vq.causal needs instance_norm: false and temporal_unit: 1")
+        if self.causal_window < 1:
+            raise ValueError("vq.causal_window must be at least 1")
 
 
 @dataclass(frozen=True)
@@ -83,6 +91,9 @@ class Stage2Config:
     history_dropout: float = 0.0  # training: probability that a frame's fed-back motion is
     # withheld (only the style remains), so the decoder cannot lean on the true past alone;
     # 0 is the paper's plain teacher forcing (docs/codetalker.md measures the exposure bias)
+    self_feedback: float = 0.0  # training: probability that a frame's fed-back motion is the
+    # model's own prediction from a first, teacher-forced pass (no gradient) instead of the truth
+    # (parallel scheduled sampling, Duckworth et al. 2019), so it learns from its own feedback
 
     def __post_init__(self) -> None:
         if self.d_model % self.heads:
@@ -91,6 +102,8 @@ class Stage2Config:
             raise ValueError("stage2.styles must name at least one training speaker")
         if not 0.0 <= self.history_dropout < 1.0:
             raise ValueError("stage2.history_dropout must be in [0, 1)")
+        if not 0.0 <= self.self_feedback <= 1.0:
+            raise ValueError("stage2.self_feedback must be in [0, 1]")
         if self.period < 1 or self.audio_tokens_per_frame < 1 or self.attention_window < 1:
             raise ValueError(
                 "stage2.period, audio_tokens_per_frame and attention_window must be >= 1"
@@ -378,16 +391,20 @@ def hold_last_frame(x: Tensor, mask: Tensor | None) -> Tensor:
 
 
 class TemporalConv(nn.Module):
-    """Conv1d over time, kernel 5, replicate padding (Table 4); optional InstanceNorm."""
+    """Conv1d over time, kernel 5, replicate padding (Table 4); optional InstanceNorm. ``causal``
+    pads on the left only, so output t reads inputs t-4..t."""
 
-    def __init__(self, dim: int, instance_norm: bool, stride: int = 1) -> None:
+    def __init__(
+        self, dim: int, instance_norm: bool, stride: int = 1, causal: bool = False
+    ) -> None:
         super().__init__()
         self.conv = nn.Conv1d(dim, dim, 5, stride=stride)
         self.norm = nn.InstanceNorm1d(dim, affine=False) if instance_norm else None
+        self.padding = (4, 0) if causal else (2, 2)
 
     def forward(self, x: Tensor) -> Tensor:
         """(B, T, D) -> (B, T / stride, D)."""
-        y = self.conv(F.pad(x.transpose(1, 2), (2, 2), mode="replicate"))
+        y = self.conv(F.pad(x.transpose(1, 2), self.padding, mode="replicate"))
         y = F.leaky_relu(y, 0.2)
         if self.norm is not None:
             y = self.norm(y)
@@ -425,7 +442,7 @@ class MotionDecoder(nn.Module):
     def __init__(self, cfg: VQConfig) -> None:
         super().__init__()
         self.inp = nn.Linear(cfg.components * cfg.code_dim, cfg.hidden)
-        self.conv = TemporalConv(cfg.hidden, cfg.instance_norm)
+        self.conv = TemporalConv(cfg.hidden, cfg.instance_norm, causal=cfg.causal)
         self.mid = nn.Linear(cfg.hidden, cfg.hidden)
         self.blocks = nn.ModuleList(Block(cfg.hidden, cfg.heads, cfg.ff) for _ in range(cfg.layers))
         self.norm = nn.LayerNorm(cfg.hidden)
@@ -433,21 +450,21 @@ class MotionDecoder(nn.Module):
         self.cfg = cfg
         self.register_buffer("scale", torch.ones(cfg.num_vertices * 3))
 
-    def hidden(
-        self, z_q: Tensor, mask: Tensor | None = None, causal: bool = False, offset: int = 0
-    ) -> Tensor:
+    def hidden(self, z_q: Tensor, mask: Tensor | None = None, offset: int = 0) -> Tensor:
         """z_q (B, T', H, C) -> (B, T, hidden) before the output map (T = T' * P); ``offset`` is
         the position of the first frame (for windows of a longer sequence)."""
         x = self.inp(z_q.flatten(2))
         if self.cfg.temporal_unit > 1:
             x = x.repeat_interleave(self.cfg.temporal_unit, dim=1)
         x = self.mid(self.conv(hold_last_frame(x, mask)))
-        x = x + sinusoid(torch.arange(offset, offset + x.shape[1], device=x.device), x.shape[-1])
         bias = padding_bias(mask, x.dtype)
-        if causal:
-            T = x.shape[1]
-            tri = torch.full((T, T), float("-inf"), device=x.device).triu(1)
-            bias = tri if bias is None else bias + tri
+        if self.cfg.causal:
+            band = causal_band_bias(self.cfg.heads, x.shape[1], self.cfg.causal_window, x.device)
+            bias = band[None] if bias is None else bias + band
+        else:
+            x = x + sinusoid(
+                torch.arange(offset, offset + x.shape[1], device=x.device), x.shape[-1]
+            )
         for block in self.blocks:
             x = block(x, bias)
         return self.norm(x)
@@ -455,6 +472,44 @@ class MotionDecoder(nn.Module):
     def forward(self, z_q: Tensor, mask: Tensor | None = None, offset: int = 0) -> Tensor:
         """z_q (B, T', H, C) -> motion (B, T, V*3)."""
         return self.out(self.hidden(z_q, mask, offset=offset)) * self.scale
+
+
+def causal_band_bias(heads: int, length: int, window: int, device=None) -> Tensor:
+    """(heads, T, T) ALiBi bias of the causal VQ decoder: -slope_h * (i - j) for the ``window``
+    keys i - window < j <= i, -inf elsewhere."""
+    bias = temporal_bias(heads, length, length, 1, device)
+    i = torch.arange(length, device=device)[:, None]
+    j = torch.arange(length, device=device)[None]
+    return bias.masked_fill((j <= i - window)[None], float("-inf"))
+
+
+class DecoderStep:
+    """The causal VQ decoder one frame at a time: the last 5 conv inputs and a key/value cache of
+    ``causal_window`` frames per block, so each frame costs the same and equals the full pass."""
+
+    def __init__(self, decoder: MotionDecoder) -> None:
+        if not decoder.cfg.causal:
+            raise TalkmeshError("step-wise decoding needs a causal VQ decoder (vq.causal: true)")
+        self.decoder = decoder
+        cfg = decoder.cfg
+        self.window = cfg.causal_window
+        self.caches = [KVCache(self.window) for _ in decoder.blocks]
+        self.inputs: list[Tensor] = []
+        self.t = 0
+        device = decoder.out.weight.device
+        self.bias = causal_band_bias(cfg.heads, self.window, self.window, device)[None, :, -1:]
+
+    def hidden(self, z_q: Tensor) -> Tensor:
+        """z_q (B, 1, H, C) -> (B, 1, hidden), the normalised hidden state of the next frame."""
+        dec = self.decoder
+        x = dec.inp(z_q.flatten(2))
+        self.inputs = (self.inputs or [x] * 4)[-4:] + [x]  # replicate padding on the left
+        h = dec.mid(dec.conv(torch.cat(self.inputs, dim=1))[:, -1:])
+        self.t += 1
+        bias = self.bias[..., self.window - min(self.t, self.window) :]
+        for block, cache in zip(dec.blocks, self.caches):
+            h = block(h, bias, cache)
+        return dec.norm(h)
 
 
 class VQOutput(NamedTuple):
@@ -645,21 +700,32 @@ class CodeTalker(nn.Module):
         style = torch.where(
             (styles >= 0)[:, None], self.style(seen), self.style.weight.mean(0)[None]
         )
-        scale = self.vqvae.decoder.scale  # the motion map reads normalised motion
-        history = self.motion_map(motion[:, :-1] / scale)
         s2 = self.cfg.stage2
-        if self.training and s2.history_dropout > 0:
-            keep = torch.rand(B, T - 1, 1, device=history.device) >= s2.history_dropout
-            history = history * keep
-        prev = torch.cat([style[:, None], history + style[:, None]], dim=1)
-        x = prev + periodic_encoding(T, s2.d_model, s2.period, prev.device)
-        bias = temporal_bias(s2.heads, T, T, s2.period, x.device)[None]
+        cross = self._cross(self.audio_tokens(audio, audio_lengths, T))
+        bias = temporal_bias(s2.heads, T, T, s2.period, motion.device)[None]
         if motion_mask is not None:
-            bias = bias + padding_bias(motion_mask, x.dtype)
-        feats = self._decoder(x, self._cross(self.audio_tokens(audio, audio_lengths, T)), bias)
-        feats = feats.view(B, T, self.cfg.vq.components, self.cfg.vq.code_dim)
-        q = self.vqvae.quantizer(feats)
-        pred = self.vqvae.decoder(q.z_q, motion_mask)
+            bias = bias + padding_bias(motion_mask, motion.dtype)
+
+        def run(fed_back: Tensor) -> tuple[Tensor, Quantized, Tensor]:
+            # the motion map reads normalised motion
+            history = self.motion_map(fed_back[:, :-1] / self.vqvae.decoder.scale)
+            if self.training and s2.history_dropout > 0:
+                keep = torch.rand(B, T - 1, 1, device=history.device) >= s2.history_dropout
+                history = history * keep
+            prev = torch.cat([style[:, None], history + style[:, None]], dim=1)
+            x = prev + periodic_encoding(T, s2.d_model, s2.period, prev.device)
+            feats = self._decoder(x, cross, bias)
+            feats = feats.view(B, T, self.cfg.vq.components, self.cfg.vq.code_dim)
+            q = self.vqvae.quantizer(feats)
+            return feats, q, self.vqvae.decoder(q.z_q, motion_mask)
+
+        fed_back = motion
+        if self.training and s2.self_feedback > 0:
+            with torch.no_grad():
+                own = run(motion)[2]
+            pick = torch.rand(B, T, 1, device=motion.device) < s2.self_feedback
+            fed_back = torch.where(pick, own, motion)
+        feats, q, pred = run(fed_back)
         w = (
             motion_mask[:, :, None].to(feats.dtype)
             if motion_mask is not None
@@ -723,46 +789,84 @@ class CodeTalker(nn.Module):
                 inputs = torch.cat([inputs, nxt[:, None]], dim=1)
             all_codes = torch.stack(codes, dim=1)
         else:
-            all_codes = self._generate_fast(style, cross, num_frames)
-        window = None if mode == "naive" else max(1, s2.attention_window // vq.temporal_unit)
-        motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
+            all_codes, motion = self._generate_fast(style, cross, num_frames)
+        if mode == "naive" or motion is None:  # a causal decoder's steps are already final
+            window = None if mode == "naive" else max(1, s2.attention_window // vq.temporal_unit)
+            motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
         motion = motion.reshape(B, num_frames, vq.num_vertices, 3)  # a view: no copy
         return motion.add_(template[:, None])  # in place: 10 minutes are about 1 GB
 
-    def _generate_fast(self, style: Tensor, cross: list[Tensor], num_frames: int) -> Tensor:
-        s2, vq = self.cfg.stage2, self.cfg.vq
-        B = style.shape[0]
-        window = s2.attention_window
-        caches = [KVCache(window) for _ in self.blocks]
-        vq_caches = [KVCache(window) for _ in self.vqvae.decoder.blocks]
-        dec = self.vqvae.decoder
-        # The VQ decoder's output map followed by the motion map is one linear map: fold them.
-        # (normalised motion in, so the decoder's scale cancels)
-        fold_w = self.motion_map.weight @ dec.out.weight  # (d, hidden)
-        fold_b = self.motion_map.weight @ dec.out.bias + self.motion_map.bias
-        conv_inputs: list[Tensor] = []
-        codes = []
-        x_in = style[:, None]
-        device = style.device
-        # everything that does not depend on the generated motion is computed once, up front
-        ppe = periodic_encoding(num_frames, s2.d_model, s2.period, device)[:, None]  # (T, 1, d)
-        vq_pos = sinusoid(torch.arange(num_frames, device=device), dec.cfg.hidden)[:, None]
-        full_bias = temporal_bias(s2.heads, 1, window, s2.period, device, q_offset=window - 1)[None]
+    def _generate_fast(
+        self, style: Tensor, cross: list[Tensor], num_frames: int
+    ) -> tuple[Tensor, Tensor | None]:
+        """-> codes (B, T, H), and with a causal VQ decoder the motion (B, T, V*3) as well."""
+        gen = FrameGenerator(self, style)
+        codes, motion = [], None
+        if gen.causal:
+            motion = style.new_empty(style.shape[0], num_frames, self.cfg.vq.num_vertices * 3)
         for t in range(num_frames):
-            x = x_in + ppe[t]
-            keys = min(t + 1, window)
-            bias = full_bias[..., window - keys :]
-            feats = self._decoder(x, [c[:, t : t + 1] for c in cross], bias, caches)
-            q = self.vqvae.quantizer(feats.view(B, 1, vq.components, vq.code_dim))
-            codes.append(q.codes[:, 0])
-            # causal VQ-decoder step: conv over the last frames (replicate padding on the right)
-            conv_inputs.append(dec.inp(q.z_q.flatten(2)))
-            conv_inputs = conv_inputs[-3:]
-            h = dec.mid(dec.conv(torch.cat(conv_inputs, dim=1))[:, -1:]) + vq_pos[t]
+            code, frame = gen.step([c[:, t : t + 1] for c in cross])
+            codes.append(code)
+            if motion is not None:
+                motion[:, t] = frame
+        return torch.stack(codes, dim=1), motion
+
+
+class FrameGenerator:
+    """Stage 2 and the VQ decoder one frame at a time with key/value caches (``generate``'s fast
+    mode, and streaming): every frame costs the same, whatever the length.
+
+    With a causal VQ decoder (``vq.causal``) each step also returns the frame's motion, exactly
+    what a full pass would give. Otherwise the fed-back frame comes from a causal, cached pass
+    through the bidirectional decoder (see :meth:`CodeTalker.generate`) and no motion is returned.
+    """
+
+    def __init__(self, model: CodeTalker, style: Tensor) -> None:
+        s2, vq = model.cfg.stage2, model.cfg.vq
+        self.model, self.style = model, style
+        self.window = s2.attention_window
+        self.caches = [KVCache(self.window) for _ in model.blocks]
+        dec = model.vqvae.decoder
+        self.causal = vq.causal
+        self.vq_step = DecoderStep(dec) if vq.causal else None
+        self.vq_caches = [KVCache(self.window) for _ in dec.blocks]
+        self.conv_inputs: list[Tensor] = []
+        # the VQ decoder's output map followed by the motion map is one linear map: fold them
+        # (normalised motion in, so the decoder's scale cancels)
+        self.fold_w = model.motion_map.weight @ dec.out.weight  # (d, hidden)
+        self.fold_b = model.motion_map.weight @ dec.out.bias + model.motion_map.bias
+        device = style.device
+        self.ppe = periodic_encoding(s2.period, s2.d_model, s2.period, device)[:, None]
+        self.full_bias = temporal_bias(
+            s2.heads, 1, self.window, s2.period, device, q_offset=self.window - 1
+        )[None]
+        self.x_in = style[:, None]
+        self.t = 0
+
+    def step(self, cross: list[Tensor]) -> tuple[Tensor, Tensor | None]:
+        """cross: per decoder layer the (B, 1, d) audio term of this frame -> codes (B, H) and,
+        with a causal VQ decoder, motion (B, V*3)."""
+        model, vq, t = self.model, self.model.cfg.vq, self.t
+        B = self.style.shape[0]
+        x = self.x_in + self.ppe[t % len(self.ppe)]
+        bias = self.full_bias[..., self.window - min(t + 1, self.window) :]
+        feats = model._decoder(x, cross, bias, self.caches)
+        q = model.vqvae.quantizer(feats.view(B, 1, vq.components, vq.code_dim))
+        dec = model.vqvae.decoder
+        motion = None
+        if self.vq_step is not None:
+            h = self.vq_step.hidden(q.z_q)
+            motion = (dec.out(h) * dec.scale)[:, 0]
+        else:  # conv over the last frames (replicate padding on the right), cached attention
+            self.conv_inputs = [*self.conv_inputs[-2:], dec.inp(q.z_q.flatten(2))]
+            pos = sinusoid(torch.tensor([t], device=feats.device), dec.cfg.hidden)
+            h = dec.mid(dec.conv(torch.cat(self.conv_inputs, dim=1))[:, -1:]) + pos
             for n, block in enumerate(dec.blocks):
-                h = block(h, None, vq_caches[n])
-            x_in = F.linear(dec.norm(h), fold_w, fold_b) + style[:, None]
-        return torch.stack(codes, dim=1)
+                h = block(h, None, self.vq_caches[n])
+            h = dec.norm(h)
+        self.x_in = F.linear(h, self.fold_w, self.fold_b) + self.style[:, None]
+        self.t += 1
+        return q.codes[:, 0], motion
 
 
 def quantize_int8(model: CodeTalker) -> CodeTalker:

@@ -290,8 +290,13 @@ class MelAudioEncoder(nn.Module):
         t = torch.arange(num_frames, dtype=torch.float64)
         return torch.round(t * (self.cfg.mel_rate / self.fps)).long()
 
-    def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
-        """(B, S) audio at ``cfg.sample_rate``, (B,) valid lengths or None -> (B, T, out_dim)."""
+    def forward(
+        self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int, shift: int = 0
+    ) -> Tensor:
+        """(B, S) audio at ``cfg.sample_rate``, (B,) valid lengths or None -> (B, T, out_dim).
+
+        ``shift`` (mel frames) reads each motion frame's feature that many frames later, so it sees
+        ``shift`` more frames of look-ahead (a runtime look-ahead for streaming models)."""
         cfg = self.cfg
         if audio.ndim != 2:
             _fail(f"meshtalk audio encoder: audio must be (B, S), got {tuple(audio.shape)}")
@@ -300,7 +305,7 @@ class MelAudioEncoder(nn.Module):
         if audio_lengths is not None:  # padded batches: silence past each sample's end
             valid = torch.arange(audio.shape[1], device=audio.device)[None] < audio_lengths[:, None]
             audio = audio * valid
-        centres = self.frame_indices(num_frames).to(audio.device)
+        centres = self.frame_indices(num_frames).to(audio.device) + shift
         last_mel = (
             int(centres[-1]) + cfg.lookahead_frames
         )  # the last mel frame any motion frame sees
@@ -310,14 +315,19 @@ class MelAudioEncoder(nn.Module):
         audio = F.pad(audio[:, :needed], (0, max(0, needed - audio.shape[1])))
         mel = self.log_mel(audio)[:, :, : last_mel + 1]
         mel = F.pad(mel, (cfg.context_frames, 0), value=math.log(LOG_FLOOR))  # silence before t=0
+        x = self.convolve(mel)[:, :, centres]  # (B, width, T)
+        return self.output(x.transpose(1, 2))
+
+    def convolve(self, mel: Tensor) -> Tensor:
+        """(B, n_mels, M + receptive_field - 1) log-mel -> (B, width, M): output m reads the
+        input frames m .. m + receptive_field - 1 ("valid" convolutions)."""
         x = (mel - self.mel_mean[:, None]) / self.mel_std[:, None]
         x = F.leaky_relu(self.input(x), LEAKY_SLOPE)
         for conv in self.convs:
             y = F.leaky_relu(conv(x), LEAKY_SLOPE)
             crop = (x.shape[-1] - y.shape[-1]) // 2  # centred residual stays inside the window
             x = (x[:, :, crop : crop + y.shape[-1]] + y) / 2
-        x = x[:, :, centres]  # (B, width, T)
-        return self.output(x.transpose(1, 2))
+        return x
 
 
 # ---------------------------------------------------------------------------------------------

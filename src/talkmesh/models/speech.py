@@ -38,6 +38,9 @@ class SpeechEncoderConfig:
     source: str | None = None  # wav2vec2: local path or hub id for from_pretrained
     hf_config: dict[str, Any] = field(default_factory=dict)  # wav2vec2: a config for random weights
     lookahead_ms: float = 100.0  # mel: audio after the frame it may see
+    lookahead_max_ms: float | None = None  # mel, streaming models: the look-ahead becomes a
+    # runtime choice in [lookahead_ms, lookahead_max_ms] (sampled per batch in training and told to
+    # the model through a learned embedding); inference uses lookahead_max_ms unless set
     freeze_cnn: bool = True
     window_seconds: float = 20.0  # wav2vec2: longer audio is encoded in windows of this length,
     context_seconds: float = 2.0  # each with this much audio either side, so memory is bounded
@@ -47,6 +50,10 @@ class SpeechEncoderConfig:
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"speech.kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        if self.lookahead_max_ms is not None and (
+            self.kind != "mel" or self.lookahead_max_ms < self.lookahead_ms
+        ):
+            raise ValueError("speech.lookahead_max_ms needs kind mel and >= speech.lookahead_ms")
 
 
 def interpolate_frames(features: Tensor, num_frames: int) -> Tensor:
@@ -139,12 +146,49 @@ class MelEncoder(nn.Module):
             MelConfig(out_dim=cfg.dim, lookahead_ms=cfg.lookahead_ms), cfg.frame_rate
         )
         self.dim = cfg.dim
+        self.cfg = cfg
+        self.max_shift = 0
+        if cfg.lookahead_max_ms is not None:
+            self.max_shift = self.shift_for(cfg.lookahead_max_ms)
+            self.shift_embedding = nn.Embedding(self.max_shift + 1, cfg.dim)
+            nn.init.zeros_(self.shift_embedding.weight)
+        self.shift: int | None = None  # inference look-ahead (None: the largest)
+
+    def shift_for(self, lookahead_ms: float) -> int:
+        """Mel frames of extra look-ahead for a total look-ahead of ``lookahead_ms``."""
+        return round((lookahead_ms - self.cfg.lookahead_ms) / 1000 * self.encoder.cfg.mel_rate)
+
+    def set_lookahead(self, lookahead_ms: float | None) -> None:
+        """Inference look-ahead of a streaming model (None: the largest it was trained for)."""
+        if lookahead_ms is None:
+            self.shift = None
+            return
+        low, high = self.cfg.lookahead_ms, self.cfg.lookahead_max_ms or self.cfg.lookahead_ms
+        if not low - 1e-6 <= lookahead_ms <= high + 1e-6:
+            raise TalkmeshError(
+                f"look-ahead {lookahead_ms:g} ms is outside what this model was trained for "
+                f"({low:g}-{high:g} ms): pick a value in that range"
+            )
+        self.shift = self.shift_for(lookahead_ms)
+
+    @property
+    def lookahead_ms(self) -> float:
+        """The look-ahead in use: audio after a frame that its feature reads."""
+        shift = self.max_shift if self.shift is None else self.shift
+        return self.cfg.lookahead_ms + shift * 1000 / self.encoder.cfg.mel_rate
 
     def set_statistics(self, audio: Tensor) -> None:
         self.encoder.set_statistics(audio)
 
     def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
-        return self.encoder(audio, audio_lengths, num_frames)
+        if not self.max_shift:
+            return self.encoder(audio, audio_lengths, num_frames)
+        if self.training:  # one look-ahead per batch, uniformly over the trained range
+            shift = int(torch.randint(0, self.max_shift + 1, ()))
+        else:
+            shift = self.max_shift if self.shift is None else self.shift
+        feats = self.encoder(audio, audio_lengths, num_frames, shift=shift)
+        return feats + self.shift_embedding.weight[shift]
 
 
 class WhisperEncoder(nn.Module):

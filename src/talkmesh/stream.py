@@ -1,0 +1,404 @@
+"""Real-time streaming: audio chunks in, face frames out, with a bounded look-ahead.
+
+``open_stream(model, lookahead_ms=...)`` returns a streamer; ``push(pcm)`` takes 16 kHz mono audio
+of any length (a microphone's 10-200 ms chunks) and returns the frames whose look-ahead has
+arrived; ``flush()`` ends the stream. Each frame carries the 52 ARKit weights and, optionally, the
+vertex offsets from the neutral face. State is bounded (windowed caches, the last seconds of
+audio), so a stream can run for hours at a constant cost per frame.
+
+Two animators stream:
+
+* ``procedural``: incremental phone recognition (PocketSphinx's all-phone search, its current best
+  path read after every chunk; the utterance restarts at pauses, at the latest every
+  ``MAX_UTTERANCE_S``) and the dominance-function lip sync on the phones heard so far. Blinks, gaze
+  and brow drift come from a seeded schedule; brow raises on pitch accents need the audio after
+  the accent and are left out.
+* a streaming CodeTalker release (``configs/codetalker_stream.yaml``): causal VQ decoder, mel
+  speech encoder with a runtime look-ahead; one frame per step with the key/value caches of
+  :class:`talkmesh.models.codetalker.FrameGenerator`, exactly what ``generate`` computes offline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from talkmesh.arkit import ARKIT_NAMES, WeightFitter
+from talkmesh.assets import Head, load_head
+from talkmesh.audio import SAMPLE_RATE
+from talkmesh.errors import TalkmeshError
+from talkmesh.lipsync import (
+    BLINK_GAZE,
+    INDEX,
+    SpeakingStyle,
+    add_mouth,
+    mouth_curves,
+    upper_face_curves,
+)
+from talkmesh.phonemes import FRAME_RATE, SILENCE_RMS, Phone
+
+DEFAULT_LOOKAHEAD_MS = 100.0
+MAX_LOOKAHEAD_MS = 300.0
+MAX_UTTERANCE_S = 20.0  # the phone recogniser restarts at least this often (bounded search)
+MIN_UTTERANCE_S = 6.0  # ... and at a pause once the utterance is this long
+PAUSE_S = 0.3
+UPPER_FACE_SEGMENT_S = 30.0  # blinks, gaze and drift are drawn this many seconds at a time
+PHONE_MEMORY_S = 2.0  # finished phones kept for coarticulation
+PIECE = SAMPLE_RATE // 5  # longer pushes are processed 200 ms at a time
+
+
+@dataclass
+class StreamFrame:
+    index: int  # frames since the start of the stream
+    time: float  # seconds: index / fps
+    weights: np.ndarray  # (52,) float32 ARKit weights, in ARKIT_NAMES order
+    offsets: np.ndarray | None  # (V, 3) float32 vertex offsets from the neutral face
+
+
+class Streamer:
+    """Common part: audio bookkeeping and the emission schedule. Subclasses say how far past a
+    frame's time the audio must reach (:meth:`_audio_needed`) and compute frames."""
+
+    sample_rate = SAMPLE_RATE
+    names = ARKIT_NAMES
+
+    def __init__(self, fps: float, lookahead_ms: float, head: Head, offsets: bool) -> None:
+        self.fps = float(fps)
+        self.lookahead_ms = float(lookahead_ms)
+        self.head = head
+        self.offsets = offsets
+        self.samples = 0  # audio received so far
+        self.next_frame = 0
+        self.closed = False
+        self.basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
+
+    def push(self, pcm: np.ndarray) -> list[StreamFrame]:
+        """16 kHz mono audio (float in [-1, 1], or int16) -> the frames it completes."""
+        if self.closed:
+            raise TalkmeshError("this stream was flushed: open a new one to stream more audio")
+        audio = np.asarray(pcm)
+        if audio.ndim != 1:
+            raise TalkmeshError(f"audio chunks must be 1-D mono samples, got shape {audio.shape}")
+        if audio.dtype == np.int16:
+            audio = audio.astype(np.float32) / 32768.0
+        elif audio.dtype.kind != "f":
+            raise TalkmeshError(f"audio chunks must be float or int16 samples, got {audio.dtype}")
+        audio = np.nan_to_num(audio.astype(np.float32, copy=False), nan=0.0, posinf=0.0, neginf=0.0)
+        frames: list[StreamFrame] = []
+        for i in range(0, len(audio), PIECE):  # long pushes in pieces: state stays bounded
+            piece = audio[i : i + PIECE]
+            self._receive(piece)
+            self.samples += len(piece)
+            ready = self.next_frame
+            while self._audio_needed(ready) <= self.samples:
+                ready += 1
+            frames += self._emit(ready, final=False)
+        return frames
+
+    def flush(self) -> list[StreamFrame]:
+        """End of the stream: every remaining frame of the audio received (at least one)."""
+        if self.closed:
+            return []
+        self.closed = True
+        total = max(1, int(round(self.samples / SAMPLE_RATE * self.fps)))
+        return self._emit(max(total, self.next_frame), final=True)
+
+    def _emit(self, end: int, final: bool) -> list[StreamFrame]:
+        if end <= self.next_frame:
+            return []
+        start, self.next_frame = self.next_frame, end
+        weights, offsets = self._frames(start, end, final)
+        return [
+            StreamFrame(t, t / self.fps, weights[k], None if offsets is None else offsets[k])
+            for k, t in enumerate(range(start, end))
+        ]
+
+    def _weights_to_offsets(self, weights: np.ndarray) -> np.ndarray:
+        return (weights @ self.basis).reshape(len(weights), -1, 3)
+
+    # -- for subclasses
+    def _receive(self, audio: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def _audio_needed(self, frame: int) -> float:
+        """Samples that must have arrived before ``frame`` can be computed."""
+        raise NotImplementedError
+
+    def _frames(self, start: int, end: int, final: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        raise NotImplementedError
+
+
+class UpperFace:
+    """Blinks, gaze and brow drift for any frame range, drawn in seeded 30 s segments."""
+
+    def __init__(self, fps: float, seed: int, style: SpeakingStyle, channels=None) -> None:
+        self.fps, self.seed, self.style = fps, seed, style
+        self.segment = int(UPPER_FACE_SEGMENT_S * fps)
+        self.cache: dict[int, np.ndarray] = {}
+        self.channels = channels  # keep only these ARKit indices (None: all)
+
+    def __call__(self, start: int, end: int) -> np.ndarray:
+        out = np.empty((end - start, len(ARKIT_NAMES)), np.float32)
+        for t in range(start, end):  # frames of at most two segments per call in practice
+            k = t // self.segment
+            if k not in self.cache:
+                self.cache = {k: self._segment(k)}  # one segment at a time: bounded
+            out[t - start] = self.cache[k][t - k * self.segment]
+        return out
+
+    def _segment(self, k: int) -> np.ndarray:
+        times = np.arange(self.segment) / self.fps
+        rng = np.random.default_rng([self.seed, k])
+        w = upper_face_curves(times, rng, self.style, np.zeros((0, 2)))
+        if self.channels is not None:
+            keep = np.zeros(len(ARKIT_NAMES), bool)
+            keep[self.channels] = True
+            w[:, ~keep] = 0.0
+        return w
+
+
+class ProceduralStreamer(Streamer):
+    """Incremental phone recognition + the procedural lip sync (module docstring)."""
+
+    def __init__(
+        self,
+        lookahead_ms: float,
+        head: Head,
+        offsets: bool,
+        fps: float = 30.0,
+        seed: int = 0,
+        style: SpeakingStyle | None = None,
+    ) -> None:
+        super().__init__(fps, lookahead_ms, head, offsets)
+        from talkmesh import phonemes
+
+        self._ps = phonemes
+        self.decoder = phonemes._decoder(align=False)
+        self.style = style or SpeakingStyle()
+        self.upper = UpperFace(self.fps, seed, self.style)
+        self.past: list[Phone] = []  # finished utterances' phones (the last seconds), stream time
+        self.utt_audio: list[np.ndarray] = []
+        self.utt_start = 0  # stream sample where the current utterance began
+        self.utt_samples = 0
+        self.decoder.start_utt()
+
+    def _receive(self, audio: np.ndarray) -> None:
+        self.decoder.process_raw(self._ps._pcm16(audio))
+        self.utt_audio.append(audio)
+        self.utt_samples += len(audio)
+        seconds = self.utt_samples / SAMPLE_RATE
+        if seconds >= MAX_UTTERANCE_S or (seconds >= MIN_UTTERANCE_S and self._pause()):
+            self._end_utterance()
+
+    def _pause(self) -> bool:
+        tail = np.concatenate(self.utt_audio)[-int(PAUSE_S * SAMPLE_RATE) :]
+        return float(np.sqrt(np.mean(tail**2))) < SILENCE_RMS
+
+    def _utterance_phones(self) -> list[Phone]:
+        if not self.utt_samples:
+            return []
+        audio = np.concatenate(self.utt_audio)
+        self.utt_audio = [audio]
+        rms = self._ps._frame_rms(audio)
+        segments = [(s.word, s.start_frame, s.end_frame + 1) for s in self.decoder.seg() or []]
+        offset = self.utt_start / SAMPLE_RATE
+        phones = self._ps._tidy(segments, rms, len(audio))
+        return [Phone(p.label, p.start + offset, p.end + offset) for p in phones]
+
+    def _end_utterance(self) -> None:
+        self.decoder.end_utt()
+        phones = self._utterance_phones()
+        now = (self.utt_start + self.utt_samples) / SAMPLE_RATE
+        self.past = [p for p in [*self.past, *phones] if p.end > now - PHONE_MEMORY_S]
+        self.utt_start += self.utt_samples
+        self.utt_audio, self.utt_samples = [], 0
+        self.decoder.reinit_feat()
+        self.decoder.start_utt()
+
+    def _audio_needed(self, frame: int) -> float:
+        # the recogniser's 10 ms frames are centred 12.5 ms into their 25 ms window
+        return (
+            frame / self.fps + self.lookahead_ms / 1000
+        ) * SAMPLE_RATE + 1.5 * SAMPLE_RATE / FRAME_RATE
+
+    def _frames(self, start: int, end: int, final: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        if final and self.utt_samples:
+            self._end_utterance()
+        phones = [*self.past, *self._utterance_phones()]
+        times = np.arange(start, end) / self.fps
+        recent = [p for p in phones if p.end > times[0] - PHONE_MEMORY_S]
+        weights = add_mouth(
+            self.upper(start, end), mouth_curves(recent, times, self.style), self.style
+        )
+        return weights, self._weights_to_offsets(weights) if self.offsets else None
+
+
+class CodeTalkerStreamer(Streamer):
+    """A streaming CodeTalker release, one frame per step (module docstring)."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        lookahead_ms: float,
+        head: Head,
+        offsets: bool,
+        seed: int = 0,
+        style_weights: np.ndarray | None = None,
+        blinks: bool = True,
+    ) -> None:
+        import torch
+
+        from talkmesh.models.codetalker import FrameGenerator
+        from talkmesh.models.release import load_model
+        from talkmesh.models.speech import MelEncoder
+
+        net = load_model(path).eval()
+        cfg = net.cfg
+        if not cfg.vq.causal or not isinstance(net.speech, MelEncoder):
+            raise TalkmeshError(
+                f"{path} cannot stream: it needs a causal VQ decoder and the mel speech encoder "
+                "(train one with configs/codetalker_stream.yaml)"
+            )
+        if cfg.vq.num_vertices != head.num_vertices:
+            raise TalkmeshError(
+                f"{path} animates {cfg.vq.num_vertices}-vertex meshes but the face has {head.num_vertices}"
+            )
+        net.speech.set_lookahead(lookahead_ms)
+        super().__init__(cfg.motion_fps, net.speech.lookahead_ms, head, offsets)
+        self.torch, self.net = torch, net
+        enc = net.speech.encoder
+        self.mel = enc.cfg
+        self.encoder = enc
+        self.shift = net.speech.max_shift if net.speech.shift is None else net.speech.shift
+        self.window = torch.hann_window(self.mel.win_length)
+        styles = len(cfg.stage2.styles)
+        weights = (
+            np.full(styles, 1.0 / styles, np.float32)
+            if style_weights is None
+            else np.asarray(style_weights, np.float32)
+        )
+        with torch.inference_mode():
+            style = net.style_vector(None, torch.from_numpy(weights)[None])
+            self.generator = FrameGenerator(net, style)
+        self.fitter = WeightFitter(head.blendshapes, iterations=50)
+        self.blinks = (
+            UpperFace(self.fps, seed, SpeakingStyle(), [INDEX[n] for n in BLINK_GAZE])
+            if blinks
+            else None
+        )
+        self.buffer = np.zeros(0, np.float32)
+        self.buffer_start = 0  # stream sample of buffer[0]
+
+    def _receive(self, audio: np.ndarray) -> None:
+        self.buffer = np.concatenate([self.buffer, audio])
+
+    def _first_sample(self, frame: int) -> int:
+        """The first stream sample ``frame``'s speech feature reads."""
+        first = self._last_mel(frame) - self.mel.receptive_field + 1
+        return first * self.mel.hop_length - self.mel.n_fft // 2
+
+    def _last_mel(self, frame: int) -> int:
+        centre = int(round(frame * self.mel.mel_rate / self.fps))  # as MelAudioEncoder
+        return centre + self.shift + self.mel.lookahead_frames
+
+    def _audio_needed(self, frame: int) -> float:
+        # the last mel frame's window ends win_length / 2 after its centre
+        return self._last_mel(frame) * self.mel.hop_length + self.mel.win_length // 2
+
+    def _feature(self, frame: int):
+        """The speech feature of one frame, from the buffered audio (as the offline encoder)."""
+        torch, mel = self.torch, self.mel
+        last = self._last_mel(frame)
+        first = last - mel.receptive_field + 1
+        start = self._first_sample(frame)
+        length = (mel.receptive_field - 1) * mel.hop_length + mel.n_fft
+        segment = np.zeros(length, np.float32)
+        a, b = (
+            max(start, self.buffer_start),
+            min(start + length, self.buffer_start + len(self.buffer)),
+        )
+        if b > a:
+            segment[a - start : b - start] = self.buffer[
+                a - self.buffer_start : b - self.buffer_start
+            ]
+        spec = torch.stft(
+            torch.from_numpy(segment),
+            n_fft=mel.n_fft,
+            hop_length=mel.hop_length,
+            win_length=mel.win_length,
+            window=self.window,
+            center=False,
+            return_complex=True,
+        )
+        power = spec.real.square() + spec.imag.square()
+        logmel = torch.log((power.T @ self.encoder.filterbank).clamp(min=1e-5)).T  # (n_mels, R)
+        if first < 0:  # before the stream: silence, as the offline encoder pads
+            logmel[:, :-first] = float(np.log(1e-5))
+        x = self.encoder.convolve(logmel[None])[:, :, -1]
+        feats = self.encoder.output(x)
+        if self.net.speech.max_shift:
+            feats = feats + self.net.speech.shift_embedding.weight[self.shift]
+        return self.net.audio_map(feats)[:, None]  # (1, 1, d)
+
+    def _frames(self, start: int, end: int, final: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        torch = self.torch
+        motion = np.empty((end - start, self.head.num_vertices * 3), np.float32)
+        with torch.inference_mode():
+            for k, t in enumerate(range(start, end)):
+                token = self._feature(t)
+                _, frame = self.generator.step(self.net._cross(token))
+                motion[k] = frame[0].numpy()
+        drop = self._first_sample(end) - self.buffer_start  # audio no later frame reads
+        if drop > 0:
+            self.buffer = self.buffer[drop:]
+            self.buffer_start += drop
+        weights = self.fitter(motion)
+        if self.blinks is not None:
+            eyes = self.blinks(start, end)
+            motion += eyes @ self.basis
+            weights = np.maximum(weights, eyes)
+        offsets = motion.reshape(len(motion), -1, 3) if self.offsets else None
+        return weights, offsets
+
+
+def open_stream(
+    model: str | Path | None = "procedural",
+    *,
+    lookahead_ms: float | None = None,
+    head: Head | None = None,
+    offsets: bool = False,
+    seed: int = 0,
+    fps: float = 30.0,
+    style_weights: np.ndarray | None = None,
+    blinks: bool = True,
+) -> Streamer:
+    """A streamer for ``model``: ``procedural`` or the path of a streaming CodeTalker release.
+
+    ``lookahead_ms`` (default 100): audio after a frame's time that it waits for, 0-300 ms (a
+    CodeTalker release accepts the range it was trained for). ``offsets``: also return vertex
+    offsets per frame. ``fps`` applies to the procedural animator (a model has its own).
+    """
+    lookahead = DEFAULT_LOOKAHEAD_MS if lookahead_ms is None else float(lookahead_ms)
+    if not 0.0 <= lookahead <= MAX_LOOKAHEAD_MS:
+        raise TalkmeshError(
+            f"look-ahead {lookahead:g} ms is out of range: use 0 to {MAX_LOOKAHEAD_MS:g} ms"
+        )
+    head = head or load_head()
+    if tuple(head.blendshape_names) != tuple(ARKIT_NAMES):
+        raise TalkmeshError("the face's blendshapes are not the 52 ARKit shapes in ARKit order")
+    name = "procedural" if model is None else str(model)
+    if name == "procedural":
+        if not 1.0 <= fps <= 240.0:
+            raise TalkmeshError(f"fps {fps:g} is out of range: use 1 to 240")
+        return ProceduralStreamer(lookahead, head, offsets, fps=fps, seed=seed)
+    path = Path(name)
+    if path.suffix != ".safetensors" or not path.is_file():
+        raise TalkmeshError(
+            f"unknown streaming model '{name}': use procedural or a streaming CodeTalker "
+            ".safetensors file"
+        )
+    return CodeTalkerStreamer(
+        path, lookahead, head, offsets, seed=seed, style_weights=style_weights, blinks=blinks
+    )

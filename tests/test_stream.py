@@ -1,0 +1,155 @@
+"""Streaming: chunked audio in, frames out, equal to offline generation where it claims to be."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from talkmesh.arkit import ARKIT_NAMES
+from talkmesh.assets import Head, load_head
+from talkmesh.audio import load_audio
+from talkmesh.errors import TalkmeshError
+from talkmesh.lipsync import phones_to_weights
+from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config, VQConfig
+from talkmesh.models.release import save_model
+from talkmesh.models.speech import SpeechEncoderConfig
+from talkmesh.phonemes import recognize_phones
+from talkmesh.stream import open_stream
+
+SR = 16_000
+V = 20
+JAW = list(ARKIT_NAMES).index("jawOpen")
+
+
+def tiny_head() -> Head:
+    rng = np.random.default_rng(0)
+    return Head(
+        name="tiny",
+        template=rng.normal(size=(V, 3)).astype(np.float32),
+        faces=np.array([[0, 1, 2]], np.int32),
+        blendshapes=(rng.normal(size=(52, V, 3)) * 0.01).astype(np.float32),
+        blendshape_names=tuple(ARKIT_NAMES),
+        regions=None,  # the streamers do not read regions
+    )
+
+
+def tiny_model(tmp_path: Path, causal: bool = True) -> Path:
+    torch.manual_seed(0)
+    cfg = CodeTalkerConfig(
+        vq=VQConfig(num_vertices=V, hidden=32, layers=1, heads=2, ff=64, components=4,
+                    code_dim=8, codebook_size=16, causal=causal, causal_window=6),
+        stage2=Stage2Config(d_model=32, heads=2, ff=64, layers=2, period=5, styles=("a", "b"),
+                            attention_window=7,
+                            speech=SpeechEncoderConfig(kind="mel", dim=16, lookahead_ms=0.0,
+                                                       lookahead_max_ms=200.0)),
+    )  # fmt: skip
+    model = CodeTalker(cfg)
+    torch.nn.init.normal_(model.feat_map.weight, std=0.5)
+    torch.nn.init.normal_(model.speech.shift_embedding.weight, std=0.5)
+    return save_model(model.eval(), tmp_path / "stream.safetensors")
+
+
+def stream_all(streamer, audio: np.ndarray, chunks: list[int]):
+    frames, i, k = [], 0, 0
+    while i < len(audio):
+        n = chunks[k % len(chunks)]
+        frames += streamer.push(audio[i : i + n])
+        i, k = i + n, k + 1
+    return frames + streamer.flush()
+
+
+@pytest.mark.parametrize("lookahead", [0.0, 50.0, 200.0])
+def test_codetalker_stream_equals_offline_generation(tmp_path, lookahead):
+    from talkmesh.models.release import load_model
+
+    path = tiny_model(tmp_path)
+    head = tiny_head()
+    audio = np.random.default_rng(1).normal(0, 0.1, int(1.9 * SR)).astype(np.float32)
+    # chunks of 10 ms to 200 ms, as a microphone sends them
+    stream = open_stream(path, lookahead_ms=lookahead, head=head, offsets=True, blinks=False)
+    frames = stream_all(stream, audio, [160, 3200, 800, 1600, 480])
+    assert [f.index for f in frames] == list(range(57))  # 1.9 s at 30 fps
+    net = load_model(path)
+    net.speech.set_lookahead(lookahead)
+    offline = (
+        net.generate(
+            torch.from_numpy(audio)[None],
+            torch.from_numpy(head.template)[None],
+            style_weights=torch.tensor([[0.5, 0.5]]),
+        )[0].numpy()
+        - head.template
+    )
+    streamed = np.stack([f.offsets for f in frames])
+    np.testing.assert_allclose(streamed, offline, atol=2e-5)
+    assert np.abs(offline[1:] - offline[:-1]).max() > 1e-3  # not a constant output
+    weights = np.stack([f.weights for f in frames])
+    assert weights.shape == (57, 52) and weights.min() >= 0 and weights.max() <= 1
+
+
+def test_stream_waits_for_its_lookahead_and_lookahead_changes_the_output(tmp_path):
+    path = tiny_model(tmp_path)
+    head = tiny_head()
+    audio = np.random.default_rng(2).normal(0, 0.1, SR).astype(np.float32)
+    early = open_stream(path, lookahead_ms=0, head=head, offsets=True, blinks=False)
+    late = open_stream(path, lookahead_ms=200, head=head, offsets=True, blinks=False)
+    got_early, got_late = early.push(audio[: SR // 2]), late.push(audio[: SR // 2])
+    # 0.5 s received: frames up to (0.5 s - look-ahead - the 25 ms mel window) are out
+    assert got_early[-1].time <= 0.5 - 0.025 and got_early[-1].time > 0.5 - 0.1
+    assert got_late[-1].time <= 0.5 - 0.225 and got_late[-1].time > 0.5 - 0.3
+    a = np.stack([f.offsets for f in got_early[: len(got_late)]])
+    b = np.stack([f.offsets for f in got_late])
+    assert not np.allclose(a, b)
+
+
+def test_procedural_stream_follows_the_offline_lip_sync(tmp_path):
+    wav = tmp_path / "s.wav"
+    subprocess.run(["espeak-ng", "-v", "en-us", "-w", str(wav), "Bob bought a big blue map above the bay."], check=True)  # fmt: skip
+    audio = load_audio(tmp_path / "s.wav")
+    stream = open_stream("procedural", lookahead_ms=100)
+    frames = stream_all(stream, audio, [320])  # 20 ms chunks
+    n = max(1, round(len(audio) / SR * 30))
+    assert [f.index for f in frames] == list(range(n))
+    live = np.stack([f.weights for f in frames])[:, JAW]
+    offline = phones_to_weights(recognize_phones(audio), n, 30.0)[:, JAW]
+    r = np.corrcoef(live, offline)[0, 1]
+    print(f"jawOpen: streamed vs offline r = {r:.3f}")
+    assert live.max() > 0.1 and r > 0.6
+
+
+def test_procedural_stream_state_stays_bounded_over_long_audio():
+    rng = np.random.default_rng(3)
+    stream = open_stream("procedural", lookahead_ms=0, offsets=True)
+    head = load_head()
+    total = 0
+    for _ in range(50):  # 50 s of noise bursts and pauses, in 1 s pushes
+        chunk = np.where(rng.random(SR) < 0.5, rng.normal(0, 0.2, SR), 0).astype(np.float32)
+        frames = stream.push(chunk)
+        total += len(frames)
+    assert stream.utt_samples <= 20 * SR  # the recogniser restarted
+    assert len(stream.past) < 200  # only the last seconds of phones are kept
+    assert total >= 49 * 30 and frames[-1].offsets.shape == (head.num_vertices, 3)
+
+
+def test_stream_errors(tmp_path):
+    with pytest.raises(TalkmeshError, match="look-ahead"):
+        open_stream("procedural", lookahead_ms=400)
+    with pytest.raises(TalkmeshError, match="unknown streaming model"):
+        open_stream("nonexistent.safetensors")
+    head = tiny_head()
+    with pytest.raises(TalkmeshError, match="cannot stream"):
+        open_stream(tiny_model(tmp_path, causal=False), head=head)
+    with pytest.raises(TalkmeshError, match="outside what this model was trained for"):
+        open_stream(tiny_model(tmp_path), lookahead_ms=250, head=head)
+    stream = open_stream("procedural")
+    with pytest.raises(TalkmeshError, match="1-D"):
+        stream.push(np.zeros((2, 160), np.float32))
+    with pytest.raises(TalkmeshError, match="float or int16"):
+        stream.push(np.zeros(160, np.int64))
+    assert len(stream.push(np.zeros(160, np.int16))) == 0
+    assert len(stream.flush()) == 1  # 10 ms of audio: one frame
+    with pytest.raises(TalkmeshError, match="flushed"):
+        stream.push(np.zeros(160, np.float32))
