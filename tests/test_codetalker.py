@@ -381,3 +381,49 @@ def test_fast_generation_equals_naive_with_a_causal_vq_decoder():
     fast = model.generate(audio, templ, styles=style, mode="fast")
     naive = model.generate(audio, templ, styles=style, mode="naive")
     torch.testing.assert_close(fast, naive, atol=1e-5, rtol=1e-4)
+
+
+def test_self_feedback_feeds_back_the_models_own_teacher_forced_prediction(monkeypatch):
+    from dataclasses import replace
+
+    model = tiny(causal=True)
+    model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, self_feedback=1.0))
+    audio, verts = clip(12)
+    args = (audio, None, verts, torch.zeros(1, 20, 3), torch.tensor([0]))
+    fed = []
+    original = model.motion_map.forward
+    monkeypatch.setattr(model.motion_map, "forward", lambda x: fed.append(x) or original(x))
+    with torch.no_grad():
+        model(*args)
+        assert len(fed) == 1  # eval: one teacher-forced pass
+        model.train()
+        out = model(*args)
+    assert len(fed) == 3  # training: a first pass, then a pass on its own prediction
+    scale = model.vqvae.decoder.scale
+    first_prediction = fed[1] * scale  # what the first training pass fed back (the truth)...
+    torch.testing.assert_close(first_prediction, verts.flatten(2)[:, :-1])
+    assert not torch.allclose(fed[2] * scale, verts.flatten(2)[:, :-1])  # ...then its own motion
+    assert torch.isfinite(out.loss)
+    with pytest.raises(ValueError, match="self_feedback"):
+        Stage2Config(styles=("a",), self_feedback=1.5)
+
+
+def test_mel_lookahead_is_a_runtime_choice_within_the_trained_range():
+    from talkmesh.models.speech import MelEncoder
+
+    enc = MelEncoder(
+        SpeechEncoderConfig(kind="mel", dim=8, lookahead_ms=0.0, lookahead_max_ms=100.0)
+    )
+    torch.nn.init.normal_(enc.shift_embedding.weight)
+    enc.eval()
+    audio = torch.randn(1, SR)
+    enc.set_lookahead(0.0)
+    early = enc(audio, None, 30)
+    assert enc.lookahead_ms == 0.0
+    enc.set_lookahead(100.0)
+    late = enc(audio, None, 30)
+    assert enc.lookahead_ms == 100.0 and not torch.allclose(early, late)
+    with pytest.raises(TalkmeshError, match="trained for"):
+        enc.set_lookahead(150.0)
+    with pytest.raises(ValueError, match="lookahead_max_ms"):
+        SpeechEncoderConfig(kind="whisper", lookahead_max_ms=100.0)

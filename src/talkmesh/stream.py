@@ -46,6 +46,7 @@ MIN_UTTERANCE_S = 6.0  # ... and at a pause once the utterance is this long
 PAUSE_S = 0.3
 UPPER_FACE_SEGMENT_S = 30.0  # blinks, gaze and drift are drawn this many seconds at a time
 PHONE_MEMORY_S = 2.0  # finished phones kept for coarticulation
+FRAME_SAMPLES = SAMPLE_RATE // FRAME_RATE
 PIECE = SAMPLE_RATE // 5  # longer pushes are processed 200 ms at a time
 
 
@@ -72,7 +73,9 @@ class Streamer:
         self.samples = 0  # audio received so far
         self.next_frame = 0
         self.closed = False
-        self.basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
+        self.basis = np.ascontiguousarray(
+            head.blendshapes.reshape(len(ARKIT_NAMES), -1), np.float32
+        )
 
     def push(self, pcm: np.ndarray) -> list[StreamFrame]:
         """16 kHz mono audio (float in [-1, 1], or int16) -> the frames it completes."""
@@ -179,32 +182,46 @@ class ProceduralStreamer(Streamer):
         self.style = style or SpeakingStyle()
         self.upper = UpperFace(self.fps, seed, self.style)
         self.past: list[Phone] = []  # finished utterances' phones (the last seconds), stream time
-        self.utt_audio: list[np.ndarray] = []
+        self.utt_rms: list[np.ndarray] = []  # RMS of the utterance's complete 10 ms frames
+        self.rms_tail = np.zeros(0, np.float32)  # samples of the incomplete frame
         self.utt_start = 0  # stream sample where the current utterance began
         self.utt_samples = 0
         self.decoder.start_utt()
 
     def _receive(self, audio: np.ndarray) -> None:
         self.decoder.process_raw(self._ps._pcm16(audio))
-        self.utt_audio.append(audio)
         self.utt_samples += len(audio)
+        tail = np.concatenate([self.rms_tail, audio])
+        n = len(tail) // FRAME_SAMPLES * FRAME_SAMPLES
+        if n:
+            frames = tail[:n].reshape(-1, FRAME_SAMPLES)
+            self.utt_rms.append(np.sqrt(np.mean(np.square(frames), axis=1)))
+        self.rms_tail = tail[n:]
         seconds = self.utt_samples / SAMPLE_RATE
         if seconds >= MAX_UTTERANCE_S or (seconds >= MIN_UTTERANCE_S and self._pause()):
             self._end_utterance()
 
+    def _rms(self) -> np.ndarray:
+        """RMS per 10 ms frame of the utterance so far (the last frame zero-padded)."""
+        if len(self.utt_rms) > 1:
+            self.utt_rms = [np.concatenate(self.utt_rms)]
+        parts = list(self.utt_rms)
+        if len(self.rms_tail):
+            padded = np.zeros(FRAME_SAMPLES, np.float32)
+            padded[: len(self.rms_tail)] = self.rms_tail
+            parts.append(np.sqrt(np.mean(np.square(padded)))[None])
+        return np.concatenate(parts) if parts else np.zeros(0, np.float32)
+
     def _pause(self) -> bool:
-        tail = np.concatenate(self.utt_audio)[-int(PAUSE_S * SAMPLE_RATE) :]
-        return float(np.sqrt(np.mean(tail**2))) < SILENCE_RMS
+        tail = self._rms()[-int(PAUSE_S * FRAME_RATE) :]
+        return float(np.sqrt(np.mean(np.square(tail)))) < SILENCE_RMS
 
     def _utterance_phones(self) -> list[Phone]:
         if not self.utt_samples:
             return []
-        audio = np.concatenate(self.utt_audio)
-        self.utt_audio = [audio]
-        rms = self._ps._frame_rms(audio)
         segments = [(s.word, s.start_frame, s.end_frame + 1) for s in self.decoder.seg() or []]
         offset = self.utt_start / SAMPLE_RATE
-        phones = self._ps._tidy(segments, rms, len(audio))
+        phones = self._ps._tidy(segments, self._rms(), self.utt_samples)
         return [Phone(p.label, p.start + offset, p.end + offset) for p in phones]
 
     def _end_utterance(self) -> None:
@@ -213,7 +230,7 @@ class ProceduralStreamer(Streamer):
         now = (self.utt_start + self.utt_samples) / SAMPLE_RATE
         self.past = [p for p in [*self.past, *phones] if p.end > now - PHONE_MEMORY_S]
         self.utt_start += self.utt_samples
-        self.utt_audio, self.utt_samples = [], 0
+        self.utt_rms, self.rms_tail, self.utt_samples = [], np.zeros(0, np.float32), 0
         self.decoder.reinit_feat()
         self.decoder.start_utt()
 
