@@ -307,6 +307,28 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    try:
+        from talkmesh.serve import serve
+    except ImportError as e:
+        if e.name not in ("starlette", "anyio"):
+            raise
+        from talkmesh.errors import MissingDependencyError
+
+        raise MissingDependencyError(e.name, "serve", "talkmesh serve") from None
+    serve(
+        args.host,
+        args.port,
+        quiet=args.quiet,
+        models=args.model or ["procedural"],
+        max_sessions=args.max_sessions,
+        max_message_bytes=args.max_message_bytes,
+        max_upload_bytes=int(args.max_upload_mb * 2**20),
+        idle_timeout=args.idle_timeout,
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="talkmesh", description="Speech-driven 3D facial animation.")
     p.add_argument("--version", action="version", version=f"talkmesh {__version__}")
@@ -456,6 +478,25 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--num-nodes", type=int, help="number of machines")
     tr.add_argument("-q", "--quiet", action="store_true")
     tr.set_defaults(func=cmd_train)
+
+    sv = sub.add_parser(
+        "serve", help="stream face animation over WebSocket and serve the browser viewer"
+    )
+    sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    sv.add_argument("--port", type=int, default=8000, help="port (default 8000; 0: any free port)")
+    sv.add_argument("--model", action="append",
+                    help="procedural or a streaming CodeTalker .safetensors; repeat to offer "
+                    "several, clients pick one by name (default procedural)")  # fmt: skip
+    sv.add_argument("--max-sessions", type=int, default=4,
+                    help="concurrent streams; more are refused (default 4)")  # fmt: skip
+    sv.add_argument("--max-message-bytes", type=int, default=65536,
+                    help="largest WebSocket message accepted (default 65536)")  # fmt: skip
+    sv.add_argument("--max-upload-mb", type=float, default=20.0,
+                    help="largest audio file POST /animate accepts (default 20)")  # fmt: skip
+    sv.add_argument("--idle-timeout", type=float, default=10.0,
+                    help="seconds without a client message before a stream is closed (default 10)")  # fmt: skip
+    sv.add_argument("-q", "--quiet", action="store_true", help="log only warnings and errors")
+    sv.set_defaults(func=cmd_serve)
 
     i = sub.add_parser("info", help="version, assets, models and devices")
     i.set_defaults(func=cmd_info)

@@ -268,10 +268,9 @@ class CodeTalkerStreamer(Streamer):
         import torch
 
         from talkmesh.models.codetalker import FrameGenerator
-        from talkmesh.models.release import load_model
         from talkmesh.models.speech import MelEncoder
 
-        net = load_model(path).eval()
+        net = _load_streaming_model(path)
         cfg = net.cfg
         if not cfg.vq.causal or not isinstance(net.speech, MelEncoder):
             raise TalkmeshError(
@@ -282,13 +281,14 @@ class CodeTalkerStreamer(Streamer):
             raise TalkmeshError(
                 f"{path} animates {cfg.vq.num_vertices}-vertex meshes but the face has {head.num_vertices}"
             )
-        net.speech.set_lookahead(lookahead_ms)
-        super().__init__(cfg.motion_fps, net.speech.lookahead_ms, head, offsets)
+        self.shift = net.speech.check_lookahead(lookahead_ms)  # the shared model is not changed
+        mel = net.speech.encoder.cfg
+        actual = net.speech.cfg.lookahead_ms + self.shift * 1000 / mel.mel_rate
+        super().__init__(cfg.motion_fps, actual, head, offsets)
         self.torch, self.net = torch, net
         enc = net.speech.encoder
         self.mel = enc.cfg
         self.encoder = enc
-        self.shift = net.speech.max_shift if net.speech.shift is None else net.speech.shift
         self.window = torch.hann_window(self.mel.win_length)
         styles = len(cfg.stage2.styles)
         weights = (
@@ -378,6 +378,22 @@ class CodeTalkerStreamer(Streamer):
             weights = np.maximum(weights, eyes)
         offsets = motion.reshape(len(motion), -1, 3) if self.offsets else None
         return weights, offsets
+
+
+_MODELS: dict[tuple[str, float], object] = {}
+
+
+def _load_streaming_model(path: str | Path):
+    """A release loaded once per process (per file version) and shared read-only by streams."""
+    from talkmesh.models.release import load_model
+
+    path = Path(path).resolve()
+    key = (str(path), path.stat().st_mtime)
+    if key not in _MODELS:
+        if len(_MODELS) >= 4:  # bounded: a server holds a few models
+            _MODELS.clear()
+        _MODELS[key] = load_model(path).eval()
+    return _MODELS[key]
 
 
 def open_stream(

@@ -158,18 +158,19 @@ class MelEncoder(nn.Module):
         """Mel frames of extra look-ahead for a total look-ahead of ``lookahead_ms``."""
         return round((lookahead_ms - self.cfg.lookahead_ms) / 1000 * self.encoder.cfg.mel_rate)
 
-    def set_lookahead(self, lookahead_ms: float | None) -> None:
-        """Inference look-ahead of a streaming model (None: the largest it was trained for)."""
-        if lookahead_ms is None:
-            self.shift = None
-            return
+    def check_lookahead(self, lookahead_ms: float) -> int:
+        """The shift for a look-ahead, after checking it is in the trained range."""
         low, high = self.cfg.lookahead_ms, self.cfg.lookahead_max_ms or self.cfg.lookahead_ms
         if not low - 1e-6 <= lookahead_ms <= high + 1e-6:
             raise TalkmeshError(
                 f"look-ahead {lookahead_ms:g} ms is outside what this model was trained for "
                 f"({low:g}-{high:g} ms): pick a value in that range"
             )
-        self.shift = self.shift_for(lookahead_ms)
+        return self.shift_for(lookahead_ms)
+
+    def set_lookahead(self, lookahead_ms: float | None) -> None:
+        """Inference look-ahead of a streaming model (None: the largest it was trained for)."""
+        self.shift = None if lookahead_ms is None else self.check_lookahead(lookahead_ms)
 
     @property
     def lookahead_ms(self) -> float:

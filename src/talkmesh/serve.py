@@ -1,0 +1,623 @@
+"""``talkmesh serve``: face animation streamed over WebSocket, files over HTTP (starlette + uvicorn).
+
+Streaming protocol
+==================
+
+``GET /ws/stream?model=procedural&lookahead_ms=100&offsets=0`` upgrades to a WebSocket. All three
+parameters are optional: ``model`` is one of the names the server was started with (``procedural``,
+or a ``--model`` .safetensors file by its stem; default the first ``--model``), ``lookahead_ms``
+the audio a frame waits for after its time (default 100, at most 300), ``offsets=1`` asks for the
+vertex offsets of every frame as well as its weights. Clients never name files on the server.
+
+1. On accept the server sends one text message::
+
+       {"type": "hello", "fps": 30.0, "sample_rate": 16000, "lookahead_ms": 100.0,
+        "model": "procedural", "names": [the 52 ARKit blendshape names]}
+
+2. Client -> server:
+
+   * binary: raw mono 16 kHz PCM, signed 16-bit little-endian, any length up to the message limit
+     (an odd number of bytes is an error);
+   * text ``{"type": "end"}``: the end of the audio; the server flushes the remaining frames.
+
+3. Server -> client, one binary message per frame, all little-endian::
+
+       offset  size  field
+       0       4     magic b"TMF1"
+       4       4     uint32  frame index (0, 1, 2, ... with no gaps)
+       8       4     float32 frame time in seconds (index / fps)
+       12      2     uint16  number of weights N (52)
+       14      2     uint16  flags: bit 0 = vertex offsets follow
+       16      4N    float32 weights in [0, 1], in the order of the hello's ``names``
+       16+4N   6V    (flag bit 0 only) float16 vertex offsets from the neutral face, (V, 3), metres
+
+   After the flush: text ``{"type": "end", "frames": N}`` and a normal close (1000).
+
+4. Errors end the session: text ``{"type": "error", "message": "<what is wrong and what to do>"}``
+   then a close with code 1008 (bad input: garbage, odd byte count, invalid JSON, unknown model or
+   bad look-ahead, no message for ``--idle-timeout`` seconds), 1009 (a message over
+   ``--max-message-bytes``), 1011 (a bug in the server) or 1013 (all ``--max-sessions`` are busy).
+   On shutdown (Ctrl-C, SIGTERM) open sessions are closed with 1001 and no error message.
+
+HTTP
+====
+
+* ``GET /``: the browser viewer (``talkmesh/web/static``), or a 503 page where it is not installed.
+* ``GET /health``: ``{"status": "ok", "sessions": n, "max_sessions": m, "models": [...]}``.
+* ``GET /head.glb``: the bundled head with its 52 ARKit morph targets (named in
+  ``meshes[0].extras.targetNames``), a one-frame neutral animation.
+* ``POST /animate?format=glb|mp4&model=NAME`` with a wav/flac/mp3/ogg file as the raw body: the
+  animated file. 413 for a body over ``--max-upload-mb``, 400 with ``{"type": "error", "message"}``
+  for anything wrong with the request or the audio.
+
+Each session runs its ``push``/``flush`` in a worker thread, one call at a time, so one session's
+computing never holds up another's socket, and a misbehaving client only ends its own session.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import signal
+import socket
+import struct
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import anyio
+import numpy as np
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import HTMLResponse, JSONResponse, Response
+from starlette.routing import Mount, Route, WebSocketRoute
+from starlette.staticfiles import StaticFiles
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from talkmesh.arkit import ARKIT_NAMES
+from talkmesh.assets import load_head
+from talkmesh.audio import SAMPLE_RATE
+from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.stream import DEFAULT_LOOKAHEAD_MS, StreamFrame, open_stream
+
+log = logging.getLogger(__name__)
+
+STATIC_DIR = Path(__file__).parent / "web" / "static"
+PROCEDURAL = "procedural"
+
+FRAME_MAGIC = b"TMF1"
+FRAME_HEADER = struct.Struct("<4sIfHH")  # magic, index, time, number of weights, flags
+FLAG_OFFSETS = 1
+assert FRAME_HEADER.size == 16
+
+CLOSE_NORMAL = 1000
+CLOSE_GOING_AWAY = 1001
+CLOSE_POLICY = 1008  # bad input
+CLOSE_TOO_BIG = 1009
+CLOSE_INTERNAL = 1011
+CLOSE_BUSY = 1013  # try again later
+
+DEFAULT_MAX_SESSIONS = 4
+DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024
+DEFAULT_MAX_UPLOAD_BYTES = 20 * 2**20
+DEFAULT_IDLE_TIMEOUT_S = 10.0
+WS_FRAME_LIMIT = 16 * 2**20  # uvicorn drops (1009, no message) what is far over the limit unread
+SHUTDOWN_WAIT_S = 3.0  # sessions get this long to close with 1001 before uvicorn takes over
+ANIMATE_JOBS = 1  # offline /animate jobs at a time; more wait (they would starve the streams)
+UPLOAD_CHUNK = 1 << 16
+
+ANIMATE_FORMATS = {"glb": "model/gltf-binary", "mp4": "video/mp4"}
+# The first bytes of the audio files /animate takes, and the suffix the audio reader needs.
+AUDIO_SIGNATURES = ((b"RIFF", ".wav"), (b"RF64", ".wav"), (b"fLaC", ".flac"), (b"OggS", ".ogg"),
+                    (b"ID3", ".mp3"))  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# Frames on the wire
+
+
+def encode_frame(frame: StreamFrame) -> bytes:
+    """A frame as one binary WebSocket message (layout in the module docstring)."""
+    weights = np.asarray(frame.weights, "<f4")
+    assert weights.shape == (len(ARKIT_NAMES),), weights.shape
+    flags = 0 if frame.offsets is None else FLAG_OFFSETS
+    parts = [
+        FRAME_HEADER.pack(FRAME_MAGIC, frame.index, frame.time, len(weights), flags),
+        weights.tobytes(),
+    ]
+    if frame.offsets is not None:
+        assert frame.offsets.ndim == 2 and frame.offsets.shape[1] == 3, frame.offsets.shape
+        parts.append(np.asarray(frame.offsets, "<f2").tobytes())
+    return b"".join(parts)
+
+
+def decode_frame(data: bytes) -> StreamFrame:
+    """One binary message back into a frame (weights float32, offsets float32 (V, 3) or None)."""
+    magic, index, time, count, flags = FRAME_HEADER.unpack_from(data)
+    if magic != FRAME_MAGIC:
+        raise ValueError(f"not a talkmesh frame (magic {magic!r})")
+    end = FRAME_HEADER.size + 4 * count
+    weights = np.frombuffer(data, "<f4", count, FRAME_HEADER.size).astype(np.float32)
+    offsets = None
+    if flags & FLAG_OFFSETS:
+        offsets = np.frombuffer(data, "<f2", offset=end).astype(np.float32).reshape(-1, 3)
+    elif len(data) != end:
+        raise ValueError(f"frame message of {len(data)} bytes, expected {end}")
+    return StreamFrame(index, time, weights, offsets)
+
+
+# ---------------------------------------------------------------------------------------------
+# Models and sessions
+
+
+def resolve_models(models: Sequence[str]) -> dict[str, str]:
+    """``--model`` values -> {the name clients ask for: what :func:`open_stream` loads}.
+
+    ``procedural`` stays itself; a .safetensors file (or a bundled model's name) is exposed by
+    its file stem, so clients never see or choose paths on the server.
+    """
+    out: dict[str, str] = {}
+    for value in models:
+        if value == PROCEDURAL:
+            name, source = PROCEDURAL, PROCEDURAL
+        else:
+            path = Path(value)
+            if path.suffix.lower() != ".safetensors" and not path.exists():
+                from talkmesh.models.release import MODELS_DIR
+
+                if (MODELS_DIR / f"{value}.safetensors").is_file():
+                    path = MODELS_DIR / f"{value}.safetensors"
+            if path.suffix.lower() != ".safetensors":
+                raise TalkmeshError(
+                    f"--model {value}: use procedural or a streaming CodeTalker .safetensors file"
+                )
+            if not path.is_file():
+                raise TalkmeshError(f"--model {value}: no such file")
+            name, source = path.stem, str(path.resolve())
+        if out.get(name, source) != source:
+            raise TalkmeshError(f"--model {value}: two models are named {name}; rename one file")
+        out[name] = source
+    if not out:
+        raise TalkmeshError("no models to serve: pass --model procedural or a .safetensors file")
+    return out
+
+
+class ClientError(Exception):
+    """Ends one session: the client gets ``message`` and the close ``code``."""
+
+    def __init__(self, code: int, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+class Sessions:
+    """The open streaming sessions: admission up to ``limit``, and closing them all on shutdown."""
+
+    def __init__(self, limit: int):
+        self.limit = limit
+        self.scopes: set[anyio.CancelScope] = set()
+        self.closing = False
+
+    def __len__(self) -> int:
+        return len(self.scopes)
+
+    def admit(self, scope: anyio.CancelScope) -> bool:
+        if self.closing or len(self.scopes) >= self.limit:
+            return False
+        self.scopes.add(scope)
+        return True
+
+    def leave(self, scope: anyio.CancelScope) -> None:
+        self.scopes.discard(scope)
+
+    async def close_all(self, wait_s: float = SHUTDOWN_WAIT_S) -> None:
+        """Refuse new sessions and end the open ones (each closes with 1001)."""
+        self.closing = True
+        for scope in list(self.scopes):
+            scope.cancel()
+        with anyio.move_on_after(wait_s):
+            while self.scopes:
+                await anyio.sleep(0.02)
+
+
+@dataclass(frozen=True)
+class Limits:
+    max_sessions: int = DEFAULT_MAX_SESSIONS
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES
+    idle_timeout: float = DEFAULT_IDLE_TIMEOUT_S
+
+    def __post_init__(self) -> None:
+        if self.max_sessions < 1:
+            raise TalkmeshError(f"--max-sessions must be at least 1, got {self.max_sessions}")
+        if self.max_message_bytes < 2:
+            raise TalkmeshError(
+                f"--max-message-bytes must be at least 2, got {self.max_message_bytes}"
+            )
+        if self.max_upload_bytes < 1:
+            raise TalkmeshError("--max-upload-mb must be positive")
+        if not self.idle_timeout > 0:
+            raise TalkmeshError(f"--idle-timeout must be positive, got {self.idle_timeout:g}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The application
+
+
+class Service:
+    """The endpoints, sharing the models, the limits and the session registry."""
+
+    def __init__(self, models: dict[str, str], limits: Limits):
+        self.models = models
+        self.default_model = next(iter(models))
+        self.limits = limits
+        self.sessions = Sessions(limits.max_sessions)
+        self.head = load_head()
+        self.jobs = anyio.CapacityLimiter(ANIMATE_JOBS)
+        self._head_glb: bytes | None = None
+        self._head_lock = anyio.Lock()
+
+    # -- WebSocket /ws/stream
+    async def stream(self, ws: WebSocket) -> None:
+        await ws.accept()
+        if self.sessions.closing:  # shutting down: close as the open sessions do
+            await _close(ws, CLOSE_GOING_AWAY, None)
+            return
+        with anyio.CancelScope() as scope:
+            try:
+                if not self.sessions.admit(scope):
+                    raise ClientError(
+                        CLOSE_BUSY,
+                        f"server busy: all {self.limits.max_sessions} streaming sessions are in "
+                        "use; try again later",
+                    )
+                try:
+                    await self._session(ws)
+                finally:
+                    self.sessions.leave(scope)
+            except ClientError as e:
+                await _close(ws, e.code, str(e))
+            except WebSocketDisconnect:
+                pass  # the client left: nothing to tell it
+            except Exception as e:  # a bug: end this session only, and say so
+                log.exception("streaming session failed")
+                await _close(
+                    ws, CLOSE_INTERNAL, f"internal error ({type(e).__name__}); please report it"
+                )
+        if scope.cancelled_caught:
+            await _close(ws, CLOSE_GOING_AWAY, None)
+
+    async def _session(self, ws: WebSocket) -> None:
+        """Hello, then audio in and frames out until the client's end message."""
+        name, lookahead, offsets = self._parse_query(ws)
+        source = self.models[name]
+        try:
+            stream = await anyio.to_thread.run_sync(
+                lambda: open_stream(source, lookahead_ms=lookahead, head=self.head, offsets=offsets)
+            )
+        except TalkmeshError as e:
+            raise ClientError(CLOSE_POLICY, str(e)) from None
+        assert stream.sample_rate == SAMPLE_RATE, stream.sample_rate  # the protocol's PCM rate
+        hello = {
+            "type": "hello",
+            "fps": stream.fps,
+            "sample_rate": stream.sample_rate,
+            "lookahead_ms": stream.lookahead_ms,
+            "model": name,
+            "names": list(stream.names),
+        }
+        await ws.send_json(hello)
+        sent = 0
+        while True:
+            pcm = await self._receive_audio(ws)
+            # one call at a time per session, in a worker thread: the event loop stays free
+            if pcm is None:
+                frames = await anyio.to_thread.run_sync(stream.flush)
+            else:
+                frames = await anyio.to_thread.run_sync(stream.push, pcm)
+            for frame in frames:
+                await ws.send_bytes(encode_frame(frame))
+            sent += len(frames)
+            if pcm is None:
+                await ws.send_json({"type": "end", "frames": sent})
+                await ws.close(CLOSE_NORMAL)
+                return
+
+    async def _receive_audio(self, ws: WebSocket) -> np.ndarray | None:
+        """The next message: (S,) float32 audio, or None for the end message.
+
+        Raises:
+            ClientError: the message breaks the protocol, or none came for ``idle_timeout``.
+            WebSocketDisconnect: the client left.
+        """
+        try:
+            with anyio.fail_after(self.limits.idle_timeout):
+                message = await ws.receive()
+        except TimeoutError:
+            raise ClientError(
+                CLOSE_POLICY,
+                f"no message for {self.limits.idle_timeout:g} s: send audio as it is recorded "
+                'and {"type": "end"} when it stops',
+            ) from None
+        if message["type"] == "websocket.disconnect":
+            raise WebSocketDisconnect(message.get("code", 1000))
+        data, text = message.get("bytes"), message.get("text")
+        size = len(data) if data is not None else len((text or "").encode())
+        limit = self.limits.max_message_bytes
+        if size > limit:
+            raise ClientError(
+                CLOSE_TOO_BIG,
+                f"message of {size} bytes is over the limit of {limit}: send shorter chunks",
+            )
+        if data is None:
+            _parse_end(text)
+            return None
+        if len(data) % 2:
+            raise ClientError(
+                CLOSE_POLICY,
+                f"binary message of {len(data)} bytes: audio must be 16-bit PCM, an even "
+                "number of bytes",
+            )
+        return np.frombuffer(data, "<i2").astype(np.float32) / 32768.0
+
+    def _parse_query(self, ws: WebSocket) -> tuple[str, float, bool]:
+        query = ws.query_params
+        name = query.get("model", self.default_model)
+        if name not in self.models:
+            raise ClientError(
+                CLOSE_POLICY,
+                f"unknown model '{name[:80]}': this server has {', '.join(self.models)}",
+            )
+        text = query.get("lookahead_ms", str(DEFAULT_LOOKAHEAD_MS))
+        try:
+            lookahead = float(text)
+        except ValueError:
+            lookahead = math.nan
+        if not math.isfinite(lookahead):
+            raise ClientError(
+                CLOSE_POLICY, f"lookahead_ms must be a number of milliseconds, got '{text[:40]}'"
+            )
+        flag = query.get("offsets", "0")
+        if flag not in ("0", "1"):
+            raise ClientError(CLOSE_POLICY, f"offsets must be 0 or 1, got '{flag[:40]}'")
+        return name, lookahead, flag == "1"
+
+    # -- HTTP
+    async def health(self, request: Request) -> JSONResponse:
+        return JSONResponse(
+            {
+                "status": "ok",
+                "sessions": len(self.sessions),
+                "max_sessions": self.limits.max_sessions,
+                "models": list(self.models),
+            }  # fmt: skip
+        )
+
+    async def head_glb(self, request: Request) -> Response:
+        async with self._head_lock:
+            if self._head_glb is None:
+                self._head_glb = await anyio.to_thread.run_sync(neutral_head_glb)
+        return Response(self._head_glb, media_type=ANIMATE_FORMATS["glb"])
+
+    async def animate(self, request: Request) -> Response:
+        query = request.query_params
+        fmt = query.get("format", "glb")
+        if fmt not in ANIMATE_FORMATS:
+            return _error(
+                400, f"format must be one of {', '.join(ANIMATE_FORMATS)}, got '{fmt[:40]}'"
+            )
+        name = query.get("model", self.default_model)
+        if name not in self.models:
+            return _error(
+                400, f"unknown model '{name[:80]}': this server has {', '.join(self.models)}"
+            )
+        limit = self.limits.max_upload_bytes
+        too_big = _error(413, f"the audio is over the upload limit of {limit / 2**20:g} MB")
+        declared = request.headers.get("content-length", "")
+        if declared.isdigit() and int(declared) > limit:
+            return too_big  # without reading the body
+        with tempfile.TemporaryDirectory(prefix="talkmesh-serve-") as tmp:
+            upload = Path(tmp) / "upload"
+            received = 0
+            with open(upload, "wb") as f:
+                async for chunk in request.stream():
+                    received += len(chunk)
+                    if received > limit:
+                        return too_big
+                    f.write(chunk)
+            with open(upload, "rb") as f:
+                suffix = audio_suffix(f.read(16))
+            if suffix is None:
+                return _error(400, "the request body is not wav, flac, mp3 or ogg audio: send the "
+                                   "audio file's bytes as the body")  # fmt: skip
+            audio = upload.rename(upload.with_suffix(suffix))
+            out = Path(tmp) / f"talk.{fmt}"
+            try:
+                await anyio.to_thread.run_sync(
+                    animate_file, audio, out, self.models[name], limiter=self.jobs
+                )
+            except TalkmeshError as e:
+                return _error(400, str(e).replace(str(audio), "the audio"))
+            except RenderError as e:
+                return _error(500, str(e))
+            return Response(
+                out.read_bytes(),
+                media_type=ANIMATE_FORMATS[fmt],
+                headers={"Content-Disposition": f'attachment; filename="talk.{fmt}"'},
+            )
+
+
+async def _close(ws: WebSocket, code: int, message: str | None) -> None:
+    """Tell the client why (if there is a message) and close; a client already gone is fine."""
+    try:
+        if message is not None:
+            await ws.send_json({"type": "error", "message": message})
+        await ws.close(code)
+    except (WebSocketDisconnect, RuntimeError, OSError):
+        pass
+
+
+def _parse_end(text: str | None) -> None:
+    try:
+        message = json.loads(text or "")
+    except ValueError:
+        raise ClientError(
+            CLOSE_POLICY, 'text messages must be JSON: send {"type": "end"} to end the audio'
+        ) from None
+    if not isinstance(message, dict) or message.get("type") != "end":
+        raise ClientError(
+            CLOSE_POLICY,
+            f'unknown message {str(message)[:80]}: the only text message is {{"type": "end"}}',
+        )
+
+
+def _error(status: int, message: str) -> JSONResponse:
+    return JSONResponse({"type": "error", "message": message}, status_code=status)
+
+
+def audio_suffix(head: bytes) -> str | None:
+    """The file suffix of wav/flac/ogg/mp3 audio from its first bytes; None for anything else."""
+    for magic, suffix in AUDIO_SIGNATURES:
+        if head.startswith(magic):
+            return suffix
+    if len(head) >= 2 and head[0] == 0xFF and head[1] & 0xE0 == 0xE0:  # an MPEG frame sync
+        return ".mp3"
+    return None
+
+
+class RenderError(Exception):
+    """Writing the result failed: the server's fault (e.g. no renderer), not the upload's."""
+
+
+def animate_file(audio: Path, out: Path, model: str) -> None:
+    """Animate ``audio`` with ``model`` into ``out`` (.glb or .mp4), as ``talkmesh animate``."""
+    from talkmesh.cli import write_animation
+    from talkmesh.pipeline import animate
+
+    anim = animate(audio, model=model)
+    try:
+        write_animation(anim, out, overwrite=True)
+    except TalkmeshError as e:
+        raise RenderError(str(e)) from None
+
+
+def neutral_head_glb() -> bytes:
+    """The bundled head as .glb: its 52 ARKit blendshapes as morph targets, one neutral frame."""
+    from talkmesh.animation import Animation
+    from talkmesh.io import save_animation
+
+    head = load_head()
+    anim = Animation(
+        vertices=head.template[None], faces=head.faces, fps=30.0,
+        weights=np.zeros((1, len(ARKIT_NAMES)), np.float32), weight_names=list(ARKIT_NAMES),
+        template=head.template, basis=head.blendshapes,
+    )  # fmt: skip
+    with tempfile.TemporaryDirectory(prefix="talkmesh-serve-") as tmp:
+        (path,) = save_animation(anim, Path(tmp) / "head.glb")
+        return path.read_bytes()
+
+
+def _viewer_missing(request: Request) -> HTMLResponse:
+    return HTMLResponse(
+        "<!doctype html><title>talkmesh</title><h1>The browser viewer is not installed</h1>"
+        f"<p>{STATIC_DIR.name} is missing from this talkmesh installation. The streaming API at "
+        "<code>/ws/stream</code> and <code>/health</code>, <code>/head.glb</code> and "
+        "<code>/animate</code> still work.</p>",
+        status_code=503,
+    )
+
+
+def create_app(
+    models: Sequence[str] = (PROCEDURAL,),
+    max_sessions: int = DEFAULT_MAX_SESSIONS,
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+    max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES,
+    idle_timeout: float = DEFAULT_IDLE_TIMEOUT_S,
+    static_dir: Path | None = STATIC_DIR,
+) -> Starlette:
+    """The ASGI app. Every model is opened once here, so a bad one fails now, not per client."""
+    limits = Limits(max_sessions, max_message_bytes, max_upload_bytes, float(idle_timeout))
+    service = Service(resolve_models(models), limits)
+    for source in service.models.values():
+        open_stream(source, head=service.head)
+    routes = [
+        WebSocketRoute("/ws/stream", service.stream),
+        Route("/health", service.health),
+        Route("/head.glb", service.head_glb),
+        Route("/animate", service.animate, methods=["POST"]),
+    ]
+    if static_dir is not None and Path(static_dir).is_dir():
+        routes.append(Mount("/", StaticFiles(directory=static_dir, html=True)))
+    else:
+        routes.append(Route("/", _viewer_missing))
+    app = Starlette(routes=routes)
+    app.state.service = service
+    return app
+
+
+# ---------------------------------------------------------------------------------------------
+# Running it
+
+
+def _listen(host: str, port: int) -> socket.socket:
+    """A listening socket, so that a port in use is a one-line error and port 0 works."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as e:
+        sock.close()
+        raise TalkmeshError(
+            f"cannot listen on {host}:{port} ({e.strerror or e}): choose another --port or --host"
+        ) from None
+    sock.listen(128)
+    return sock
+
+
+def serve(
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    *,
+    quiet: bool = False,
+    **app_options,
+) -> None:
+    """Run :func:`create_app` with uvicorn until Ctrl-C or SIGTERM, then close the sessions (1001)."""
+    try:
+        import uvicorn
+    except ImportError:
+        raise MissingDependencyError("uvicorn", "serve", "talkmesh serve") from None
+
+    app = create_app(**app_options)
+    service: Service = app.state.service
+
+    class _Server(uvicorn.Server):
+        # uvicorn drops open WebSockets with 1012 (restart); close ours first with 1001 (going away)
+        async def shutdown(self, sockets=None):
+            await service.sessions.close_all()
+            await super().shutdown(sockets)
+
+    config = uvicorn.Config(
+        app,
+        lifespan="off",
+        log_level="warning" if quiet else "info",
+        ws_max_size=max(WS_FRAME_LIMIT, 4 * service.limits.max_message_bytes),
+        timeout_graceful_shutdown=SHUTDOWN_WAIT_S,
+    )
+    sock = _listen(host, port)
+    if not quiet:
+        bound = sock.getsockname()[1]
+        print(f"talkmesh: serving http://{host}:{bound}/ (stream at ws://{host}:{bound}/ws/stream; "
+              f"models: {', '.join(service.models)}); Ctrl-C to stop", flush=True)  # fmt: skip
+    # uvicorn re-raises the signal that stopped it once it is done; a stop is no error here, so
+    # that signal finds a handler that ignores it and the command exits 0.
+    stops = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.signal(s, lambda *_: None) for s in stops}
+    try:
+        _Server(config).run(sockets=[sock])
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        sock.close()

@@ -1,0 +1,356 @@
+"""``talkmesh serve``: the WebSocket streaming protocol, its limits and errors, and the HTTP routes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("starlette")
+pytest.importorskip("httpx")
+from starlette.testclient import TestClient  # noqa: E402
+
+from talkmesh.arkit import ARKIT_NAMES  # noqa: E402
+from talkmesh.assets import load_head  # noqa: E402
+from talkmesh.audio import SAMPLE_RATE, load_audio  # noqa: E402
+from talkmesh.serve import (  # noqa: E402
+    CLOSE_BUSY,
+    CLOSE_GOING_AWAY,
+    CLOSE_NORMAL,
+    CLOSE_POLICY,
+    CLOSE_TOO_BIG,
+    create_app,
+    decode_frame,
+    encode_frame,
+)
+from talkmesh.stream import StreamFrame  # noqa: E402
+
+CLIP = Path(
+    "/usr/share/pocketsphinx/test/data/librivox/sense_and_sensibility_01_austen_64kb-0880.wav"
+)  # 3.0 s, "he was not an ill disposed young man"
+CHUNK = 2 * SAMPLE_RATE // 10  # bytes of 100 ms of 16-bit PCM
+FPS = 30.0
+
+pytestmark = pytest.mark.skipif(not CLIP.exists(), reason="pocketsphinx-testdata not installed")
+
+
+@dataclass
+class Reply:
+    """Everything a session sent until it closed."""
+
+    texts: list[dict]
+    frames: list[StreamFrame]
+    code: int
+
+
+def read_until_close(ws) -> Reply:
+    texts, frames = [], []
+    while True:
+        message = ws.receive()
+        if message["type"] == "websocket.close":
+            return Reply(texts, frames, message.get("code", CLOSE_NORMAL))
+        if message.get("bytes") is not None:
+            frames.append(decode_frame(message["bytes"]))
+        else:
+            texts.append(json.loads(message["text"]))
+
+
+def assert_error(reply: Reply, code: int, *fragments: str) -> None:
+    assert reply.code == code, reply
+    assert [t["type"] for t in reply.texts] == ["error"], reply.texts
+    message = reply.texts[0]["message"]
+    assert "\n" not in message and "Traceback" not in message
+    for fragment in fragments:
+        assert fragment in message, (fragment, message)
+
+
+@pytest.fixture(scope="module")
+def pcm() -> bytes:
+    """The clip as the wire carries it: 16 kHz mono int16 little-endian."""
+    wave = load_audio(CLIP)
+    return (np.clip(wave, -1, 1) * 32767).astype("<i2").tobytes()
+
+
+@pytest.fixture(scope="module")
+def client():
+    with TestClient(create_app()) as c:  # one event loop for every session, as under uvicorn
+        yield c
+
+
+@pytest.fixture(scope="module")
+def alone(client, pcm) -> Reply:
+    """The clip streamed in 100 ms chunks with no other session open."""
+    with client.websocket_connect("/ws/stream") as ws:
+        ws.receive_json()
+        for i in range(0, len(pcm), CHUNK):
+            ws.send_bytes(pcm[i : i + CHUNK])
+        ws.send_json({"type": "end"})
+        return read_until_close(ws)
+
+
+def test_frame_encoding_round_trip():
+    rng = np.random.default_rng(0)
+    for offsets in (None, rng.normal(0, 0.01, (7, 3)).astype(np.float32)):
+        frame = StreamFrame(41, 41 / FPS, rng.random(52).astype(np.float32), offsets)
+        data = encode_frame(frame)
+        assert data[:4] == b"TMF1" and len(data) == 16 + 4 * 52 + (0 if offsets is None else 42)
+        back = decode_frame(data)
+        assert (back.index, back.time) == (41, np.float32(41 / FPS))
+        np.testing.assert_array_equal(back.weights, frame.weights)
+        if offsets is None:
+            assert back.offsets is None
+        else:
+            np.testing.assert_allclose(back.offsets, offsets, atol=1e-5)
+
+
+def test_hello(client):
+    with client.websocket_connect("/ws/stream?lookahead_ms=50") as ws:
+        hello = ws.receive_json()
+    assert hello == {"type": "hello", "fps": FPS, "sample_rate": SAMPLE_RATE,
+                     "lookahead_ms": 50.0, "model": "procedural", "names": list(ARKIT_NAMES)}  # fmt: skip
+
+
+def test_speech_streams_as_consecutive_frames_that_move_the_jaw(alone, pcm):
+    assert alone.code == CLOSE_NORMAL
+    frames = alone.frames
+    expected = round(len(pcm) / 2 / SAMPLE_RATE * FPS)  # 90
+    assert abs(len(frames) - expected) <= 1
+    assert alone.texts == [{"type": "end", "frames": len(frames)}]
+    assert [f.index for f in frames] == list(range(len(frames)))
+    np.testing.assert_allclose([f.time for f in frames], np.arange(len(frames)) / FPS, atol=1e-5)
+    weights = np.stack([f.weights for f in frames])
+    assert weights.shape == (len(frames), 52) and all(f.offsets is None for f in frames)
+    assert weights.min() >= 0.0 and weights.max() <= 1.0
+    jaw = weights[:, ARKIT_NAMES.index("jawOpen")]
+    assert jaw.max() - jaw.min() > 0.1  # the mouth opens and closes with the syllables
+
+
+def test_offsets_on_request(client, pcm):
+    with client.websocket_connect("/ws/stream?offsets=1") as ws:
+        ws.receive_json()
+        ws.send_bytes(pcm[: 10 * CHUNK])
+        ws.send_json({"type": "end"})
+        reply = read_until_close(ws)
+    head = load_head()
+    assert reply.code == CLOSE_NORMAL and len(reply.frames) == 30
+    frame = reply.frames[-1]
+    expected = np.tensordot(frame.weights, head.blendshapes, axes=1)
+    np.testing.assert_allclose(frame.offsets, expected, atol=2e-4)  # float16 on the wire
+
+
+@pytest.mark.parametrize(
+    "query, messages, code, fragments",
+    [
+        ("", [b"\x01\x02\x03"], CLOSE_POLICY, ["3 bytes", "16-bit"]),
+        ("", [bytes(70_000)], CLOSE_TOO_BIG, ["70000 bytes", "65536"]),
+        ("", ["x" * 70_000], CLOSE_TOO_BIG, ["65536"]),
+        ("", [bytes(CHUNK), "{not json"], CLOSE_POLICY, ["JSON", '{"type": "end"}']),
+        ("", ['{"type": "stop"}'], CLOSE_POLICY, ["unknown message"]),
+        ("?model=nope", [], CLOSE_POLICY, ["unknown model 'nope'", "procedural"]),
+        ("?model=/etc/passwd", [], CLOSE_POLICY, ["unknown model"]),
+        ("?model=../data/models/codetalker-synth.safetensors", [], CLOSE_POLICY, ["unknown model"]),
+        ("?lookahead_ms=soon", [], CLOSE_POLICY, ["lookahead_ms", "soon"]),
+        ("?lookahead_ms=nan", [], CLOSE_POLICY, ["lookahead_ms"]),
+        ("?lookahead_ms=5000", [], CLOSE_POLICY, ["look-ahead", "300"]),
+        ("?offsets=yes", [], CLOSE_POLICY, ["offsets"]),
+    ],
+)
+def test_bad_input_gets_an_error_and_the_right_close_code(client, query, messages, code, fragments):
+    with client.websocket_connect("/ws/stream" + query) as ws:
+        if query.startswith(("?model", "?lookahead", "?offsets")):
+            reply = read_until_close(ws)  # refused before the hello
+        else:
+            assert ws.receive_json()["type"] == "hello"
+            for m in messages:
+                ws.send_bytes(m) if isinstance(m, bytes) else ws.send_text(m)
+            reply = read_until_close(ws)
+    assert_error(reply, code, *fragments)
+
+
+def test_bad_sessions_do_not_disturb_a_good_one(client, pcm, alone):
+    with (
+        client.websocket_connect("/ws/stream") as good,
+        client.websocket_connect("/ws/stream") as garbage,
+        client.websocket_connect("/ws/stream") as leaver,
+    ):
+        for ws in (good, garbage, leaver):
+            ws.receive_json()
+        chunks = [pcm[i : i + CHUNK] for i in range(0, len(pcm), CHUNK)]
+        for k, chunk in enumerate(chunks):
+            good.send_bytes(chunk)
+            leaver.send_bytes(chunk)
+            if k == 5:
+                garbage.send_bytes(b"\xff" * 1001)
+            if k == 10:
+                leaver.close(1006)  # gone mid-stream, without an end message
+        good.send_json({"type": "end"})
+        reply = read_until_close(good)
+        assert_error(read_until_close(garbage), CLOSE_POLICY, "1001 bytes")
+    assert reply.code == CLOSE_NORMAL and reply.texts == alone.texts
+    assert len(reply.frames) == len(alone.frames)
+    for a, b in zip(reply.frames, alone.frames):
+        assert a.index == b.index and a.time == b.time
+        np.testing.assert_array_equal(a.weights, b.weights)
+    assert client.get("/health").json()["sessions"] == 0  # every session was let go
+
+
+def test_one_session_too_many_is_refused_until_one_ends(client):
+    health = client.get("/health").json()
+    assert health == {"status": "ok", "sessions": 0, "max_sessions": 4, "models": ["procedural"]}
+    with (
+        client.websocket_connect("/ws/stream") as a,
+        client.websocket_connect("/ws/stream") as b,
+        client.websocket_connect("/ws/stream") as c,
+        client.websocket_connect("/ws/stream") as d,
+    ):
+        for ws in (a, b, c, d):
+            assert ws.receive_json()["type"] == "hello"
+        assert client.get("/health").json()["sessions"] == 4
+        with client.websocket_connect("/ws/stream") as fifth:
+            assert_error(read_until_close(fifth), CLOSE_BUSY, "busy", "4")
+        a.send_json({"type": "end"})
+        assert read_until_close(a).code == CLOSE_NORMAL
+        with client.websocket_connect("/ws/stream") as again:
+            assert again.receive_json()["type"] == "hello"
+    assert client.get("/health").json()["sessions"] == 0
+
+
+def test_idle_session_times_out_but_a_talking_one_does_not(pcm):
+    with TestClient(create_app(idle_timeout=0.4)) as client:
+        with client.websocket_connect("/ws/stream") as ws:
+            ws.receive_json()
+            for i in range(0, 8 * CHUNK, CHUNK):  # a chunk every 0.1 s for 0.8 s
+                ws.send_bytes(pcm[i : i + CHUNK])
+                time.sleep(0.1)
+            ws.send_json({"type": "end"})
+            assert read_until_close(ws).code == CLOSE_NORMAL
+        with client.websocket_connect("/ws/stream") as ws:
+            ws.receive_json()
+            ws.send_bytes(pcm[:CHUNK])
+            start = time.monotonic()
+            assert_error(read_until_close(ws), CLOSE_POLICY, "no message for 0.4 s")
+            assert time.monotonic() - start < 5
+
+
+def test_head_glb_has_the_52_arkit_morph_targets(client):
+    pygltflib = pytest.importorskip("pygltflib")
+    response = client.get("/head.glb")
+    assert response.status_code == 200 and response.headers["content-type"] == "model/gltf-binary"
+    gltf = pygltflib.GLTF2.load_from_bytes(response.content)
+    mesh = gltf.meshes[0]
+    assert len(mesh.primitives[0].targets) == 52
+    assert mesh.extras["targetNames"] == list(ARKIT_NAMES)
+    assert gltf.accessors[mesh.primitives[0].attributes.POSITION].count == load_head().num_vertices
+    assert client.get("/head.glb").content == response.content  # built once
+
+
+def test_animate_returns_a_glb_and_leaves_no_files(tmp_path, monkeypatch):
+    pygltflib = pytest.importorskip("pygltflib")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    with TestClient(create_app(max_upload_bytes=200_000)) as client:
+        response = client.post("/animate?format=glb&model=procedural", content=CLIP.read_bytes())
+        assert response.status_code == 200, response.text
+        assert response.headers["content-type"] == "model/gltf-binary"
+        gltf = pygltflib.GLTF2.load_from_bytes(response.content)
+        times = gltf.accessors[gltf.animations[0].samplers[0].input]
+        assert times.count == 90  # 3.0 s at 30 fps
+        assert gltf.meshes[0].extras["targetNames"] == list(ARKIT_NAMES)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "body, query, status, fragment",
+    [
+        (bytes(300_000), "", 413, "upload limit"),
+        (iter([bytes(100_000)] * 3), "", 413, "upload limit"),  # chunked: no Content-Length
+        (b"definitely not audio", "", 400, "not wav, flac, mp3 or ogg"),
+        (b"RIFF\x10\x00\x00\x00WAVEgarbage" * 10, "", 400, "audio"),
+        (b"RIFF", "?format=gif", 400, "format"),
+        (b"RIFF", "?model=/etc/passwd", 400, "unknown model"),
+    ],
+)
+def test_animate_refuses_bad_uploads(tmp_path, monkeypatch, body, query, status, fragment):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    with TestClient(create_app(max_upload_bytes=200_000)) as client:
+        response = client.post("/animate" + query, content=body)
+    assert response.status_code == status
+    message = response.json()["message"]
+    assert fragment in message and str(tmp_path) not in message
+    assert not list(tmp_path.iterdir())
+
+
+def test_viewer_is_served_or_a_503_says_it_is_missing(tmp_path):
+    (tmp_path / "index.html").write_text("<!doctype html><title>viewer</title>")
+    with TestClient(create_app(static_dir=tmp_path)) as client:
+        assert client.get("/").text == "<!doctype html><title>viewer</title>"
+    with TestClient(create_app(static_dir=tmp_path / "missing")) as client:
+        response = client.get("/")
+        assert response.status_code == 503 and "not installed" in response.text
+        assert client.get("/health").status_code == 200
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
+def test_cli_serves_and_stops_cleanly(pcm, stop):
+    """The real server: a client that vanishes mid-stream, then Ctrl-C / SIGTERM: 1001, exit 0."""
+    httpx = pytest.importorskip("httpx")
+    connect = pytest.importorskip("websockets.sync.client").connect
+    port = _free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "talkmesh", "serve", "--port", str(port), "-q"],
+        env=dict(os.environ, HF_HUB_OFFLINE="1"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                assert httpx.get(f"http://127.0.0.1:{port}/health").json()["status"] == "ok"
+                break
+            except httpx.TransportError:
+                assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+                time.sleep(0.2)
+        url = f"ws://127.0.0.1:{port}/ws/stream"
+        with connect(url) as vanishing:
+            json.loads(vanishing.recv())
+            vanishing.send(pcm[: 5 * CHUNK])
+            vanishing.socket.shutdown(socket.SHUT_RDWR)  # no close handshake: the line drops
+        while httpx.get(f"http://127.0.0.1:{port}/health").json()["sessions"]:
+            assert time.monotonic() < deadline, "the dropped session was never let go"
+            time.sleep(0.1)
+        with connect(url) as ws:
+            assert json.loads(ws.recv())["type"] == "hello"
+            ws.send(pcm[: 10 * CHUNK])
+            first = decode_frame(ws.recv())
+            assert first.index == 0
+            proc.send_signal(stop)
+            try:
+                while True:
+                    ws.recv(timeout=30)
+            except Exception as e:  # websockets' ConnectionClosed carries the close frame
+                assert getattr(e, "rcvd", None) is not None, e
+                assert e.rcvd.code == CLOSE_GOING_AWAY, e
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err
+        assert "Traceback" not in err, err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
