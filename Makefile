@@ -5,13 +5,15 @@ PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.setup-stamp
 export HF_HUB_OFFLINE := 1
 
-.PHONY: setup demo test test-slow lint format bench assets clean
+.PHONY: setup viewer demo test test-slow lint format bench assets clean
 
-setup: $(STAMP)
+VIEWER := src/talkmesh/web/static/viewer.js
+
+setup: $(STAMP) $(VIEWER)
 
 # Idempotent: system packages are installed only when missing, the venv only when its inputs change.
 # torch is pinned and installed first so that no extra ever pulls a CUDA build.
-$(STAMP): pyproject.toml package.json scripts/setup_system.sh
+$(STAMP): pyproject.toml package.json package-lock.json scripts/setup_system.sh
 	bash scripts/setup_system.sh
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
@@ -19,6 +21,14 @@ $(STAMP): pyproject.toml package.json scripts/setup_system.sh
 	$(PIP) install -q -e '.[dev]'
 	npm ci --silent --no-audit --no-fund
 	touch $(STAMP)
+
+# The browser viewer of `talkmesh serve` (web/viewer -> talkmesh/web/static): three.js comes from
+# node_modules, bundled by esbuild, so the page needs no CDN. Built after `npm ci`.
+$(VIEWER): $(wildcard web/viewer/*) package-lock.json | $(STAMP)
+	npm run --silent build:viewer
+
+viewer: $(STAMP)
+	npm run --silent build:viewer
 
 DEMO_TEXT ?= Bob bought a big blue map, and we all peeked at the moon above the bay.
 demo: setup
@@ -49,4 +59,4 @@ assets: setup
 	$(PY) scripts/build_assets.py
 
 clean:
-	rm -rf $(VENV) node_modules out build
+	rm -rf $(VENV) node_modules out build src/talkmesh/web/static

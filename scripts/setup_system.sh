@@ -6,11 +6,13 @@
 #   festival festvox-*    four more synthetic voices with exact segment times
 #   pocketsphinx-testdata real recorded speech (LibriVox clips) used by tests and docs
 #   alsa-utils            more real speech (/usr/share/sounds/alsa/*.wav)
-#   nodejs npm            the Khronos glTF validator used by the tests
+#   nodejs npm            the Khronos glTF validator used by the tests; builds the browser viewer
+#   chromium              the browser the viewer's end-to-end test drives (tests/test_browser.py)
 set -euo pipefail
 pkgs=(espeak-ng pocketsphinx-testdata alsa-utils
       mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1
-      festival festvox-kallpc16k festvox-kdlpc16k festvox-rablpc16k festvox-us-slt-hts)
+      festival festvox-kallpc16k festvox-kdlpc16k festvox-rablpc16k festvox-us-slt-hts
+      chromium)
 command -v node >/dev/null 2>&1 || pkgs+=(nodejs)
 command -v npm >/dev/null 2>&1 || pkgs+=(npm)
 missing=()

@@ -1,0 +1,601 @@
+// The browser viewer of `talkmesh serve`.
+//
+// Streams microphone or audio-file sound to /ws/stream as 16 kHz mono int16 PCM in 20 ms chunks and
+// drives the ARKit morph targets of /head.glb with the weights the server sends back, one binary
+// "TMF1" message per frame. Bundled by esbuild (`npm run build:viewer`): no CDN.
+//
+// For tests, `window.talkmesh` is the live state: state, framesReceived, latencyMs {median, p95},
+// fps, weightHistory {jawOpen}, lastWeights, plus names, streamFps, lookaheadMs, model, endFrames,
+// error and head.
+
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { RoomEnvironment } from "three/addons/environments/RoomEnvironment.js";
+import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+
+const SAMPLE_RATE = 16000; // what the server expects
+const CHUNK_MS = 20;
+const CHUNK_SAMPLES = (SAMPLE_RATE * CHUNK_MS) / 1000;
+const HISTORY_FRAMES = 300;
+const LATENCY_WINDOW_MS = 2000;
+const STATS_EVERY_MS = 250;
+const FRAME_MAGIC = 0x544d4631; // "TMF1" read big-endian
+const FRAME_HEADER_BYTES = 16;
+
+const talkmesh = {
+  state: "loading",
+  framesReceived: 0,
+  latencyMs: { median: null, p95: null },
+  fps: 0,
+  weightHistory: { jawOpen: [] },
+  lastWeights: null,
+  names: null,
+  streamFps: null,
+  lookaheadMs: null,
+  model: null,
+  endFrames: null,
+  error: null,
+};
+// The three.js head (for tests that read morphTargetInfluences); not enumerable, so that
+// serialising `window.talkmesh` (e.g. Playwright's page.evaluate) does not walk the scene graph.
+Object.defineProperty(talkmesh, "head", { value: null, writable: true, enumerable: false });
+window.talkmesh = talkmesh;
+
+const $ = (id) => document.getElementById(id);
+
+// --- audio capture: an AudioWorklet that mixes to mono, resamples to 16 kHz and posts int16 chunks
+
+// Linear interpolation after a 4th-order Butterworth low-pass (two biquads, RBJ cookbook) at 0.45x
+// the output rate, so that 44.1/48 kHz input does not alias into the 16 kHz stream.
+const WORKLET_SOURCE = `
+const TARGET_RATE = ${SAMPLE_RATE};
+const CHUNK = ${CHUNK_SAMPLES};
+
+class LowPass {
+  constructor(cutoff, q) {
+    const w0 = (2 * Math.PI * cutoff) / sampleRate;
+    const alpha = Math.sin(w0) / (2 * q);
+    const cos = Math.cos(w0);
+    const a0 = 1 + alpha;
+    this.b0 = (1 - cos) / 2 / a0;
+    this.b1 = (1 - cos) / a0;
+    this.b2 = this.b0;
+    this.a1 = (-2 * cos) / a0;
+    this.a2 = (1 - alpha) / a0;
+    this.z1 = 0;
+    this.z2 = 0;
+  }
+  run(x) {
+    for (let i = 0; i < x.length; i++) {
+      const v = x[i];
+      const y = this.b0 * v + this.z1;
+      this.z1 = this.b1 * v - this.a1 * y + this.z2;
+      this.z2 = this.b2 * v - this.a2 * y;
+      x[i] = y;
+    }
+  }
+}
+
+class Capture extends AudioWorkletProcessor {
+  constructor() {
+    super();
+    this.step = sampleRate / TARGET_RATE;
+    const cutoff = 0.45 * TARGET_RATE;
+    this.filters = this.step > 1 ? [new LowPass(cutoff, 0.5412), new LowPass(cutoff, 1.3066)] : [];
+    this.t = 0; // position of the next output sample, in input samples from the block start
+    this.prev = 0; // last input sample of the previous block (position -1)
+    this.mono = new Float32Array(128);
+    this.out = new Int16Array(CHUNK);
+    this.fill = 0;
+    this.running = true;
+    this.port.onmessage = (e) => {
+      if (e.data === "finish") this.finish();
+      else if (e.data === "stop") this.running = false;
+    };
+  }
+
+  process(inputs) {
+    const input = inputs[0];
+    if (!this.running || input.length === 0) return this.running;
+    const n = input[0].length;
+    if (this.mono.length !== n) this.mono = new Float32Array(n);
+    const x = this.mono;
+    x.fill(0);
+    for (const channel of input) for (let i = 0; i < n; i++) x[i] += channel[i] / input.length;
+    for (const f of this.filters) f.run(x);
+    let t = this.t;
+    while (t <= n - 1) {
+      const i = Math.floor(t);
+      const f = t - i;
+      const a = i < 0 ? this.prev : x[i];
+      this.push(f === 0 ? a : a + f * (x[i + 1] - a));
+      t += this.step;
+    }
+    this.t = t - n;
+    this.prev = x[n - 1];
+    return true;
+  }
+
+  push(v) {
+    this.out[this.fill++] = Math.round(Math.max(-1, Math.min(1, v)) * 32767);
+    if (this.fill === CHUNK) {
+      this.port.postMessage(this.out.buffer, [this.out.buffer]);
+      this.out = new Int16Array(CHUNK);
+      this.fill = 0;
+    }
+  }
+
+  finish() {
+    if (this.fill > 0) this.port.postMessage(this.out.slice(0, this.fill).buffer);
+    this.fill = 0;
+    this.running = false;
+    this.port.postMessage("finished");
+  }
+}
+
+registerProcessor("talkmesh-capture", Capture);
+`;
+
+let audioContext = null;
+
+async function audio() {
+  if (!audioContext) {
+    audioContext = new AudioContext({ latencyHint: "interactive" });
+    const url = URL.createObjectURL(new Blob([WORKLET_SOURCE], { type: "text/javascript" }));
+    try {
+      await audioContext.audioWorklet.addModule(url);
+    } finally {
+      URL.revokeObjectURL(url);
+    }
+  }
+  if (audioContext.state === "suspended") await audioContext.resume();
+  return audioContext;
+}
+
+// --- the scene
+
+const container = $("view");
+const renderer = new THREE.WebGLRenderer({ antialias: true });
+renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
+renderer.toneMapping = THREE.NeutralToneMapping;
+container.appendChild(renderer.domElement);
+
+const scene = new THREE.Scene();
+scene.background = new THREE.Color(0x3a3d42);
+// Soft image-based light from a neutral room, plus a key light from above right for shape.
+const pmrem = new THREE.PMREMGenerator(renderer);
+scene.environment = pmrem.fromScene(new RoomEnvironment(), 0.04).texture;
+scene.environmentIntensity = 0.45;
+const key = new THREE.DirectionalLight(0xfff4e8, 1.4);
+key.position.set(0.8, 1.0, 1.2);
+scene.add(key);
+
+const camera = new THREE.PerspectiveCamera(28, 1, 0.01, 100);
+camera.position.set(0, 0, 1);
+const controls = new OrbitControls(camera, renderer.domElement);
+controls.enableDamping = true;
+
+function resize() {
+  const w = container.clientWidth || 1;
+  const h = container.clientHeight || 1;
+  renderer.setSize(w, h, false);
+  camera.aspect = w / h;
+  // Centre the head in the room the panel leaves on its right, where the window is wide enough.
+  const panel = $("panel").getBoundingClientRect().right;
+  const shift = w > 2.2 * panel ? panel / 2 : 0;
+  if (shift) camera.setViewOffset(w, h, -shift, 0, w, h);
+  else camera.clearViewOffset();
+  camera.updateProjectionMatrix();
+}
+window.addEventListener("resize", resize);
+resize();
+
+let morphMeshes = []; // every mesh of the head that has morph target names
+let drivers = []; // per mesh: morph index for each weight of the stream (-1 where absent)
+
+function frameHead(object) {
+  const box = new THREE.Box3().setFromObject(object);
+  const center = box.getCenter(new THREE.Vector3());
+  const size = box.getSize(new THREE.Vector3());
+  const fit = Math.max(size.y, size.x / camera.aspect) / (2 * Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)));
+  camera.position.set(center.x, center.y + 0.05 * size.y, center.z + size.z / 2 + 1.05 * fit);
+  camera.near = fit / 50;
+  camera.far = fit * 50;
+  camera.updateProjectionMatrix();
+  controls.target.copy(center);
+  controls.update();
+}
+
+function bind() {
+  if (!talkmesh.names) return;
+  drivers = morphMeshes.map((mesh) => ({
+    mesh,
+    index: talkmesh.names.map((name) => mesh.morphTargetDictionary[name] ?? -1),
+  }));
+}
+
+function applyWeights(weights) {
+  for (const { mesh, index } of drivers) {
+    const influences = mesh.morphTargetInfluences;
+    for (let i = 0; i < index.length; i++) if (index[i] >= 0) influences[index[i]] = weights[i];
+  }
+}
+
+new GLTFLoader().load(
+  "head.glb",
+  (gltf) => {
+    const head = gltf.scene;
+    head.traverse((o) => {
+      if (o.isMesh && o.morphTargetDictionary && Object.keys(o.morphTargetDictionary).length) {
+        morphMeshes.push(o);
+      }
+    });
+    scene.add(head);
+    talkmesh.head = head;
+    frameHead(head);
+    bind();
+    if (talkmesh.state === "loading") setState("idle");
+    if (!morphMeshes.length) showError("head.glb has no morph targets");
+  },
+  undefined,
+  (err) => showError(`could not load head.glb: ${err.message || err}`),
+);
+
+// --- the stream
+
+// Frames wait here for the next animation frame: at most one stays queued after each display.
+let pending = [];
+
+function parseFrame(buffer) {
+  const view = new DataView(buffer);
+  if (buffer.byteLength < FRAME_HEADER_BYTES || view.getUint32(0, false) !== FRAME_MAGIC) {
+    throw new Error("not a TMF1 frame");
+  }
+  const count = view.getUint16(12, true);
+  if (buffer.byteLength < FRAME_HEADER_BYTES + 4 * count) throw new Error("truncated frame");
+  const weights = new Float32Array(count);
+  for (let i = 0; i < count; i++) weights[i] = view.getFloat32(FRAME_HEADER_BYTES + 4 * i, true);
+  return {
+    index: view.getUint32(4, true),
+    time: view.getFloat32(8, true),
+    flags: view.getUint16(14, true),
+    weights,
+  };
+}
+
+function quantile(sorted, q) {
+  const x = (sorted.length - 1) * q;
+  const i = Math.floor(x);
+  return i + 1 < sorted.length ? sorted[i] + (x - i) * (sorted[i + 1] - sorted[i]) : sorted[i];
+}
+
+class Session {
+  constructor(model, lookaheadMs) {
+    this.sent = []; // {end: samples sent so far including this chunk, at: send time (ms)}
+    this.cursor = 0; // frames arrive in order, so the chunk search resumes here
+    this.samplesSent = 0;
+    this.backlog = []; // chunks captured before the server said hello
+    this.ready = false;
+    this.finishing = false;
+    this.endSentAt = null;
+    this.latencies = []; // {at: receive time, ms}
+    this.teardown = [];
+    this.node = null;
+    this.jawIndex = -1;
+
+    const protocol = location.protocol === "https:" ? "wss:" : "ws:";
+    const query = new URLSearchParams({ model, lookahead_ms: String(lookaheadMs) });
+    this.ws = new WebSocket(`${protocol}//${location.host}/ws/stream?${query}`);
+    this.ws.binaryType = "arraybuffer";
+    this.ws.onmessage = (e) => this.receive(e.data);
+    this.ws.onclose = (e) => this.closed(e);
+
+    Object.assign(talkmesh, {
+      framesReceived: 0,
+      latencyMs: { median: null, p95: null },
+      weightHistory: { jawOpen: [] },
+      lastWeights: null,
+      endFrames: null,
+      error: null,
+    });
+    pending = [];
+    setState("connecting");
+  }
+
+  // Route `source` (an AudioNode) through the capture worklet.
+  attach(context, source) {
+    const node = new AudioWorkletNode(context, "talkmesh-capture", { outputChannelCount: [1] });
+    const mute = context.createGain();
+    mute.gain.value = 0; // keeps the worklet pulled by the graph without echoing the microphone
+    node.connect(mute).connect(context.destination);
+    source.connect(node);
+    node.port.onmessage = (e) => {
+      if (e.data === "finished") this.sendEnd();
+      else this.send(e.data);
+    };
+    this.node = node;
+    this.teardown.push(() => {
+      source.disconnect(node);
+      node.disconnect();
+      mute.disconnect();
+    });
+  }
+
+  send(chunk) {
+    if (!this.ready) {
+      this.backlog.push(chunk);
+      return;
+    }
+    if (this.ws.readyState !== WebSocket.OPEN) return;
+    this.ws.send(chunk);
+    this.samplesSent += chunk.byteLength / 2;
+    this.sent.push({ end: this.samplesSent, at: performance.now() });
+  }
+
+  // End of audio: the worklet sends what it still holds, then says "finished" and we send "end".
+  finish() {
+    if (this.finishing) return;
+    this.finishing = true;
+    if (this.node) this.node.port.postMessage("finish");
+    else this.sendEnd();
+  }
+
+  sendEnd() {
+    this.stopAudio();
+    if (!this.ready) {
+      this.endPending = true;
+      return;
+    }
+    if (this.ws.readyState !== WebSocket.OPEN || this.endSentAt !== null) return;
+    this.ws.send(JSON.stringify({ type: "end" }));
+    this.endSentAt = performance.now();
+    if (talkmesh.state === "streaming") setState("ending");
+  }
+
+  stopAudio() {
+    for (const undo of this.teardown.splice(0)) {
+      try {
+        undo();
+      } catch {
+        // already disconnected
+      }
+    }
+    if (this.node) this.node.port.postMessage("stop");
+  }
+
+  close() {
+    this.stopAudio();
+    if (this.ws.readyState <= WebSocket.OPEN) this.ws.close();
+  }
+
+  receive(data) {
+    const now = performance.now();
+    if (session !== this) return; // a replaced session's last messages
+    if (typeof data === "string") {
+      this.message(JSON.parse(data));
+      return;
+    }
+    let frame;
+    try {
+      frame = parseFrame(data);
+    } catch (err) {
+      this.fail(err.message);
+      return;
+    }
+    if (talkmesh.names && frame.weights.length !== talkmesh.names.length) {
+      this.fail(`frame has ${frame.weights.length} weights, hello named ${talkmesh.names.length}`);
+      return;
+    }
+    if (!talkmesh.names) {
+      this.fail("frame before hello");
+      return;
+    }
+    talkmesh.framesReceived += 1;
+    pending.push(frame.weights);
+    const named = {};
+    talkmesh.names.forEach((name, i) => (named[name] = frame.weights[i]));
+    talkmesh.lastWeights = named;
+    if (this.jawIndex >= 0) {
+      const history = talkmesh.weightHistory.jawOpen;
+      history.push(frame.weights[this.jawIndex]);
+      if (history.length > HISTORY_FRAMES) history.splice(0, history.length - HISTORY_FRAMES);
+    }
+    this.measure(frame.time, now);
+    plotDirty = true;
+  }
+
+  // Latency = receive time - send time of the chunk holding the audio up to frame time + look-ahead.
+  measure(time, now) {
+    const needed = Math.max(0, Math.ceil((time + talkmesh.lookaheadMs / 1000) * SAMPLE_RATE - 1e-6) - 1);
+    while (this.cursor < this.sent.length && this.sent[this.cursor].end <= needed) this.cursor += 1;
+    let sentAt;
+    if (this.cursor < this.sent.length) sentAt = this.sent[this.cursor].at;
+    else if (this.endSentAt !== null) sentAt = this.endSentAt; // flushed past the end of the audio
+    else if (this.sent.length) sentAt = this.sent[this.sent.length - 1].at;
+    else return;
+    if (this.cursor > 1000) {
+      this.sent.splice(0, this.cursor);
+      this.cursor = 0;
+    }
+    this.latencies.push({ at: now, ms: now - sentAt });
+    while (this.latencies[0].at < now - LATENCY_WINDOW_MS) this.latencies.shift();
+    const sorted = this.latencies.map((l) => l.ms).sort((a, b) => a - b);
+    talkmesh.latencyMs = { median: quantile(sorted, 0.5), p95: quantile(sorted, 0.95) };
+  }
+
+  message(msg) {
+    if (msg.type === "hello") {
+      talkmesh.names = msg.names;
+      talkmesh.streamFps = msg.fps;
+      talkmesh.lookaheadMs = msg.lookahead_ms;
+      talkmesh.model = msg.model;
+      this.jawIndex = msg.names.indexOf("jawOpen");
+      bind();
+      this.ready = true;
+      setState(this.finishing ? "ending" : "streaming");
+      for (const chunk of this.backlog.splice(0)) this.send(chunk);
+      if (this.endPending) this.sendEnd();
+    } else if (msg.type === "end") {
+      talkmesh.endFrames = msg.frames;
+      setState("done");
+      this.close();
+    } else if (msg.type === "error") {
+      this.fail(msg.message);
+    }
+  }
+
+  fail(message) {
+    showError(message);
+    this.close();
+  }
+
+  closed(event) {
+    this.stopAudio();
+    if (session !== this) return;
+    if (talkmesh.state !== "done" && talkmesh.state !== "error") {
+      setState("closed");
+      if (event.code !== 1000 && event.code !== 1005) showMessage(`connection closed (${event.code})`);
+    }
+    updateButtons(false);
+  }
+}
+
+let session = null;
+
+async function start(kind, file) {
+  if (session) session.close();
+  showMessage("");
+  const current = new Session($("model").value || "procedural", Number($("lookahead").value));
+  session = current;
+  updateButtons(true);
+  try {
+    const context = await audio();
+    if (kind === "mic") {
+      const stream = await navigator.mediaDevices.getUserMedia({
+        audio: { channelCount: 1, echoCancellation: false, noiseSuppression: false, autoGainControl: false },
+      });
+      const source = context.createMediaStreamSource(stream);
+      current.attach(context, source);
+      current.teardown.push(() => stream.getTracks().forEach((t) => t.stop()));
+      current.stopCapture = () => current.finish();
+    } else {
+      const decoded = await context.decodeAudioData(await file.arrayBuffer());
+      const source = context.createBufferSource();
+      source.buffer = decoded;
+      source.connect(context.destination); // the user hears it while it streams
+      current.attach(context, source);
+      current.teardown.push(() => source.disconnect());
+      source.onended = () => current.finish();
+      current.stopCapture = () => source.stop();
+      source.start();
+    }
+  } catch (err) {
+    current.fail(err.message || String(err));
+  }
+}
+
+// --- page
+
+let plotDirty = false;
+
+function setState(state) {
+  talkmesh.state = state;
+  $("state").textContent = state;
+}
+
+function showMessage(text) {
+  $("message").textContent = text;
+}
+
+function showError(message) {
+  talkmesh.error = message;
+  setState("error");
+  showMessage(message);
+}
+
+function updateButtons(running) {
+  $("stop").disabled = !running;
+}
+
+function fillModels(health) {
+  let models = health && health.models;
+  if (models && !Array.isArray(models)) models = Object.keys(models);
+  if (!models || !models.length) models = ["procedural"];
+  const select = $("model");
+  select.replaceChildren();
+  for (const m of models) {
+    const name = typeof m === "string" ? m : m.name;
+    select.add(new Option(name, name, false, name === "procedural"));
+  }
+}
+
+fetch("health")
+  .then((r) => r.json())
+  .then(fillModels)
+  .catch(() => fillModels(null));
+
+$("mic").addEventListener("click", () => start("mic"));
+$("file").addEventListener("change", (e) => {
+  const file = e.target.files[0];
+  e.target.value = "";
+  if (file) start("file", file);
+});
+$("stop").addEventListener("click", () => {
+  if (session && session.stopCapture) session.stopCapture();
+  else if (session) session.finish();
+  updateButtons(false);
+});
+
+function drawPlot() {
+  const canvas = $("plot");
+  const g = canvas.getContext("2d");
+  const values = talkmesh.weightHistory.jawOpen;
+  const top = Math.max(0.5, ...values); // jawOpen rarely passes 0.5 in speech
+  g.clearRect(0, 0, canvas.width, canvas.height);
+  g.strokeStyle = "#8fd3ff";
+  g.lineWidth = 1.5;
+  g.beginPath();
+  values.forEach((v, i) => {
+    const x = (i / (HISTORY_FRAMES - 1)) * canvas.width;
+    const y = canvas.height - 2 - Math.max(0, v / top) * (canvas.height - 4);
+    if (i === 0) g.moveTo(x, y);
+    else g.lineTo(x, y);
+  });
+  g.stroke();
+}
+
+function formatMs(x) {
+  return x === null ? "\u2013" : `${x.toFixed(0)}`;
+}
+
+let fpsSince = performance.now();
+let fpsCount = 0;
+let statsAt = 0;
+
+function tick(now) {
+  // Jitter buffer: drop all but the newest two, show the oldest of them.
+  if (pending.length > 2) pending.splice(0, pending.length - 2);
+  if (pending.length) applyWeights(pending.shift());
+  controls.update();
+  renderer.render(scene, camera);
+
+  fpsCount += 1;
+  if (now - fpsSince >= 500) {
+    talkmesh.fps = (fpsCount * 1000) / (now - fpsSince);
+    fpsSince = now;
+    fpsCount = 0;
+  }
+  if (plotDirty) {
+    drawPlot();
+    plotDirty = false;
+  }
+  if (now - statsAt >= STATS_EVERY_MS) {
+    statsAt = now;
+    const { median, p95 } = talkmesh.latencyMs;
+    $("frames").textContent = String(talkmesh.framesReceived);
+    $("fps").textContent = `${talkmesh.fps.toFixed(0)} fps`;
+    $("latency").textContent = median === null ? "\u2013" : `${formatMs(median)} ms (p95 ${formatMs(p95)})`;
+  }
+}
+
+renderer.setAnimationLoop(tick);
