@@ -25,6 +25,7 @@ __all__ = [
     "load_audio",
     "load_head",
     "load_template",
+    "open_stream",
     "render_video",
     "save_animation",
 ]
@@ -44,6 +45,10 @@ def __getattr__(name: str):
         from talkmesh.audio import load_audio
 
         return load_audio
+    if name == "open_stream":
+        from talkmesh.stream import open_stream
+
+        return open_stream
     if name == "render_video":
         from talkmesh.render import render_video
 

@@ -307,6 +307,8 @@ class CodeTalkerStreamer(Streamer):
         )
         self.buffer = np.zeros(0, np.float32)
         self.buffer_start = 0  # stream sample of buffer[0]
+        self.mel_cache = None  # log-mel frames mel_first.. of the current receptive field
+        self.mel_first = 0
 
     def _receive(self, audio: np.ndarray) -> None:
         self.buffer = np.concatenate([self.buffer, audio])
@@ -324,18 +326,15 @@ class CodeTalkerStreamer(Streamer):
         # the last mel frame's window ends win_length / 2 after its centre
         return self._last_mel(frame) * self.mel.hop_length + self.mel.win_length // 2
 
-    def _feature(self, frame: int):
-        """The speech feature of one frame, from the buffered audio (as the offline encoder)."""
+    def _mel_columns(self, first: int, last: int):
+        """Log-mel frames ``first..last`` (n_mels, n) from the buffered audio, computed as the
+        offline encoder does (frames before the stream are silence)."""
         torch, mel = self.torch, self.mel
-        last = self._last_mel(frame)
-        first = last - mel.receptive_field + 1
-        start = self._first_sample(frame)
-        length = (mel.receptive_field - 1) * mel.hop_length + mel.n_fft
+        start = first * mel.hop_length - mel.n_fft // 2
+        length = (last - first) * mel.hop_length + mel.n_fft
         segment = np.zeros(length, np.float32)
-        a, b = (
-            max(start, self.buffer_start),
-            min(start + length, self.buffer_start + len(self.buffer)),
-        )
+        a = max(start, self.buffer_start)
+        b = min(start + length, self.buffer_start + len(self.buffer))
         if b > a:
             segment[a - start : b - start] = self.buffer[
                 a - self.buffer_start : b - self.buffer_start
@@ -350,10 +349,27 @@ class CodeTalkerStreamer(Streamer):
             return_complex=True,
         )
         power = spec.real.square() + spec.imag.square()
-        logmel = torch.log((power.T @ self.encoder.filterbank).clamp(min=1e-5)).T  # (n_mels, R)
+        logmel = torch.log((power.T @ self.encoder.filterbank).clamp(min=1e-5)).T
         if first < 0:  # before the stream: silence, as the offline encoder pads
             logmel[:, :-first] = float(np.log(1e-5))
-        x = self.encoder.convolve(logmel[None])[:, :, -1]
+        return logmel
+
+    def _feature(self, frame: int):
+        """The speech feature of one frame (as the offline encoder computes it); the log-mel
+        frames of the receptive field are kept, so each step computes only the new ones."""
+        torch, mel = self.torch, self.mel
+        last = self._last_mel(frame)
+        first = last - mel.receptive_field + 1
+        if self.mel_cache is None or self.mel_first + self.mel_cache.shape[1] <= first:
+            self.mel_cache, self.mel_first = self._mel_columns(first, last), first
+        else:
+            have = self.mel_first + self.mel_cache.shape[1] - 1  # the last frame cached
+            if last > have:
+                new = self._mel_columns(have + 1, last)
+                self.mel_cache = torch.cat([self.mel_cache, new], dim=1)
+            self.mel_cache = self.mel_cache[:, first - self.mel_first :]
+            self.mel_first = first
+        x = self.encoder.convolve(self.mel_cache[None, :, : mel.receptive_field])[:, :, -1]
         feats = self.encoder.output(x)
         if self.net.speech.max_shift:
             feats = feats + self.net.speech.shift_embedding.weight[self.shift]
