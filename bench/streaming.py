@@ -110,7 +110,9 @@ def latency_run(make, audio: np.ndarray, chunk: int, fps: float) -> dict:
 # -- quality ---------------------------------------------------------------------------------
 
 
-def write_streamed(model: str, data: Path, out: Path, lookahead: float, chunk: int) -> float:
+def write_streamed(
+    model: str, data: Path, out: Path, lookahead: float, chunk: int, blinks: bool
+) -> float:
     """Stream every test sequence; returns the compute time."""
     dataset = open_dataset("synth", data, "test")
     ids = identities(data)
@@ -124,7 +126,7 @@ def write_streamed(model: str, data: Path, out: Path, lookahead: float, chunk: i
                                    seed=index, fps=dataset.spec.motion_fps)  # fmt: skip
         else:
             streamer = open_stream(model, lookahead_ms=lookahead, head=head, offsets=True,
-                                   blinks=False)  # fmt: skip
+                                   blinks=blinks, seed=index)  # fmt: skip
         t0 = time.perf_counter()
         frames = stream_clip(streamer, sample.audio, chunk)
         spent += time.perf_counter() - t0
@@ -151,6 +153,8 @@ def main() -> None:
     p.add_argument("--latency-lookaheads", default="50,100")
     p.add_argument("--lookaheads", default="0,50,100,200")
     p.add_argument("--offline-model", default="codetalker-synth")
+    p.add_argument("--no-blinks", dest="blinks", action="store_false",
+                   help="stream the model without the procedural blinks and gaze it adds by default")  # fmt: skip
     p.add_argument("--skip", default="", help="comma list of parts to skip: latency,quality")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--json", type=Path)
@@ -202,18 +206,18 @@ def main() -> None:
                          **score(args.data, tmp / "proc")})  # fmt: skip
             if args.offline_model:
                 write_model_predictions("synth", args.data, tmp / "off", args.offline_model,
-                                        progress=False)  # fmt: skip
+                                        blinks=args.blinks, progress=False)  # fmt: skip
                 rows.append({"animator": f"{args.offline_model} (offline, Whisper)",
                              "lookahead_ms": "offline", **score(args.data, tmp / "off")})  # fmt: skip
             if args.model:
                 write_model_predictions("synth", args.data, tmp / "smo", args.model,
-                                        progress=False)  # fmt: skip
+                                        blinks=args.blinks, progress=False)  # fmt: skip
                 rows.append({"animator": "streaming CodeTalker, offline generate()",
                              "lookahead_ms": "max", **score(args.data, tmp / "smo")})  # fmt: skip
             for animator in animators:
                 for la in map(float, args.lookaheads.split(",")):
                     out = tmp / f"{label[animator]}-{la:g}".replace(" ", "_")
-                    spent = write_streamed(animator, args.data, out, la, chunk)
+                    spent = write_streamed(animator, args.data, out, la, chunk, args.blinks)
                     rows.append({"animator": f"{label[animator]} (streamed)",
                                  "lookahead_ms": la, "compute_s": spent,
                                  **score(args.data, out)})  # fmt: skip
@@ -248,7 +252,7 @@ def plot(rows: list[dict], path: Path) -> None:
             for r in offline:
                 ax.axhline(r[metric], color=line.get_color(), ls="--", lw=1)
         ax.set_xlabel("look-ahead (ms)")
-        ax.set_ylabel(metric.replace("_mm", " (mm)").upper())
+        ax.set_ylabel(metric.split("_")[0].upper() + " (mm)")
     axes[0].legend(fontsize=7)
     fig.suptitle("Streaming quality vs look-ahead (dashed: the same animator offline)", fontsize=9)
     fig.tight_layout()

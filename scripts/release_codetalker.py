@@ -105,7 +105,19 @@ def main() -> None:
         "talkmesh as the default animator of `talkmesh animate`. Speech encoder: "
         f"{cfg.stage2.speech.kind} (frozen); VQ-VAE H={cfg.vq.components} x C={cfg.vq.code_dim}, "
         f"N={cfg.vq.codebook_size}, P={cfg.vq.temporal_unit}, {cfg.vq.loss.upper()} reconstruction; "
-        f"decoder d={cfg.stage2.d_model}, {cfg.stage2.layers} layers, period {cfg.stage2.period}.",
+        f"decoder d={cfg.stage2.d_model}, {cfg.stage2.layers} layers, period {cfg.stage2.period}."
+        + (
+            f" VQ decoder causal (attention over the last {cfg.vq.causal_window} frames), so fast "
+            "generation is exactly the paper's naive loop."
+            if cfg.vq.causal
+            else ""
+        )
+        + (
+            f" Stage 2 trained with self-feedback {cfg.stage2.self_feedback:g} (that share of the "
+            "fed-back frames is the model's own prediction) against exposure bias."
+            if cfg.stage2.self_feedback
+            else ""
+        ),
         "",
         "## Data",
         "",
