@@ -307,6 +307,24 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_retarget(args: argparse.Namespace) -> int:
+    from talkmesh import retarget
+
+    out = Path(args.output)
+    inputs = [Path(args.anim), Path(args.audio)]
+    if args.command == "retarget":
+        _check_outputs([[out]], [*inputs, Path(args.template)], args.overwrite)
+        anim = retarget.retarget(args.model, args.anim, args.audio, args.template,
+                                 source_template=args.source_template)  # fmt: skip
+    else:
+        _check_outputs([[out]], inputs, args.overwrite)
+        anim = retarget.dub(args.model, args.anim, args.audio, source_template=args.source_template)
+    write_animation(anim, out, overwrite=args.overwrite)
+    if not args.quiet:
+        print(f"wrote {out} ({anim.num_frames} frames, {anim.duration:.2f} s)")
+    return 0
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     try:
         from talkmesh.serve import serve
@@ -478,6 +496,30 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--num-nodes", type=int, help="number of machines")
     tr.add_argument("-q", "--quiet", action="store_true")
     tr.set_defaults(func=cmd_train)
+
+    for name, text in (
+        ("retarget", "MeshTalk re-targeting: an animation and its audio onto another neutral mesh"),
+        (
+            "dub",
+            "MeshTalk dubbing: keep an animation's upper face, re-drive its mouth by new audio",
+        ),
+    ):
+        rt = sub.add_parser(name, help=text)
+        rt.add_argument("--model", required=True, help="a MeshTalk release (.safetensors)")
+        rt.add_argument("--anim", required=True,
+                        help="the animation (.npy [T, V*3] vertices, .npz, .glb)")  # fmt: skip
+        rt.add_argument("--audio", required=True,
+                        help="its speech" if name == "retarget" else "the new speech")  # fmt: skip
+        if name == "retarget":
+            rt.add_argument(
+                "--template", required=True, help="the target neutral mesh (.obj, .ply, .npy)"
+            )
+        rt.add_argument("--source-template",
+                        help="the animation's neutral mesh (default: stored in it, else the bundled face)")  # fmt: skip
+        rt.add_argument("-o", "--output", required=True, help="output file (format by extension)")
+        rt.add_argument("--overwrite", action="store_true", help="replace an existing output")
+        rt.add_argument("-q", "--quiet", action="store_true")
+        rt.set_defaults(func=cmd_retarget)
 
     sv = sub.add_parser(
         "serve", help="stream face animation over WebSocket and serve the browser viewer"
