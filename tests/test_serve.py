@@ -13,17 +13,17 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import httpx
 import numpy as np
+import pygltflib
 import pytest
+from starlette.testclient import TestClient
+from websockets.sync.client import connect
 
-pytest.importorskip("starlette")
-pytest.importorskip("httpx")
-from starlette.testclient import TestClient  # noqa: E402
-
-from talkmesh.arkit import ARKIT_NAMES  # noqa: E402
-from talkmesh.assets import load_head  # noqa: E402
-from talkmesh.audio import SAMPLE_RATE, load_audio  # noqa: E402
-from talkmesh.serve import (  # noqa: E402
+from talkmesh.arkit import ARKIT_NAMES
+from talkmesh.assets import load_head
+from talkmesh.audio import SAMPLE_RATE, load_audio
+from talkmesh.serve import (
     CLOSE_BUSY,
     CLOSE_GOING_AWAY,
     CLOSE_NORMAL,
@@ -33,7 +33,7 @@ from talkmesh.serve import (  # noqa: E402
     decode_frame,
     encode_frame,
 )
-from talkmesh.stream import StreamFrame  # noqa: E402
+from talkmesh.stream import StreamFrame
 
 CLIP = Path(
     "/usr/share/pocketsphinx/test/data/librivox/sense_and_sensibility_01_austen_64kb-0880.wav"
@@ -41,7 +41,10 @@ CLIP = Path(
 CHUNK = 2 * SAMPLE_RATE // 10  # bytes of 100 ms of 16-bit PCM
 FPS = 30.0
 
-pytestmark = pytest.mark.skipif(not CLIP.exists(), reason="pocketsphinx-testdata not installed")
+
+@pytest.fixture(autouse=True)
+def _speech_clip():
+    assert CLIP.exists(), f"{CLIP} is missing: run `make setup` (pocketsphinx-testdata)"
 
 
 @dataclass
@@ -243,7 +246,6 @@ def test_idle_session_times_out_but_a_talking_one_does_not(pcm):
 
 
 def test_head_glb_has_the_52_arkit_morph_targets(client):
-    pygltflib = pytest.importorskip("pygltflib")
     response = client.get("/head.glb")
     assert response.status_code == 200 and response.headers["content-type"] == "model/gltf-binary"
     gltf = pygltflib.GLTF2.load_from_bytes(response.content)
@@ -255,7 +257,6 @@ def test_head_glb_has_the_52_arkit_morph_targets(client):
 
 
 def test_animate_returns_a_glb_and_leaves_no_files(tmp_path, monkeypatch):
-    pygltflib = pytest.importorskip("pygltflib")
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     with TestClient(create_app(max_upload_bytes=200_000)) as client:
         response = client.post("/animate?format=glb&model=procedural", content=CLIP.read_bytes())
@@ -308,8 +309,6 @@ def _free_port() -> int:
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
 def test_cli_serves_and_stops_cleanly(pcm, stop):
     """The real server: a client that vanishes mid-stream, then Ctrl-C / SIGTERM: 1001, exit 0."""
-    httpx = pytest.importorskip("httpx")
-    connect = pytest.importorskip("websockets.sync.client").connect
     port = _free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "talkmesh", "serve", "--port", str(port), "-q"],

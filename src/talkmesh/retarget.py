@@ -51,6 +51,11 @@ def _audio(torch, path: str | Path):
     return wave, torch.from_numpy(wave)[None]
 
 
+def _result(vertices, source: Animation, net, wave: np.ndarray, template: np.ndarray) -> Animation:
+    return Animation(vertices=vertices, faces=source.faces, fps=net.config.fps, audio=wave,
+                     sample_rate=SAMPLE_RATE, template=template)  # fmt: skip
+
+
 def retarget(
     model: str | Path,
     anim: str | Path,
@@ -71,8 +76,7 @@ def retarget(
         )
     wave, audio_t = _audio(torch, audio)
     out = net.retarget(verts, src_template, audio_t, torch.from_numpy(target)[None])[0].numpy()
-    return Animation(vertices=out, faces=source.faces, fps=net.config.fps, audio=wave,
-                     sample_rate=SAMPLE_RATE, template=target)  # fmt: skip
+    return _result(out, source, net, wave, target)
 
 
 def dub(
@@ -86,5 +90,4 @@ def dub(
     torch, net, source, verts, template = _inputs(model, anim, source_template)
     wave, audio_t = _audio(torch, audio)
     out = net.dub(verts, template, audio_t)[0].numpy()
-    return Animation(vertices=out, faces=source.faces, fps=net.config.fps, audio=wave,
-                     sample_rate=SAMPLE_RATE, template=template[0].numpy())  # fmt: skip
+    return _result(out, source, net, wave, template[0].numpy())

@@ -20,6 +20,7 @@ Two animators stream:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -268,6 +269,7 @@ class CodeTalkerStreamer(Streamer):
         import torch
 
         from talkmesh.models.codetalker import FrameGenerator
+        from talkmesh.models.meshtalk import LOG_FLOOR
         from talkmesh.models.speech import MelEncoder
 
         net = _load_streaming_model(path)
@@ -282,14 +284,12 @@ class CodeTalkerStreamer(Streamer):
                 f"{path} animates {cfg.vq.num_vertices}-vertex meshes but the face has {head.num_vertices}"
             )
         self.shift = net.speech.check_lookahead(lookahead_ms)  # the shared model is not changed
-        mel = net.speech.encoder.cfg
-        actual = net.speech.cfg.lookahead_ms + self.shift * 1000 / mel.mel_rate
-        super().__init__(cfg.motion_fps, actual, head, offsets)
+        super().__init__(cfg.motion_fps, net.speech.lookahead_for(self.shift), head, offsets)
         self.torch, self.net = torch, net
+        self.silence = math.log(LOG_FLOOR)  # log-mel of frames before the stream (as offline)
         enc = net.speech.encoder
         self.mel = enc.cfg
         self.encoder = enc
-        self.window = torch.hann_window(self.mel.win_length)
         styles = len(cfg.stage2.styles)
         weights = (
             np.full(styles, 1.0 / styles, np.float32)
@@ -339,19 +339,9 @@ class CodeTalkerStreamer(Streamer):
             segment[a - start : b - start] = self.buffer[
                 a - self.buffer_start : b - self.buffer_start
             ]
-        spec = torch.stft(
-            torch.from_numpy(segment),
-            n_fft=mel.n_fft,
-            hop_length=mel.hop_length,
-            win_length=mel.win_length,
-            window=self.window,
-            center=False,
-            return_complex=True,
-        )
-        power = spec.real.square() + spec.imag.square()
-        logmel = torch.log((power.T @ self.encoder.filterbank).clamp(min=1e-5)).T
+        logmel = self.encoder.log_mel(torch.from_numpy(segment)[None], center=False)[0]
         if first < 0:  # before the stream: silence, as the offline encoder pads
-            logmel[:, :-first] = float(np.log(1e-5))
+            logmel[:, :-first] = self.silence
         return logmel
 
     def _feature(self, frame: int):

@@ -829,7 +829,8 @@ class FrameGenerator:
         dec = model.vqvae.decoder
         self.causal = vq.causal
         self.vq_step = DecoderStep(dec) if vq.causal else None
-        self.vq_caches = [KVCache(self.window) for _ in dec.blocks]
+        # the bidirectional decoder's cached causal pass (unused with a causal decoder)
+        self.vq_caches = [] if vq.causal else [KVCache(self.window) for _ in dec.blocks]
         self.conv_inputs: list[Tensor] = []
         # the VQ decoder's output map followed by the motion map is one linear map: fold them
         # (normalised motion in, so the decoder's scale cancels)

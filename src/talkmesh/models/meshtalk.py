@@ -261,8 +261,9 @@ class MelAudioEncoder(nn.Module):
         )
         self.output = nn.Linear(cfg.width, cfg.out_dim)
 
-    def log_mel(self, audio: Tensor) -> Tensor:
-        """(B, S) -> (B, n_mels, M) log power, M = S // hop + 1 (frame m centred on sample m*hop)."""
+    def log_mel(self, audio: Tensor, center: bool = True) -> Tensor:
+        """(B, S) -> (B, n_mels, M) log power, M = S // hop + 1 (frame m centred on sample m*hop);
+        ``center=False``: frame m starts at sample m*hop (the caller pads, as streaming does)."""
         cfg = self.cfg
         spec = torch.stft(
             audio.to(self.window.dtype),
@@ -270,7 +271,7 @@ class MelAudioEncoder(nn.Module):
             hop_length=cfg.hop_length,
             win_length=cfg.win_length,
             window=self.window,
-            center=True,
+            center=center,
             pad_mode="constant",
             return_complex=True,
         )

@@ -172,11 +172,14 @@ class MelEncoder(nn.Module):
         """Inference look-ahead of a streaming model (None: the largest it was trained for)."""
         self.shift = None if lookahead_ms is None else self.check_lookahead(lookahead_ms)
 
+    def lookahead_for(self, shift: int) -> float:
+        """The look-ahead (ms) that ``shift`` extra mel frames give."""
+        return self.cfg.lookahead_ms + shift * 1000 / self.encoder.cfg.mel_rate
+
     @property
     def lookahead_ms(self) -> float:
         """The look-ahead in use: audio after a frame that its feature reads."""
-        shift = self.max_shift if self.shift is None else self.shift
-        return self.cfg.lookahead_ms + shift * 1000 / self.encoder.cfg.mel_rate
+        return self.lookahead_for(self.max_shift if self.shift is None else self.shift)
 
     def set_statistics(self, audio: Tensor) -> None:
         self.encoder.set_statistics(audio)
