@@ -254,40 +254,37 @@ def write_model_predictions(
     from talkmesh.models.release import load_model
 
     net = load_model(model)
-    styles = list(net.cfg.stage2.styles)
+    styles = list(net.styles)
     dataset = open_dataset(kind, data, split)
-    if net.cfg.vq.num_vertices != len(dataset.templates[next(iter(dataset.templates))]):
+    if net.num_vertices != len(dataset.templates[next(iter(dataset.templates))]):
         raise TalkmeshError(f"model {model} and the {kind} data at {data} differ in vertex count")
+    if mode not in ("fast", "naive", "reconstruct"):
+        raise TalkmeshError(f"unknown prediction mode '{mode}': use fast, naive or reconstruct")
+    if mode != "fast" and net.family != "codetalker":
+        raise TalkmeshError(f"mode {mode} is a CodeTalker mode; {net.family} models use fast")
     if blinks:
         from talkmesh.assets import load_head
         from talkmesh.lipsync import blink_gaze_weights
 
         head = load_head()
-        if head.num_vertices != net.cfg.vq.num_vertices:
+        if head.num_vertices != net.num_vertices:
             raise TalkmeshError("blinks need the bundled head's topology (its blendshapes)")
         basis = head.blendshapes.reshape(len(head.blendshape_names), -1)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = 0
+
+    def one_hot(k: int):
+        return torch.nn.functional.one_hot(torch.tensor(k), len(styles)).float()
+
     for index in tqdm(range(len(dataset)), desc="predict", unit="seq", disable=not progress):
         sample = dataset[index]
-        if sample.subject in styles:
-            jobs = [
-                (
-                    f"{sample.name}.npy",
-                    torch.nn.functional.one_hot(
-                        torch.tensor(styles.index(sample.subject)), len(styles)
-                    ),
-                )
-            ]
+        if not styles:  # no speaker conditioning
+            jobs = [(f"{sample.name}.npy", None)]
+        elif sample.subject in styles:
+            jobs = [(f"{sample.name}.npy", one_hot(styles.index(sample.subject)))]
         elif conditions:
-            jobs = [
-                (
-                    f"{sample.name}_condition_{s}.npy",
-                    torch.nn.functional.one_hot(torch.tensor(k), len(styles)),
-                )
-                for k, s in enumerate(styles)
-            ]
+            jobs = [(f"{sample.name}_condition_{s}.npy", one_hot(k)) for k, s in enumerate(styles)]
         else:
             jobs = [(f"{sample.name}.npy", torch.full((len(styles),), 1.0 / len(styles)))]
         for filename, weights in jobs:
@@ -295,20 +292,20 @@ def write_model_predictions(
             if path.exists():
                 raise TalkmeshError(f"{path} already exists: choose an empty output directory")
             with torch.inference_mode():
-                if (
-                    mode == "reconstruct"
-                ):  # stage 1 alone: how much of the motion the codebook keeps
+                if mode == "reconstruct":  # stage 1 alone: what the codebook keeps
                     template = torch.from_numpy(sample.template)
                     motion = (torch.tensor(sample.vertices) - template).flatten(1)[None]
                     recon = net.vqvae(motion).motion[0]
                     verts = (recon.reshape(len(recon), -1, 3) + template).numpy()
                 else:
+                    kwargs = {"mode": mode} if net.family == "codetalker" else {}
                     verts = net.generate(
                         torch.from_numpy(sample.audio)[None],
                         torch.from_numpy(sample.template)[None],
-                        style_weights=weights.float()[None],
+                        style_weights=None if weights is None else weights[None],
                         num_frames=len(sample.vertices),
-                        mode=mode,
+                        seed=index,
+                        **kwargs,
                     )[0].numpy()
             if blinks:
                 eyes = blink_gaze_weights(len(verts), dataset.spec.motion_fps, seed=index)

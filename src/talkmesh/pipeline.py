@@ -95,7 +95,7 @@ def animate(
                 f"--text and phones drive the procedural animator, not {model}: drop them or "
                 "pass --model procedural"
             )
-        anim = animate_learned(wave, head, model, fps=fps, style_mix=style_mix)
+        anim = animate_learned(wave, head, model, fps=fps, style_mix=style_mix, seed=seed)
         if blinks:
             eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
             basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
@@ -141,9 +141,16 @@ def parse_style(text: str | None) -> dict[str, float] | None:
 
 
 def animate_learned(
-    wave: np.ndarray, head: Head, model: str, *, fps: float, style_mix: dict[str, float] | None
+    wave: np.ndarray,
+    head: Head,
+    model: str,
+    *,
+    fps: float,
+    style_mix: dict[str, float] | None,
+    seed: int = 0,
 ) -> Animation:
-    """Animate with a released learned model (CodeTalker) on ``head``'s neutral face."""
+    """Animate with a released learned model (any family of talkmesh.models.release) on
+    ``head``'s neutral face."""
     try:
         import torch
     except ImportError:
@@ -151,14 +158,17 @@ def animate_learned(
     from talkmesh.models.release import load_model
 
     net = load_model(model)
-    cfg = net.cfg
-    if cfg.vq.num_vertices != head.num_vertices:
+    if net.num_vertices != head.num_vertices:
         raise TalkmeshError(
-            f"model {model} animates {cfg.vq.num_vertices}-vertex meshes but the face has {head.num_vertices}"
+            f"model {model} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
         )
-    styles = list(cfg.stage2.styles)
-    weights = np.full(len(styles), 1.0 / len(styles), np.float32)
+    styles = list(net.styles)
+    weights = None
+    if styles:
+        weights = np.full(len(styles), 1.0 / len(styles), np.float32)
     if style_mix:
+        if not styles:
+            raise TalkmeshError(f"--style: model {model} has no speaker styles")
         unknown = sorted(set(style_mix) - set(styles))
         if unknown:
             raise TalkmeshError(
@@ -169,17 +179,19 @@ def animate_learned(
             raise TalkmeshError("--style weights must add up to more than 0")
         weights = np.array([style_mix.get(s, 0.0) / total for s in styles], np.float32)
     torch.set_num_threads(max(1, torch.get_num_threads()))
+    fps_model = net.motion_fps
     with torch.inference_mode():
         verts = net.generate(
             torch.from_numpy(wave)[None],
             torch.from_numpy(head.template)[None],
-            style_weights=torch.from_numpy(weights)[None],
-            num_frames=num_frames_for(len(wave), SAMPLE_RATE, cfg.motion_fps),
+            style_weights=None if weights is None else torch.from_numpy(weights)[None],
+            num_frames=num_frames_for(len(wave), SAMPLE_RATE, fps_model),
+            seed=seed,
         )[0].numpy()
-    if abs(fps - cfg.motion_fps) > 1e-6:  # resample the motion to the requested frame rate
-        t_in = np.arange(len(verts)) / cfg.motion_fps
+    if abs(fps - fps_model) > 1e-6:  # resample the motion to the requested frame rate
+        t_in = np.arange(len(verts)) / fps_model
         t_out = np.arange(num_frames_for(len(wave), SAMPLE_RATE, fps)) / fps
-        pos = np.clip(t_out * cfg.motion_fps, 0, len(t_in) - 1)
+        pos = np.clip(t_out * fps_model, 0, len(t_in) - 1)
         i0 = np.floor(pos).astype(int)
         i1 = np.minimum(i0 + 1, len(t_in) - 1)
         w = (pos - i0)[:, None, None].astype(np.float32)

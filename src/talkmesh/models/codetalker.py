@@ -627,6 +627,8 @@ class Stage2Output(NamedTuple):
 class CodeTalker(nn.Module):
     """Both stages; stage 1 is frozen while stage 2 trains."""
 
+    family = "codetalker"
+
     def __init__(self, cfg: CodeTalkerConfig) -> None:
         super().__init__()
         self.cfg = cfg
@@ -646,6 +648,18 @@ class CodeTalker(nn.Module):
         self.feat_map = nn.Linear(s2.d_model, vq.components * vq.code_dim)
         nn.init.zeros_(self.feat_map.weight)  # zero-initialised output map (Sec. 3.2)
         nn.init.zeros_(self.feat_map.bias)
+
+    @property
+    def num_vertices(self) -> int:
+        return self.cfg.vq.num_vertices
+
+    @property
+    def motion_fps(self) -> float:
+        return self.cfg.motion_fps
+
+    @property
+    def styles(self) -> tuple[str, ...]:
+        return tuple(self.cfg.stage2.styles)
 
     # -- pieces ---------------------------------------------------------------------------------
 
@@ -753,8 +767,10 @@ class CodeTalker(nn.Module):
         audio_lengths: Tensor | None = None,
         num_frames: int | None = None,
         mode: str = "fast",
+        seed: int = 0,
     ) -> Tensor:
-        """audio (B, S) at 16 kHz, template (B, V, 3) -> vertices (B, T, V, 3).
+        """audio (B, S) at 16 kHz, template (B, V, 3) -> vertices (B, T, V, 3) (deterministic:
+        ``seed`` is accepted for the common model surface and unused).
 
         ``mode="naive"`` is the paper's loop: at every step the whole decoder runs over the whole
         prefix, the whole quantised prefix is decoded by the VQ decoder and its last frame fed back.

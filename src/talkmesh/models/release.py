@@ -2,6 +2,17 @@
 version in the metadata), loaded with ``strict=True`` and no pickle.
 
     model = talkmesh.load_model("runs/ct2/model.safetensors")   # or a bundled name
+
+Every learned family (CodeTalker, FaceFormer, VOCA, MeshTalk) is an ``nn.Module`` with the same
+surface, so ``animate``, ``predict``, ``evaluate`` and ``benchmark`` treat them alike:
+
+* ``family`` (class attribute, a key of :data:`FAMILIES`) and ``cfg`` (a frozen dataclass that
+  rebuilds the model: ``cls(cfg)``);
+* ``num_vertices``, ``motion_fps`` and ``styles`` (the training speakers' names, ``()`` when the
+  model has no speaker conditioning) properties;
+* ``generate(audio (B, S) 16 kHz, template (B, V, 3), *, style_weights=None (B, len(styles)),
+  audio_lengths=None, num_frames=None, seed=0) -> (B, T, V, 3)``; ``seed`` matters only to
+  sampling models.
 """
 
 from __future__ import annotations
@@ -19,10 +30,19 @@ FORMAT_VERSION = 1
 MODELS_DIR = Path(__file__).resolve().parents[1] / "data" / "models"
 
 
-def _families():
-    from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig
+# family -> "module:ModelClass:ConfigClass", imported on first use
+FAMILIES: dict[str, str] = {
+    "codetalker": "talkmesh.models.codetalker:CodeTalker:CodeTalkerConfig",
+}
 
-    return {"codetalker": (CodeTalker, CodeTalkerConfig)}
+
+def family_classes(name: str) -> tuple[type, type]:
+    """(model class, config class) of a family."""
+    import importlib
+
+    module, model_cls, cfg_cls = FAMILIES[name].split(":")
+    mod = importlib.import_module(module)
+    return getattr(mod, model_cls), getattr(mod, cfg_cls)
 
 
 def save_model(model: nn.Module, path: str | Path, *, dtype: torch.dtype | None = None) -> Path:
@@ -31,8 +51,8 @@ def save_model(model: nn.Module, path: str | Path, *, dtype: torch.dtype | None 
         from safetensors.torch import save_file
     except ImportError:
         raise MissingDependencyError("safetensors", "models", "saving models") from None
-    family = next((name for name, (cls, _) in _families().items() if isinstance(model, cls)), None)
-    if family is None:
+    family = getattr(model, "family", None)
+    if family not in FAMILIES:
         raise TalkmeshError(f"cannot release a {type(model).__name__}")
     state = {}
     for k, v in model.state_dict().items():
@@ -84,7 +104,11 @@ def load_model(name_or_path: str | Path, *, dtype: torch.dtype = torch.float32) 
         raise TalkmeshError(
             f"{path}: written by a newer talkmesh (format {meta['format_version']}): upgrade"
         )
-    cls, cfg_cls = _families()[meta["family"]]
+    if meta.get("family") not in FAMILIES:
+        raise TalkmeshError(
+            f"{path}: unknown model family {meta.get('family')!r}: upgrade talkmesh"
+        )
+    cls, cfg_cls = family_classes(meta["family"])
     model = cls(from_dict(cfg_cls, json.loads(meta["config"])))
     model.load_state_dict(
         {k: v.to(dtype) if v.is_floating_point() else v for k, v in state.items()}, strict=True
