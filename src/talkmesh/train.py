@@ -205,6 +205,8 @@ TASKS: dict[str, str] = {
     "codetalker-stage2": "talkmesh.models.codetalker_tasks:STAGE2",
     "meshtalk": "talkmesh.models.meshtalk_tasks:EXPRESSION",
     "meshtalk-prior": "talkmesh.models.meshtalk_tasks:PRIOR",
+    "faceformer": "talkmesh.models.faceformer_tasks:FACEFORMER",
+    "voca": "talkmesh.models.voca_tasks:VOCA",
 }
 
 

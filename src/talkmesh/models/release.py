@@ -33,6 +33,9 @@ MODELS_DIR = Path(__file__).resolve().parents[1] / "data" / "models"
 # family -> "module:ModelClass:ConfigClass", imported on first use
 FAMILIES: dict[str, str] = {
     "codetalker": "talkmesh.models.codetalker:CodeTalker:CodeTalkerConfig",
+    "faceformer": "talkmesh.models.faceformer:FaceFormer:FaceFormerConfig",
+    "voca": "talkmesh.models.voca:VOCA:VOCAConfig",
+    "meshtalk": "talkmesh.models.meshtalk:MeshTalkModel:MeshTalkModelConfig",
 }
 
 
