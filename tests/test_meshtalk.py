@@ -414,3 +414,93 @@ def test_prior_learns_with_teacher_forcing():
         loss.loss.backward()
         opt.step()
     assert loss.perplexity.item() < 0.5 * first
+
+
+# ---------------------------------------------------------------------------------------------
+# the release: expression space + prior behind the common model surface
+
+
+def tiny_release(prior: bool = True):
+    from talkmesh.models.meshtalk import MeshTalkModel, MeshTalkModelConfig
+
+    torch.manual_seed(0)
+    cfg = MeshTalkModelConfig(
+        tiny_config(),
+        PriorConfig(num_heads=H, num_classes=C, width=16, audio=TINY_AUDIO, fps=FPS)
+        if prior
+        else None,
+    )
+    net = MeshTalkModel(cfg, regions())
+    torch.nn.init.normal_(net.model.decoder.output.weight, std=0.1)
+    return net.eval()
+
+
+def test_release_round_trip_and_seeded_sampling(tmp_path):
+    from talkmesh.models.release import load_model, save_model
+
+    net = tiny_release()
+    assert net.family == "meshtalk" and net.styles == () and net.num_vertices == V
+    save_model(net, tmp_path / "mt.safetensors")
+    loaded = load_model(tmp_path / "mt.safetensors")
+    assert type(loaded) is type(net) and loaded.cfg == net.cfg
+    assert torch.equal(loaded.model.eyelid_mask, net.model.eyelid_mask)
+    _, templates, audio = tiny_data(B=1, T=20)
+    a = net.generate(audio, templates, seed=3)
+    assert a.shape == (1, 20, V, 3)
+    assert torch.equal(a, loaded.generate(audio, templates, seed=3))  # same weights, same draws
+    assert torch.equal(a, net.generate(audio, templates, seed=3))
+    assert not torch.equal(a, net.generate(audio, templates, seed=4))  # sampling: seeds differ
+    greedy = net.generate(audio, templates, seed=3, argmax=True)
+    assert torch.equal(greedy, net.generate(audio, templates, seed=4, argmax=True))
+    # the reference sampler that recomputes the whole history draws the same codes
+    assert torch.equal(
+        net.sample_codes(audio, seed=5), net.sample_codes(audio, seed=5, cached=False)
+    )
+
+
+def test_release_errors():
+    _, templates, audio = tiny_data(B=1, T=10)
+    with pytest.raises(TalkmeshError, match="no prior"):
+        tiny_release(prior=False).generate(audio, templates)
+    with pytest.raises(TalkmeshError, match="no speaker styles"):
+        tiny_release().generate(audio, templates, style_weights=torch.ones(1, 2))
+    with pytest.raises(TalkmeshError, match=f"V={V}"):
+        tiny_release().generate(audio, templates[:, :-1])
+    from talkmesh.models.meshtalk import MeshTalkModelConfig
+
+    with pytest.raises(TalkmeshError, match="must match"):
+        MeshTalkModelConfig(tiny_config(), PriorConfig(num_heads=H + 1, num_classes=C))
+
+
+def test_logit_norm_bounds_the_softmax():
+    torch.manual_seed(0)
+    model = MeshTalk(tiny_config(logit_norm=True), *regions())
+    with torch.no_grad():
+        model.fusion.layers[-1].weight.mul_(1e4)  # raw logits would saturate the softmax
+    vertices, templates, audio = tiny_data()
+    with torch.no_grad():
+        aud, expr = model.features(vertices, templates, audio, None)
+    q = model.quantize(aud, expr, sample=False)
+    assert torch.allclose(q.logits.mean(-1), torch.zeros(()), atol=1e-4)
+    # largest possible standardised logit gap over C classes keeps p_max well below 1
+    assert float(q.logits.softmax(-1).amax(-1).max()) < 0.99
+    raw = MeshTalk(tiny_config(), *regions())
+    raw.load_state_dict(model.state_dict())
+    assert float(raw.quantize(aud, expr, sample=False).logits.softmax(-1).amax(-1).mean()) > 0.95
+
+
+def test_expression_only_inputs_ignore_the_audio():
+    torch.manual_seed(0)
+    model = MeshTalk(tiny_config(inputs="expression"), *regions()).eval()
+    vertices, templates, audio = tiny_data()
+    a = model.encode(vertices, templates, audio).logits
+    b = model.encode(vertices, templates, torch.randn_like(audio)).logits
+    assert torch.equal(a, b)
+    both = MeshTalk(tiny_config(), *regions()).eval()
+    both.load_state_dict(model.state_dict())
+    assert not torch.equal(
+        both.encode(vertices, templates, audio).logits,
+        both.encode(vertices, templates, torch.randn_like(audio)).logits,
+    )
+    with pytest.raises(TalkmeshError, match="inputs"):
+        tiny_config(inputs="audio")

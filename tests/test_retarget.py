@@ -9,8 +9,8 @@ import torch
 
 from talkmesh.assets import load_head
 from talkmesh.cli import main
-from talkmesh.models.meshtalk import MelConfig, MeshTalkConfig
-from talkmesh.models.meshtalk_tasks import MeshTalkSystem, save_system
+from talkmesh.models.meshtalk import MelConfig, MeshTalkConfig, MeshTalkModel, MeshTalkModelConfig
+from talkmesh.models.release import save_model
 
 SR = 16_000
 
@@ -24,10 +24,10 @@ def files(tmp_path_factory):
     cfg = MeshTalkConfig(num_vertices=V, num_heads=4, num_classes=8,
                          audio=MelConfig(width=16, out_dim=16), expression_widths=(32, 16, 16),
                          fusion_width=32, decoder_widths=(32, 16, 16))  # fmt: skip
-    system = MeshTalkSystem(cfg, None).eval()
+    system = MeshTalkModel(MeshTalkModelConfig(cfg)).eval()
     torch.nn.init.normal_(system.model.decoder.output.weight, std=0.01)  # not the bare template
     torch.nn.init.normal_(system.model.audio_encoder.output.weight, std=3.0)  # audio matters
-    save_system(system, tmp / "mt.safetensors")
+    save_model(system, tmp / "mt.safetensors")
     rng = np.random.default_rng(0)
     T = 30
     anim = head.template[None] + 0.002 * rng.standard_normal((T, V, 3)).astype(np.float32)

@@ -360,7 +360,7 @@ class CodeTalkerStreamer(Streamer):
             self.mel_cache = self.mel_cache[:, first - self.mel_first :]
             self.mel_first = first
         x = self.encoder.convolve(self.mel_cache[None, :, : mel.receptive_field])[:, :, -1]
-        feats = self.encoder.output(x)
+        feats = self.encoder.norm(self.encoder.output(x))
         if self.net.speech.max_shift:
             feats = feats + self.net.speech.shift_embedding.weight[self.shift]
         return self.net.audio_map(feats)[:, None]  # (1, 1, d)

@@ -73,6 +73,10 @@ class MelConfig:
     dilations: tuple[int, ...] = (1, 2, 4, 8)  # four layers (paper Sec. 3.1)
     lookahead_ms: float = 100.0
     out_dim: int = 128
+    # LayerNorm on the output (not in the paper; on in MeshTalk's configs): without it the audio
+    # activations grew to ~700x the expression features in training, the fusion logits saturated
+    # the softmax and the Gumbel gradients to the expression path vanished (docs/meshtalk.md)
+    layer_norm: bool = False
 
     def __post_init__(self) -> None:
         if self.sample_rate <= 0 or self.hop_length <= 0 or self.n_mels <= 0:
@@ -125,7 +129,7 @@ class MeshTalkConfig:
     fps: float = 30.0
     num_heads: int = 16  # H
     num_classes: int = 128  # C
-    audio: MelConfig = MelConfig()
+    audio: MelConfig = MelConfig(layer_norm=True)
     expression_widths: tuple[int, ...] = (
         256,
         128,
@@ -139,7 +143,14 @@ class MeshTalkConfig:
     )  # U-Net encoder widths; the last is the LSTMs'
     decoder_lstm_layers: int = 2
     gumbel_tau: float = 1.0
+    # standardise each head's C logits (zero mean, unit variance; not in the paper): the largest
+    # class probability is then at most ~0.9 for C=32, so the straight-through Gumbel gradients
+    # cannot vanish through a saturated softmax (what stalled the first small training)
+    logit_norm: bool = False
     loss: LossWeights = LossWeights()
+    # encoder inputs (paper Table 1): "both" (expression and audio) or "expression" (the audio
+    # features are zeroed before the fusion; the expression-only latent space of row one)
+    inputs: str = "both"
 
     def __post_init__(self) -> None:
         if self.num_vertices < 1:
@@ -154,6 +165,8 @@ class MeshTalkConfig:
             _fail("meshtalk config: layer widths must be positive")
         if self.gumbel_tau <= 0:
             _fail("meshtalk config: gumbel_tau must be positive")
+        if self.inputs not in ("both", "expression"):
+            _fail(f"meshtalk config: inputs must be both or expression, got {self.inputs!r}")
 
 
 @dataclass(frozen=True)
@@ -169,7 +182,7 @@ class PriorConfig:
     width: int = 64  # D per head
     dilations: tuple[int, ...] = (1, 2, 4, 8)
     kernel_size: int = 2
-    audio: MelConfig = MelConfig()
+    audio: MelConfig = MelConfig(layer_norm=True)
     fps: float = 30.0
 
     def __post_init__(self) -> None:
@@ -200,7 +213,7 @@ def meshtalk_config(preset: str, num_vertices: int, fps: float = 30.0) -> MeshTa
             fps,
             num_heads=8,
             num_classes=32,
-            audio=MelConfig(width=64, out_dim=64),
+            audio=MelConfig(width=64, out_dim=64, layer_norm=True),
             expression_widths=(128, 64, 64),
             fusion_width=128,
             decoder_widths=(128, 64, 64),
@@ -216,7 +229,11 @@ def prior_config(preset: str, fps: float = 30.0) -> PriorConfig:
         return PriorConfig(num_heads=16, num_classes=128, width=64, fps=fps)
     if preset == "small":
         return PriorConfig(
-            num_heads=8, num_classes=32, width=32, audio=MelConfig(width=64, out_dim=64), fps=fps
+            num_heads=8,
+            num_classes=32,
+            width=32,
+            audio=MelConfig(width=64, out_dim=64, layer_norm=True),
+            fps=fps,
         )
     raise TalkmeshError(f"unknown meshtalk preset '{preset}': choose one of {', '.join(PRESETS)}")
 
@@ -260,6 +277,7 @@ class MelAudioEncoder(nn.Module):
             nn.Conv1d(cfg.width, cfg.width, cfg.kernel_size, dilation=d) for d in cfg.dilations
         )
         self.output = nn.Linear(cfg.width, cfg.out_dim)
+        self.norm = nn.LayerNorm(cfg.out_dim) if cfg.layer_norm else nn.Identity()
 
     def log_mel(self, audio: Tensor, center: bool = True) -> Tensor:
         """(B, S) -> (B, n_mels, M) log power, M = S // hop + 1 (frame m centred on sample m*hop);
@@ -317,7 +335,7 @@ class MelAudioEncoder(nn.Module):
         mel = self.log_mel(audio)[:, :, : last_mel + 1]
         mel = F.pad(mel, (cfg.context_frames, 0), value=math.log(LOG_FLOOR))  # silence before t=0
         x = self.convolve(mel)[:, :, centres]  # (B, width, T)
-        return self.output(x.transpose(1, 2))
+        return self.norm(self.output(x.transpose(1, 2)))
 
     def convolve(self, mel: Tensor) -> Tensor:
         """(B, n_mels, M + receptive_field - 1) log-mel -> (B, width, M): output m reads the
@@ -618,7 +636,11 @@ class MeshTalk(nn.Module):
         sample: bool,
         generator: torch.Generator | None = None,
     ) -> Quantized:
+        if self.config.inputs == "expression":
+            audio_features = torch.zeros_like(audio_features)
         logits = self.fusion(torch.cat([audio_features, expression_features], dim=-1))
+        if self.config.logit_norm:
+            logits = F.layer_norm(logits, logits.shape[-1:])
         return gumbel_one_hot(logits, self.config.gumbel_tau, sample, generator)
 
     def encode(
@@ -678,6 +700,10 @@ class MeshTalk(nn.Module):
         aud, expr = self.features(vertices, templates, audio, audio_lengths)
         sample = self.training
         own = self.quantize(aud, expr, sample, generator)
+        reconstruction = self.decode(templates, own.one_hot)
+        w = self.config.loss
+        if w.mouth == 0 and w.upper == 0:  # plain l2 (Table 1 rows one and two): no cross decodes
+            return MeshTalkForward(reconstruction, reconstruction, reconstruction, own)
         if vertices.shape[0] > 1:
             other_aud, other_expr = aud.roll(1, dims=0), expr.roll(1, dims=0)
         else:
@@ -686,7 +712,7 @@ class MeshTalk(nn.Module):
         audio_side = self.quantize(aud, other_expr, sample, generator)
         expr_side = self.quantize(other_aud, expr, sample, generator)
         return MeshTalkForward(
-            self.decode(templates, own.one_hot),
+            reconstruction,
             self.decode(templates, audio_side.one_hot),
             self.decode(templates, expr_side.one_hot),
             own,
@@ -1010,3 +1036,125 @@ class AutoregressivePrior(nn.Module):
                 logits = self(codes[:, : t + 1], audio_features[:, : t + 1])[:, t, h]
                 codes[:, t, h] = self._draw(logits, temperature, top_k, argmax, generator)
         return codes
+
+
+# ---------------------------------------------------------------------------------------------
+# 9. The released model: expression space + prior behind talkmesh's common model surface
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    """How :meth:`MeshTalkModel.generate` draws codes from the prior (defaults of a release)."""
+
+    temperature: float = 1.0
+    top_k: int | None = None
+    argmax: bool = False
+
+    def __post_init__(self) -> None:
+        if self.temperature <= 0:
+            _fail("meshtalk sampling: temperature must be positive (argmax: true for greedy)")
+        if self.top_k is not None and self.top_k < 1:
+            _fail("meshtalk sampling: top_k must be at least 1")
+
+
+@dataclass(frozen=True)
+class MeshTalkModelConfig:
+    """A MeshTalk release: the expression space, the prior (None while only the expression space
+    is trained: re-targeting and dubbing need no prior) and the sampling defaults."""
+
+    model: MeshTalkConfig
+    prior: PriorConfig | None = None
+    sampling: SamplingConfig = SamplingConfig()
+
+    def __post_init__(self) -> None:
+        p, m = self.prior, self.model
+        if p is not None and (p.num_heads, p.num_classes) != (m.num_heads, m.num_classes):
+            _fail("meshtalk: the prior's num_heads/num_classes must match the expression space")
+
+
+class MeshTalkModel(nn.Module):
+    """MeshTalk as ``talkmesh animate`` uses it: audio -> prior codes -> decoded template.
+
+    Same surface as the other families (``talkmesh.models.release``); no speaker styles
+    (``styles == ()``): what is not in the audio is sampled, so ``seed`` changes blinks and brows.
+    """
+
+    family = "meshtalk"
+
+    def __init__(self, cfg: MeshTalkModelConfig, maps=(None, None, None)) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.model = MeshTalk(cfg.model, *maps)
+        self.prior = AutoregressivePrior(cfg.prior) if cfg.prior is not None else None
+
+    @property
+    def num_vertices(self) -> int:
+        return self.cfg.model.num_vertices
+
+    @property
+    def motion_fps(self) -> float:
+        return self.cfg.model.fps
+
+    @property
+    def styles(self) -> tuple[str, ...]:
+        return ()
+
+    @torch.inference_mode()
+    def sample_codes(
+        self,
+        audio: Tensor,
+        *,
+        audio_lengths: Tensor | None = None,
+        num_frames: int | None = None,
+        seed: int = 0,
+        temperature: float | None = None,
+        top_k: int | None = None,
+        argmax: bool | None = None,
+        cached: bool = True,
+        progress: bool = False,
+    ) -> Tensor:
+        """(B, S) audio at 16 kHz -> codes (B, T, H) from the prior; ``cached=False`` uses the
+        reference sampler that recomputes the whole history (same draws, for checks and timing)."""
+        if self.prior is None:
+            _fail(
+                "this MeshTalk release has no prior (expression space only): train the "
+                "meshtalk-prior stage, or use it for retarget/dub"
+            )
+        if audio.ndim != 2:
+            _fail(f"meshtalk: audio must be (B, S), got {tuple(audio.shape)}")
+        s = self.cfg.sampling
+        if num_frames is None:
+            num_frames = max(1, round(audio.shape[1] / SAMPLE_RATE * self.motion_fps))
+        features = self.prior.audio_features(audio, audio_lengths, num_frames)
+        generator = torch.Generator(device=audio.device).manual_seed(int(seed))
+        kwargs = dict(
+            temperature=s.temperature if temperature is None else temperature,
+            top_k=s.top_k if top_k is None else top_k,
+            argmax=s.argmax if argmax is None else argmax,
+            generator=generator,
+        )
+        if cached:
+            return self.prior.sample(features, progress=progress, **kwargs)
+        return self.prior.sample_uncached(features, **kwargs)
+
+    @torch.inference_mode()
+    def generate(
+        self,
+        audio: Tensor,
+        template: Tensor,
+        *,
+        style_weights: Tensor | None = None,
+        audio_lengths: Tensor | None = None,
+        num_frames: int | None = None,
+        seed: int = 0,
+        **sampling,
+    ) -> Tensor:
+        """audio (B, S) at 16 kHz, template (B, V, 3) -> vertices (B, T, V, 3). ``style_weights``
+        must be None (MeshTalk has no speaker styles); ``sampling``: see :meth:`sample_codes`."""
+        if style_weights is not None:
+            _fail("MeshTalk has no speaker styles: drop --style")
+        _check_mesh("template", template, self.num_vertices, 3)
+        codes = self.sample_codes(
+            audio, audio_lengths=audio_lengths, num_frames=num_frames, seed=seed, **sampling
+        )
+        return self.model.decode(template.to(audio.dtype), codes)

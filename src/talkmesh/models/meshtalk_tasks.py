@@ -7,27 +7,23 @@ by ``init``. The model section is ``{preset: small|released|paper, ...MeshTalkCo
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
 
 from talkmesh.config import from_dict, to_dict
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.meshtalk import (
-    AutoregressivePrior,
-    MeshTalk,
     MeshTalkConfig,
+    MeshTalkModel,
+    MeshTalkModelConfig,
     PriorConfig,
     meshtalk_config,
     prior_config,
 )
+from talkmesh.models.release import load_model, save_model
 from talkmesh.train import DatasetInfo, StepOutput, Task, TorchBatch
-
-FORMAT = "talkmesh-meshtalk"
-FORMAT_VERSION = 1
 
 
 def _config(cls, preset_fn, model: dict[str, Any], *args):
@@ -59,63 +55,23 @@ def region_maps(
     )
 
 
-class MeshTalkSystem(nn.Module):
-    """The expression space plus (for the prior stage) the prior: one module to save and load."""
-
-    def __init__(self, config: MeshTalkConfig, prior: PriorConfig | None, maps=(None, None, None)):
-        super().__init__()
-        self.model = MeshTalk(config, *maps)
-        self.prior = AutoregressivePrior(prior) if prior is not None else None
-
-
-def save_system(system: MeshTalkSystem, path: Path) -> None:
-    from safetensors.torch import save_file
-
-    meta = {
-        "format": FORMAT,
-        "format_version": str(FORMAT_VERSION),
-        "config": json.dumps(to_dict(system.model.config)),
-        "prior": json.dumps(to_dict(system.prior.config) if system.prior is not None else None),
-    }
-    state = {k: v.detach().contiguous().cpu() for k, v in system.state_dict().items()}
-    save_file(state, str(path), metadata=meta)
+def load_system(path: str | Path) -> MeshTalkModel:
+    """A released MeshTalk (``talkmesh.models.release`` format, family meshtalk)."""
+    system = load_model(path)
+    if not isinstance(system, MeshTalkModel):
+        raise TalkmeshError(f"{path}: a {system.family} model, not MeshTalk")
+    return system
 
 
-def load_system(path: str | Path) -> MeshTalkSystem:
-    """A released MeshTalk (``strict=True``; no pickle)."""
-    from safetensors import safe_open
-    from safetensors.torch import load_file
-
-    path = Path(path)
-    if not path.is_file():
-        raise TalkmeshError(f"model file not found: {path}")
-    try:
-        with safe_open(str(path), "pt") as f:
-            meta = f.metadata() or {}
-    except Exception as e:  # safetensors raises its own types for corrupt headers
-        raise TalkmeshError(f"{path}: not a safetensors model file ({e})") from None
-    if meta.get("format") != FORMAT:
-        raise TalkmeshError(
-            f"{path}: not a talkmesh MeshTalk release (format {meta.get('format')!r})"
-        )
-    config = from_dict(MeshTalkConfig, json.loads(meta["config"]))
-    prior = json.loads(meta["prior"])
-    system = MeshTalkSystem(config, from_dict(PriorConfig, prior) if prior else None)
-    system.load_state_dict(load_file(str(path)), strict=True)
-    return system.eval()
-
-
-def _build_expression(
-    model: dict[str, Any], info: DatasetInfo, init: Path | None
-) -> MeshTalkSystem:
+def _build_expression(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> MeshTalkModel:
     config = _config(MeshTalkConfig, meshtalk_config, model, info.num_vertices, info.motion_fps)
-    system = MeshTalkSystem(config, None, region_maps(info))
+    system = MeshTalkModel(MeshTalkModelConfig(config), region_maps(info))
     if init is not None:
         system.load_state_dict(load_system(init).state_dict(), strict=False)
     return system
 
 
-def _step_expression(system: MeshTalkSystem, batch: TorchBatch) -> StepOutput:
+def _step_expression(system: MeshTalkModel, batch: TorchBatch) -> StepOutput:
     out = system.model(batch.vertices, batch.templates, batch.audio, batch.audio_lengths)
     loss = system.model.loss(out, batch.vertices, batch.motion_mask)
     return StepOutput(
@@ -125,11 +81,13 @@ def _step_expression(system: MeshTalkSystem, batch: TorchBatch) -> StepOutput:
             "mouth": float(loss.mouth.detach()),
             "upper": float(loss.upper.detach()),
             "eyelid": float(loss.eyelid.detach()),
+            # mean largest class probability: near 1 = saturated softmax, no Gumbel gradient
+            "confidence": float(out.quantized.logits.detach().softmax(-1).amax(-1).mean()),
         },
     )
 
 
-def _build_prior(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> MeshTalkSystem:
+def _build_prior(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> MeshTalkModel:
     if init is None:
         raise TalkmeshError(
             "task meshtalk-prior needs init: the trained expression space (.safetensors)"
@@ -142,13 +100,13 @@ def _build_prior(model: dict[str, Any], info: DatasetInfo, init: Path | None) ->
         raise TalkmeshError(
             "model.num_heads/num_classes of the prior must match the expression space"
         )
-    system = MeshTalkSystem(cfg, prior)
+    system = MeshTalkModel(MeshTalkModelConfig(cfg, prior))
     system.model.load_state_dict(trained.model.state_dict(), strict=True)
     system.model.requires_grad_(False)
     return system
 
 
-def _step_prior(system: MeshTalkSystem, batch: TorchBatch) -> StepOutput:
+def _step_prior(system: MeshTalkModel, batch: TorchBatch) -> StepOutput:
     system.model.eval()  # frozen: argmax codes, no Gumbel noise
     with torch.no_grad():
         codes = system.model.encode(
@@ -164,7 +122,7 @@ def _step_prior(system: MeshTalkSystem, batch: TorchBatch) -> StepOutput:
 STATISTICS_SAMPLES = 64  # training sequences used for the normalisation statistics
 
 
-def _prepare_expression(system: MeshTalkSystem, dataset) -> None:
+def _prepare_expression(system: MeshTalkModel, dataset) -> None:
     """Template and offset scales (buffers) and the mel normalisation from training data."""
     step = max(1, len(dataset) // STATISTICS_SAMPLES)
     samples = [dataset[i] for i in range(0, len(dataset), step)][:STATISTICS_SAMPLES]
@@ -175,7 +133,7 @@ def _prepare_expression(system: MeshTalkSystem, dataset) -> None:
     system.model.audio_encoder.set_statistics(audio)
 
 
-def _prepare_prior(system: MeshTalkSystem, dataset) -> None:
+def _prepare_prior(system: MeshTalkModel, dataset) -> None:
     samples = [
         dataset[i] for i in range(0, len(dataset), max(1, len(dataset) // STATISTICS_SAMPLES))
     ]
@@ -190,7 +148,7 @@ EXPRESSION = Task(
     build=_build_expression,
     step=_step_expression,
     parameters=lambda system: system.model.parameters(),
-    save=save_system,
+    save=save_model,
     prepare=_prepare_expression,
 )
 
@@ -199,6 +157,6 @@ PRIOR = Task(
     build=_build_prior,
     step=_step_prior,
     parameters=lambda system: system.prior.parameters(),
-    save=save_system,
+    save=save_model,
     prepare=_prepare_prior,
 )
