@@ -93,7 +93,7 @@ def table1(args) -> None:
             dist = np.linalg.norm(recon - s.vertices, axis=-1) * MM
             err_sum += float(dist.sum())
             err_n += dist.size
-            feats = net.prior.audio_features(torch.from_numpy(s.audio)[None], None, codes.shape[1])
+            feats = net.audio_features(torch.from_numpy(s.audio)[None], None, codes.shape[1])
             loss = net.prior.loss(codes, feats).loss
             nll_sum += float(loss) * codes.numel()
             nll_n += codes.numel()

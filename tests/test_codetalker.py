@@ -102,8 +102,9 @@ def test_vqvae_reconstructs_after_a_few_steps():
     assert out.motion.shape == motion.shape
 
 
-def test_padded_batch_equals_single_samples():
-    model = tiny()
+@pytest.mark.parametrize("speech", ["mel", "wav2vec2"])
+def test_padded_batch_equals_single_samples(speech):
+    model = tiny(speech=speech)
     (a_audio, a_v), (b_audio, b_v) = clip(7, 1), clip(11, 2)
     audio = torch.zeros(2, b_audio.shape[1])
     audio[0, : a_audio.shape[1]], audio[1] = a_audio[0], b_audio[0]
@@ -280,8 +281,8 @@ def test_long_audio_goes_through_wav2vec2_in_windows(monkeypatch):
     batch = torch.cat([audio, torch.cat([audio[:, : 2 * SR], torch.zeros(1, SR)], 1)])
     with torch.no_grad():
         out = enc(batch, lengths, 90)
-        alone = enc(audio[:, : 2 * SR], None, 90)
-    torch.testing.assert_close(out[1:], alone)
+        alone = enc(audio[:, : 2 * SR], None, 60)
+    torch.testing.assert_close(out[1:, :60], alone)  # its 2 s are the batch's first 60 frames
 
 
 def test_kv_cache_keeps_the_last_window_in_place():

@@ -504,3 +504,30 @@ def test_expression_only_inputs_ignore_the_audio():
     )
     with pytest.raises(TalkmeshError, match="inputs"):
         tiny_config(inputs="audio")
+
+
+def test_talkmesh_speech_encoder_and_a_prior_on_the_expression_spaces_audio(tmp_path):
+    from talkmesh.models.meshtalk import MeshTalkModel, MeshTalkModelConfig
+    from talkmesh.models.release import load_model, save_model
+    from talkmesh.models.speech import SpeechEncoderConfig
+
+    torch.manual_seed(0)
+    speech = SpeechEncoderConfig(kind="mel", dim=16, frame_rate=FPS)
+    prior = PriorConfig(num_heads=H, num_classes=C, width=16, audio=TINY_AUDIO, fps=FPS,
+                        audio_source="expression")  # fmt: skip
+    net = MeshTalkModel(MeshTalkModelConfig(tiny_config(speech=speech), prior), regions()).eval()
+    assert net.prior.audio_encoder is None  # no second audio encoder
+    _, templates, audio = tiny_data(B=1, T=15)
+    feats = net.audio_features(audio, None, 15)
+    torch.testing.assert_close(feats, net.model.audio_encoder(audio, None, 15))
+    assert feats.shape == (1, 15, TINY_AUDIO.out_dim)
+    save_model(net, tmp_path / "m.safetensors")
+    loaded = load_model(tmp_path / "m.safetensors")
+    assert torch.equal(
+        loaded.generate(audio, templates, seed=1), net.generate(audio, templates, seed=1)
+    )
+    with pytest.raises(TalkmeshError, match="audio_source"):
+        net.prior.audio_features(audio, None, 15)
+    with pytest.raises(TalkmeshError, match="out_dim"):
+        MeshTalkModelConfig(tiny_config(), PriorConfig(num_heads=H, num_classes=C,
+                                                       audio_source="expression"))  # fmt: skip

@@ -20,7 +20,7 @@ from talkmesh.train import crop_window, load_recipe
 pytest.importorskip("lightning")
 pytestmark = pytest.mark.skipif(not shutil.which("mbrola"), reason="mbrola not installed")
 ROOT = Path(__file__).resolve().parents[1]
-RECIPE = ROOT / "configs" / "meshtalk_synth.yaml"
+RECIPE = ROOT / "tests" / "recipes" / "meshtalk_expression.yaml"
 
 
 @pytest.fixture(scope="module")

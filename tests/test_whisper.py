@@ -302,8 +302,13 @@ def test_features_shape_and_padded_batch_equals_single_samples(converted) -> Non
         assert batch.shape == (3, 37, 16)
         assert [f.shape[0] for f in fx.features(audio, torch.tensor(lengths))] == [125, 35, 50]
         for b, n in enumerate(lengths):
-            single = fx(audio[b : b + 1, :n], None, 37)
-            torch.testing.assert_close(batch[b : b + 1], single, atol=1e-5, rtol=1e-5)
+            # a shorter sample covers its share of the batch's frames, then repeats its last
+            frames = round(37 * n / 40000)
+            single = fx(audio[b : b + 1, :n], None, frames)
+            torch.testing.assert_close(batch[b : b + 1, :frames], single, atol=1e-5, rtol=1e-5)
+            assert torch.equal(
+                batch[b, frames:], batch[b, frames - 1 : frames].expand(37 - frames, -1)
+            )
     assert torch.isfinite(batch).all()
 
 

@@ -307,6 +307,21 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    from talkmesh.benchmark import load_benchmark, plan_lines, run_benchmark
+
+    only = [m for m in args.only.split(",") if m] if args.only else None
+    flags = dict(only=only, skip_video=args.skip_video, skip_ablation=args.skip_ablation)
+    if args.dry_run:
+        for line in plan_lines(load_benchmark(args.config), **flags):
+            print(line)
+        return 0
+    result = run_benchmark(args.config, **flags, quiet=args.quiet)
+    if not args.quiet:
+        print(f"wrote {result.markdown} and {result.json}")
+    return 0
+
+
 def cmd_retarget(args: argparse.Namespace) -> int:
     from talkmesh import retarget
 
@@ -496,6 +511,19 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--num-nodes", type=int, help="number of machines")
     tr.add_argument("-q", "--quiet", action="store_true")
     tr.set_defaults(func=cmd_train)
+
+    bm = sub.add_parser(
+        "benchmark", help="train, generate and evaluate every method x seed; write the comparison"
+    )
+    bm.add_argument("config", help="benchmark YAML (see configs/benchmark_synth.yaml)")
+    bm.add_argument("--only", help="comma-separated methods to run and report (default: all)")
+    bm.add_argument("--skip-video", action="store_true", help="no side-by-side video")
+    bm.add_argument("--skip-ablation", action="store_true", help="no codebook ablation grid")
+    bm.add_argument(
+        "--dry-run", action="store_true", help="print every step and its directory, run nothing"
+    )
+    bm.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    bm.set_defaults(func=cmd_benchmark)
 
     for name, text in (
         ("retarget", "MeshTalk re-targeting: an animation and its audio onto another neutral mesh"),

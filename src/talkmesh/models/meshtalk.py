@@ -29,7 +29,7 @@ Axis letters: B batch, S audio samples, T motion frames, M mel frames, V vertice
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -37,6 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from talkmesh.errors import TalkmeshError
+from talkmesh.models.speech import SpeechEncoderConfig
 
 SAMPLE_RATE = 16_000  # Hz; the paper's audio rate and talkmesh's (talkmesh.audio.SAMPLE_RATE)
 LEAKY_SLOPE = 0.2  # LeakyReLU slope used throughout, as in the official code
@@ -151,6 +152,9 @@ class MeshTalkConfig:
     # encoder inputs (paper Table 1): "both" (expression and audio) or "expression" (the audio
     # features are zeroed before the fusion; the expression-only latent space of row one)
     inputs: str = "both"
+    # audio encoder: None = the paper's mel convolutions (``audio``); or any talkmesh speech
+    # encoder (talkmesh.models.speech, e.g. frozen Whisper) mapped to ``audio.out_dim`` + LayerNorm
+    speech: SpeechEncoderConfig | None = None
 
     def __post_init__(self) -> None:
         if self.num_vertices < 1:
@@ -184,6 +188,9 @@ class PriorConfig:
     kernel_size: int = 2
     audio: MelConfig = MelConfig(layer_norm=True)
     fps: float = 30.0
+    # "own": the prior's own mel encoder (``audio``, causal with its look-ahead, paper Eq. 8);
+    # "expression": the trained expression space's audio features (as the official code does)
+    audio_source: str = "own"
 
     def __post_init__(self) -> None:
         if self.num_heads < 1 or self.num_classes < 2 or self.width < 1:
@@ -192,6 +199,8 @@ class PriorConfig:
             _fail("meshtalk prior config: kernel_size must be >= 2 and dilations >= 1")
         if self.fps <= 0:
             _fail("meshtalk prior config: fps must be positive")
+        if self.audio_source not in ("own", "expression"):
+            _fail("meshtalk prior config: audio_source must be own or expression")
 
     @property
     def receptive_field(self) -> int:
@@ -347,6 +356,26 @@ class MelAudioEncoder(nn.Module):
             crop = (x.shape[-1] - y.shape[-1]) // 2  # centred residual stays inside the window
             x = (x[:, :, crop : crop + y.shape[-1]] + y) / 2
         return x
+
+
+class SpeechFeatures(nn.Module):
+    """A talkmesh speech encoder (mel, wav2vec2, Whisper; ``talkmesh.models.speech``) behind the
+    audio encoder's call, mapped to ``out_dim`` with a LayerNorm."""
+
+    def __init__(self, cfg: SpeechEncoderConfig, out_dim: int) -> None:
+        super().__init__()
+        from talkmesh.models.speech import build_speech_encoder
+
+        self.encoder = build_speech_encoder(cfg)
+        self.output = nn.Linear(self.encoder.dim, out_dim)
+        self.norm = nn.LayerNorm(out_dim)
+
+    def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
+        return self.norm(self.output(self.encoder(audio, audio_lengths, num_frames)))
+
+    def set_statistics(self, audio: Tensor) -> None:
+        if hasattr(self.encoder, "set_statistics"):
+            self.encoder.set_statistics(audio)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -577,7 +606,16 @@ class MeshTalk(nn.Module):
         super().__init__()
         self.config = cfg = config
         V, H, C = cfg.num_vertices, cfg.num_heads, cfg.num_classes
-        self.audio_encoder = MelAudioEncoder(cfg.audio, cfg.fps)
+        if cfg.speech is None:
+            self.audio_encoder = MelAudioEncoder(cfg.audio, cfg.fps)
+        else:
+            from talkmesh.models.speech import release_config
+
+            self.audio_encoder = SpeechFeatures(cfg.speech, cfg.audio.out_dim)
+            # a pretrained encoder loaded from a path: the release keeps its config, not the path
+            speech = release_config(cfg.speech, self.audio_encoder.encoder)
+            if speech is not cfg.speech:
+                self.config = cfg = replace(cfg, speech=speech)
         self.expression_encoder = ExpressionEncoder(V * 3, cfg.expression_widths)
         self.fusion = FusionQuantizer(
             cfg.audio.out_dim + cfg.expression_widths[-1], cfg.fusion_width, H, C
@@ -851,7 +889,9 @@ class AutoregressivePrior(nn.Module):
         super().__init__()
         self.config = cfg = config
         H, C, D = cfg.num_heads, cfg.num_classes, cfg.width
-        self.audio_encoder = MelAudioEncoder(cfg.audio, cfg.fps)
+        self.audio_encoder = (
+            MelAudioEncoder(cfg.audio, cfg.fps) if cfg.audio_source == "own" else None
+        )
         self.embedding = nn.Embedding(H * C, D)  # a separate table per head
         self.layers = nn.ModuleList(
             MaskedTemporalLayer(H, D, D, cfg.audio.out_dim, cfg.kernel_size - 1, d, i > 0)
@@ -864,7 +904,10 @@ class AutoregressivePrior(nn.Module):
     def audio_features(
         self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int
     ) -> Tensor:
-        """(B, S) -> (B, T, Da) conditioning features."""
+        """(B, S) -> (B, T, Da) conditioning features (own encoder; with ``audio_source:
+        expression`` the caller passes the expression space's: MeshTalkModel.audio_features)."""
+        if self.audio_encoder is None:
+            _fail("meshtalk prior: audio_source is expression: use MeshTalkModel.audio_features")
         return self.audio_encoder(audio, audio_lengths, num_frames)
 
     def _check(self, audio_features: Tensor, codes: Tensor | None = None) -> None:
@@ -1070,6 +1113,8 @@ class MeshTalkModelConfig:
         p, m = self.prior, self.model
         if p is not None and (p.num_heads, p.num_classes) != (m.num_heads, m.num_classes):
             _fail("meshtalk: the prior's num_heads/num_classes must match the expression space")
+        if p is not None and p.audio_source == "expression" and p.audio.out_dim != m.audio.out_dim:
+            _fail("meshtalk: a prior on the expression space's audio needs its audio.out_dim")
 
 
 class MeshTalkModel(nn.Module):
@@ -1083,9 +1128,19 @@ class MeshTalkModel(nn.Module):
 
     def __init__(self, cfg: MeshTalkModelConfig, maps=(None, None, None)) -> None:
         super().__init__()
-        self.cfg = cfg
         self.model = MeshTalk(cfg.model, *maps)
         self.prior = AutoregressivePrior(cfg.prior) if cfg.prior is not None else None
+        self.cfg = replace(cfg, model=self.model.config)  # a pretrained speech encoder's release
+
+    def audio_features(
+        self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int
+    ) -> Tensor:
+        """(B, S) -> (B, T, Da): the prior's conditioning (its own encoder, or the expression
+        space's audio encoder, frozen, when ``prior.audio_source`` is expression)."""
+        if self.prior is not None and self.prior.audio_encoder is not None:
+            return self.prior.audio_features(audio, audio_lengths, num_frames)
+        with torch.no_grad():
+            return self.model.audio_encoder(audio, audio_lengths, num_frames)
 
     @property
     def num_vertices(self) -> int:
@@ -1125,7 +1180,7 @@ class MeshTalkModel(nn.Module):
         s = self.cfg.sampling
         if num_frames is None:
             num_frames = max(1, round(audio.shape[1] / SAMPLE_RATE * self.motion_fps))
-        features = self.prior.audio_features(audio, audio_lengths, num_frames)
+        features = self.audio_features(audio, audio_lengths, num_frames)
         generator = torch.Generator(device=audio.device).manual_seed(int(seed))
         kwargs = dict(
             temperature=s.temperature if temperature is None else temperature,

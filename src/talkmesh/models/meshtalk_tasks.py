@@ -112,7 +112,7 @@ def _step_prior(system: MeshTalkModel, batch: TorchBatch) -> StepOutput:
         codes = system.model.encode(
             batch.vertices, batch.templates, batch.audio, batch.audio_lengths, sample=False
         ).codes
-    features = system.prior.audio_features(batch.audio, batch.audio_lengths, codes.shape[1])
+    features = system.audio_features(batch.audio, batch.audio_lengths, codes.shape[1])
     out = system.prior.loss(codes, features, batch.motion_mask)
     return StepOutput(
         out.loss, {"perplexity": float(out.perplexity), "accuracy": float(out.accuracy)}

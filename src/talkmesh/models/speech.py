@@ -63,6 +63,25 @@ def interpolate_frames(features: Tensor, num_frames: int) -> Tensor:
     ).transpose(1, 2)
 
 
+def fit_sample_frames(
+    features: Tensor, valid_samples: int, total_samples: int, num_frames: int
+) -> Tensor:
+    """One padded-batch sample's features (N, D) over its own audio -> (num_frames, D).
+
+    The batch's ``num_frames`` motion frames span ``total_samples`` audio samples; this sample
+    has ``valid_samples`` of them, so its features are interpolated over its share of the frames
+    and the rest repeat its last frame (padding, masked by the caller). Stretching them over all
+    ``num_frames`` instead would misalign every sample shorter than the batch's longest.
+    """
+    n = num_frames
+    if valid_samples < total_samples:
+        n = min(num_frames, max(1, int(round(num_frames * valid_samples / total_samples))))
+    out = interpolate_frames(features[None], n)[0]
+    if n < num_frames:
+        out = torch.cat([out, out[-1:].expand(num_frames - n, -1)])
+    return out
+
+
 class Wav2Vec2Encoder(nn.Module):
     def __init__(self, cfg: SpeechEncoderConfig) -> None:
         super().__init__()
@@ -116,10 +135,17 @@ class Wav2Vec2Encoder(nn.Module):
                 if audio_lengths is not None
                 else [audio.shape[1]] * len(audio)
             )
-            return torch.cat([
-                interpolate_frames(self.features(audio[b : b + 1, : int(n)]), num_frames)
-                for b, n in enumerate(lengths)
-            ])  # fmt: skip
+            return torch.stack(
+                [
+                    fit_sample_frames(
+                        self.features(audio[b : b + 1, : int(n)])[0],
+                        int(n),
+                        audio.shape[1],
+                        num_frames,
+                    )
+                    for b, n in enumerate(lengths)
+                ]
+            )
         mask = None
         if audio_lengths is not None:
             mask = (
@@ -133,8 +159,10 @@ class Wav2Vec2Encoder(nn.Module):
         out = []
         for b in range(audio.shape[0]):
             n = max(1, int(round(float(audio_lengths[b]) * rates)))
-            out.append(interpolate_frames(hidden[b : b + 1, :n], num_frames))
-        return torch.cat(out)
+            out.append(
+                fit_sample_frames(hidden[b, :n], int(audio_lengths[b]), audio.shape[1], num_frames)
+            )
+        return torch.stack(out)
 
 
 class MelEncoder(nn.Module):

@@ -655,9 +655,13 @@ class WhisperFeatures(nn.Module):
 
     def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
         """(B, S) 16 kHz audio -> (B, num_frames, dim) features, each sample over its own length."""
+        from talkmesh.models.speech import fit_sample_frames
+
+        features = self.features(audio, audio_lengths)  # checks the shapes
+        lengths = [audio.shape[1]] * len(audio) if audio_lengths is None else audio_lengths.tolist()
         out = [
-            F.interpolate(f.T[None], size=num_frames, mode="linear", align_corners=True)[0].T
-            for f in self.features(audio, audio_lengths)
+            fit_sample_frames(f, int(n), audio.shape[1], num_frames)
+            for f, n in zip(features, lengths)
         ]
         return torch.stack(out)
 
