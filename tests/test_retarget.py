@@ -9,7 +9,13 @@ import torch
 
 from talkmesh.assets import load_head
 from talkmesh.cli import main
-from talkmesh.models.meshtalk import MelConfig, MeshTalkConfig, MeshTalkModel, MeshTalkModelConfig
+from talkmesh.models.meshtalk import (
+    MelConfig,
+    MeshTalkConfig,
+    MeshTalkModel,
+    MeshTalkModelConfig,
+    PriorConfig,
+)
 from talkmesh.models.release import save_model
 
 SR = 16_000
@@ -28,6 +34,12 @@ def files(tmp_path_factory):
     torch.nn.init.normal_(system.model.decoder.output.weight, std=0.01)  # not the bare template
     torch.nn.init.normal_(system.model.audio_encoder.output.weight, std=3.0)  # audio matters
     save_model(system, tmp / "mt.safetensors")
+    prior = PriorConfig(
+        num_heads=4, num_classes=8, width=8, audio=cfg.audio, audio_source="expression"
+    )
+    animator = MeshTalkModel(MeshTalkModelConfig(cfg, prior)).eval()
+    animator.model.load_state_dict(system.model.state_dict())
+    save_model(animator, tmp / "mt_prior.safetensors")
     rng = np.random.default_rng(0)
     T = 30
     anim = head.template[None] + 0.002 * rng.standard_normal((T, V, 3)).astype(np.float32)
@@ -81,3 +93,20 @@ def test_retarget_and_dub_errors(files, capsys):
            "--audio", str(tmp / "new.wav"), "-o", str(tmp / "exists.npy")]  # fmt: skip
     assert main(dub) != 0 and (tmp / "exists.npy").read_bytes() == b"keep"
     assert "already exists" in capsys.readouterr().err
+
+
+def test_animate_with_a_meshtalk_release_samples_by_seed(files, capsys):
+    tmp, head, _ = files
+    base = ["animate", str(tmp / "src.wav"), "--model", str(tmp / "mt_prior.safetensors"),
+            "--no-blinks", "-q"]  # fmt: skip
+    assert main([*base, "--seed", "1", "-o", str(tmp / "a1.npy")]) == 0
+    assert main([*base, "--seed", "1", "-o", str(tmp / "a1b.npy")]) == 0
+    assert main([*base, "--seed", "2", "-o", str(tmp / "a2.npy")]) == 0
+    a1, a1b, a2 = (np.load(tmp / f) for f in ("a1.npy", "a1b.npy", "a2.npy"))
+    assert a1.shape == (30, head.num_vertices * 3)  # 1 s of audio at 30 fps, on the bundled face
+    assert np.array_equal(a1, a1b) and not np.array_equal(a1, a2)
+    # the expression space alone cannot animate audio; MeshTalk has no speaker styles
+    assert main([*base[:2], "--model", str(tmp / "mt.safetensors"), "-o", str(tmp / "x.npy")]) != 0
+    assert "no prior" in capsys.readouterr().err
+    assert main([*base, "--style", "A:1", "-o", str(tmp / "y.npy")]) != 0
+    assert "no speaker styles" in capsys.readouterr().err
