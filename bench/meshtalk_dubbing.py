@@ -1,6 +1,6 @@
 """MeshTalk dubbing (paper Sec. 4.4) on the synthetic unseen-speaker test split, in one run.
 
-    python bench/meshtalk_dubbing.py --model runs/meshtalk_synth/model.safetensors [--limit 20]
+    python bench/meshtalk_dubbing.py --model runs/meshtalk_synth/prior/model.safetensors [--limit 20]
 
 Pairs of sentences of the same test speaker (i, j = the next sentence): the original animation of
 sentence i is dubbed with the audio of sentence j (both cut to the shorter length). Reported:
@@ -11,7 +11,8 @@ sentence i is dubbed with the audio of sentence j (both cut to the shorter lengt
   NEW sentence j (what dubbing should change);
 
 for the dubbed animation, next to: the original animation itself (no dubbing), MeshTalk's own
-reconstruction of sentence j from its true motion and audio (the best the codes allow), the
+reconstruction of sentence j from its true motion and audio (the best the codes allow), MeshTalk's
+prior driven by audio j alone (when the release has one: direct animation of the new audio), the
 procedural animator driven by audio j, and the bundled CodeTalker driven by audio j.
 """
 
@@ -43,7 +44,8 @@ def main() -> None:
     from talkmesh.models.release import load_model
     from talkmesh.phonemes import recognize_phones
 
-    net = load_system(args.model).model
+    system = load_system(args.model)
+    net = system.model
     ct = load_model(args.codetalker) if args.codetalker else None
     ds = open_dataset("synth", args.data, "test")
     lips, upper = ds.regions.lve, ds.regions.fdd
@@ -80,6 +82,9 @@ def main() -> None:
         weights = phones_to_weights(recognize_phones(sb.audio[:S]), T, ds.spec.motion_fps,
                                     audio=sb.audio[:S], seed=b)  # fmt: skip
         add("procedural, audio j", head.vertices_from_weights(weights), orig, new)
+        if system.prior is not None:  # MeshTalk animating the new audio alone (prior sampling)
+            verts = system.generate(audio_b, template, num_frames=T, seed=b)[0].numpy()
+            add("MeshTalk animate (prior), audio j", verts, orig, new)
         if ct is not None:
             with torch.inference_mode():
                 n = len(ct.cfg.stage2.styles)
