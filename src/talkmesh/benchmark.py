@@ -3,7 +3,7 @@
 The flow, each step resumable (the run can be killed anywhere and started again)::
 
     load_benchmark(CONFIG)                 validate the config, every recipe and the dataset
-    for method, seed:                      WORK/<method>/seed<seed>/
+    for seed, method (seed-major):         WORK/<method>/seed<seed>/
         for stage in the recipe's stages:  .../<stage>/  train(recipe) with train.seed=<seed>,
                                            train.out_dir=<that dir>, init re-pointed to the
                                            earlier stage's new release, the benchmark's data;
@@ -1332,6 +1332,19 @@ def run_benchmark(
             "scores": _summary(scores),
             "predict": _read_json(d / DONE_FILE),
         }
+
+    # train and predict seed-major (seed 0 of every method first), so that a run stopped part of
+    # the way already compares every method; the pass below then only reads and scores
+    for seed in cfg.seeds:
+        for method in methods:
+            plans = method_stages(cfg, method, seed)
+            for p in plans:
+                ensure_stage(p, f"{method} seed {seed} {p.stage}")
+            pred = work / method / f"seed{seed}" / "pred"
+            if not predictions_done(pred, plans[-1].release):
+                log(f"{method} seed {seed}: predicting {cfg.data.split} -> {pred}")
+                predict(cfg, plans[-1].release, pred, progress=progress)
+                predicted.append(pred)
 
     # methods x seeds
     results: dict[str, Any] = {}
