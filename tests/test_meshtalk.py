@@ -533,3 +533,26 @@ def test_talkmesh_speech_encoder_and_a_prior_on_the_expression_spaces_audio(tmp_
     with pytest.raises(TalkmeshError, match="out_dim"):
         MeshTalkModelConfig(tiny_config(), PriorConfig(num_heads=H, num_classes=C,
                                                        audio_source="expression"))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "name, heads, classes",
+    [("meshtalk_synth", 8, 32), ("meshtalk_paper", 64, 128), ("meshtalk_released", 16, 128)],
+)
+def test_recipes_have_both_stages_and_the_preset_sizes(name, heads, classes):
+    from pathlib import Path
+
+    from talkmesh.models.meshtalk_tasks import _config
+    from talkmesh.train import load_recipes
+
+    path = Path(__file__).resolve().parents[1] / "configs" / f"{name}.yaml"
+    stages = load_recipes(path, ["train.seed=4"])
+    assert [r.task for _, r in stages] == ["meshtalk", "meshtalk-prior"]
+    assert all(r.train.seed == 4 for _, r in stages)
+    assert stages[1][1].init == f"{stages[0][1].train.out_dir}/model.safetensors"
+    model = {k: v for k, v in stages[0][1].model.items() if k != "speech"}  # no Whisper files
+    cfg = _config(MeshTalkConfig, meshtalk_config, model, 50, 30.0)
+    prior = _config(PriorConfig, prior_config, stages[1][1].model, 30.0)
+    assert (
+        (cfg.num_heads, cfg.num_classes) == (prior.num_heads, prior.num_classes) == (heads, classes)
+    )
