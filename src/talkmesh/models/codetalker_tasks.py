@@ -95,8 +95,9 @@ def _step_stage2(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     )
 
 
-def _prepare(net: CodeTalker, dataset) -> None:
-    """The mel encoder's normalisation (a buffer) from training audio."""
+def prepare_speech_statistics(net, dataset) -> None:
+    """A model's speech-encoder normalisation (``net.speech``, a buffer) from training audio
+    (shared by the families whose speech encoder is ``net.speech``)."""
     if not hasattr(net.speech, "set_statistics"):
         return
     step = max(1, len(dataset) // STATISTICS_SAMPLES)
@@ -125,5 +126,5 @@ STAGE2 = Task(
     step=_step_stage2,
     parameters=lambda net: (p for n, p in net.named_parameters() if not n.startswith("vqvae.")),
     save=save_model,
-    prepare=_prepare,
+    prepare=prepare_speech_statistics,
 )

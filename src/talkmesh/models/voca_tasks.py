@@ -16,7 +16,7 @@ import torch
 
 from talkmesh.config import from_dict, merge, to_dict
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker_tasks import _prepare as prepare_mel_statistics
+from talkmesh.models.codetalker_tasks import prepare_speech_statistics
 from talkmesh.models.release import save_model
 from talkmesh.models.voca import VOCA as VOCAModel
 from talkmesh.models.voca import VOCAConfig, paper_vocaset_config, small_config
@@ -80,7 +80,7 @@ def _every(n: int, most: int) -> range:
 @torch.no_grad()
 def prepare(net: VOCAModel, dataset) -> None:
     """Fit the speech normalisation and the decoder's PCA basis on the training ``dataset``."""
-    prepare_mel_statistics(net, dataset)
+    prepare_speech_statistics(net, dataset)
     was_training = net.training
     net.eval()
     net.feature_mean.zero_()  # raw features first
