@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from talkmesh.audio import SAMPLE_RATE
+
 MM = 1000.0  # corpus units (m) -> mm
 
 
@@ -65,9 +67,9 @@ def decode(net, template: np.ndarray, codes: torch.Tensor) -> np.ndarray:
     return net.model.decode(torch.from_numpy(template)[None], codes)[0].numpy()
 
 
-def cut(sample, frames: int) -> tuple[np.ndarray, np.ndarray]:
+def cut(sample, frames: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
     """The first ``frames`` motion frames and their audio."""
-    samples = int(round(frames / 30.0 * 16_000))
+    samples = int(round(frames / fps * SAMPLE_RATE))
     audio = sample.audio[:samples]
     if len(audio) < samples:
         audio = np.pad(audio, (0, samples - len(audio)))
@@ -123,8 +125,8 @@ def disentangle(args) -> None:
     for i, j in pairs:
         si, sj = ds[i], ds[j]
         T = min(len(si.vertices), len(sj.vertices))
-        xi, ai = cut(si, T)
-        xj, aj = cut(sj, T)
+        xi, ai = cut(si, T, net.motion_fps)
+        xj, aj = cut(sj, T, net.motion_fps)
         base = decode(net, si.template, encode(net, xi, si.template, ai))
         a_var = decode(net, si.template, encode(net, xi, si.template, aj))
         x_var = decode(net, si.template, encode(net, xj, si.template, ai))
@@ -152,20 +154,19 @@ def figure(change: dict[str, np.ndarray], out: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    from docs_figures import draw_mesh, save_small
-
     from talkmesh.assets import load_head
+    from talkmesh.benchmark import draw_on_mesh, save_png
 
     head = load_head()
     vmax = max(float(v.max()) for v in change.values())
     fig, axes = plt.subplots(1, len(change), figsize=(3.2 * len(change), 3.6))
     for ax, (name, values) in zip(axes, change.items()):
-        draw_mesh(ax, head.template, head.faces, np.clip(values / vmax, 0, 1), "magma")
+        art = draw_on_mesh(ax, head.template, head.faces, values, vmax)
         ax.set_title(f"{name}: max {values.max():.2f} mm", fontsize=9)
-    fig.text(0.5, 0.02, f"mean vertex change, one colour scale 0-{vmax:.2f} mm", ha="center",
-             fontsize=8)  # fmt: skip
-    save_small(fig, Path(out))
+    fig.colorbar(art, ax=list(axes), shrink=0.7, label="mean vertex change (mm)")
+    save_png(fig, Path(out))
+    plt.close(fig)
+    print(f"wrote {out} ({Path(out).stat().st_size // 1024} KB)")
 
 
 @torch.inference_mode()
@@ -228,7 +229,9 @@ def speed(args) -> None:
     )
     print("|---|---|---|---|---|---|---|")
     for seconds in args.seconds:
-        audio = torch.from_numpy(rng.normal(0, 0.1, int(seconds * 16_000)).astype(np.float32))[None]
+        audio = torch.from_numpy(rng.normal(0, 0.1, int(seconds * SAMPLE_RATE)).astype(np.float32))[
+            None
+        ]
         times = {}
         for cached in (True, False):
             start = time.perf_counter()
@@ -259,7 +262,13 @@ def retarget_video(args) -> None:
     moved = decode(net, target.template, codes)
     recon = decode(net, s.template, codes)
     anims = [
-        Animation(vertices=v, faces=target.faces, fps=30.0, audio=s.audio, sample_rate=16_000)
+        Animation(
+            vertices=v,
+            faces=target.faces,
+            fps=net.motion_fps,
+            audio=s.audio,
+            sample_rate=SAMPLE_RATE,
+        )  # fmt: skip
         for v in (s.vertices, recon, moved)
     ]
     labels = [f"{s.subject}: truth", "MeshTalk codes, own face", f"same codes on {args.target}"]

@@ -24,14 +24,10 @@ LIBRIVOX = Path("/usr/share/pocketsphinx/test/data/librivox")
 
 def save_small(fig, out: Path) -> None:
     """Save a figure as a palette PNG (docs images stay small)."""
-    from io import BytesIO
+    from talkmesh.benchmark import save_png
 
-    from PIL import Image
-
-    buf = BytesIO()
-    fig.savefig(buf, format="png")
+    save_png(fig, out)
     plt.close(fig)
-    Image.open(buf).convert("RGB").quantize(colors=128).save(out, optimize=True)
     print(f"wrote {out} ({out.stat().st_size // 1024} KB)")
 
 

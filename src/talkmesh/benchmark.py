@@ -872,11 +872,14 @@ def lip_figure(dataset, indices: list[int], preds: dict[str, Path], path: Path) 
     return save_png(fig, path)
 
 
-def _draw_on_mesh(
-    ax, verts: np.ndarray, faces: np.ndarray | None, values: np.ndarray, vmax: float, poly
+def draw_on_mesh(
+    ax, verts: np.ndarray, faces: np.ndarray | None, values: np.ndarray, vmax: float, poly=None
 ) -> Any:
     """Front orthographic view (x right, y up, +z to the viewer), faces coloured by the mean of
-    their vertices' values; back-facing triangles culled, the rest drawn back to front."""
+    their vertices' values on one scale 0..vmax; back-facing triangles culled, the rest drawn back
+    to front. ``poly``: matplotlib's PolyCollection (imported here when None)."""
+    if poly is None:
+        poly = _matplotlib()[1]
     if faces is None:
         order = np.argsort(verts[:, 2])
         art = ax.scatter(
@@ -924,7 +927,7 @@ def motion_figure(dataset, preds: dict[str, Path], path: Path) -> Path:
     arts: list[Any] = [None, None]
     for k, (label, (mean, std)) in enumerate(rows):
         for r, (values, name) in enumerate(((mean, "mean"), (std, "std"))):
-            arts[r] = _draw_on_mesh(
+            arts[r] = draw_on_mesh(
                 axes[r, k], samples[0].template, dataset.faces, values * 1e3, top[r], poly
             )
             title = f"{label}\n{name}" if r == 0 else name

@@ -21,6 +21,9 @@ Read top to bottom:
    audio, Eq. 8; ``forward`` (teacher-forced logits), ``sample`` (incremental: per-layer ring buffers of
    past activations, constant cost per frame), ``sample_uncached`` (reference that recomputes the whole
    history), ``perplexity`` (Eq. 9).
+9. :class:`MeshTalkModel` (+ :class:`MeshTalkModelConfig`, :class:`SamplingConfig`): the release,
+   expression space + prior behind talkmesh's common model surface (``generate(audio, template,
+   seed=)``: prior codes decoded on the template).
 
 Axis letters: B batch, S audio samples, T motion frames, M mel frames, V vertices, H heads, C classes
 (the codebook size K of the issue), D width.
