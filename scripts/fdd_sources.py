@@ -47,9 +47,9 @@ def main() -> None:
         w = np.load(f"{args.data}/arkit/{s.name}.npy")[::2][: len(s.vertices)]  # 60 -> 30 fps
         neutral = head.vertices_from_weights(np.zeros_like(w[:1]))
 
-        def d_of(weights: np.ndarray) -> float:
-            v = s.template[None] + head.vertices_from_weights(weights) - neutral
-            return dynamics(v, s.template, upper, squared=False)
+        def d_of(weights: np.ndarray, template=s.template, neutral=neutral) -> float:
+            v = template[None] + head.vertices_from_weights(weights) - neutral
+            return dynamics(v, template, upper, squared=False)
 
         d_gt = dynamics(s.vertices, s.template, upper, squared=False)
         full.append(d_gt)
@@ -75,7 +75,9 @@ def main() -> None:
     for seed, vals in oracle.items():
         print(f"| {seed} | {np.mean(vals) * 1e3:.3f} |")
     fixed = [np.mean(v) * 1e3 for k, v in oracle.items() if k != "index"]
-    print(f"\nfixed seeds: mean {np.mean(fixed):.3f}, min {min(fixed):.3f}, max {max(fixed):.3f} mm")
+    print(
+        f"\nfixed seeds: mean {np.mean(fixed):.3f}, min {min(fixed):.3f}, max {max(fixed):.3f} mm"
+    )
 
 
 if __name__ == "__main__":

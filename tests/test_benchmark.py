@@ -124,6 +124,24 @@ def test_the_default_benchmark_names_real_recipes_stages_and_keys():
             assert later.recipe.init == str(earlier.release)
 
 
+def test_claims_compare_means_against_seed_spread_and_count_seed_pairs():
+    from talkmesh.benchmark import aggregate, check_claims
+
+    def seeds(lves):
+        return [{"physical": {"lve": v, "fdd": -v, "mve": v, "lip_sync": 0.5}} for v in lves]
+
+    per_seed = {"codetalker": seeds([1.0, 1.1, 1.2]), "faceformer": seeds([2.0, 1.15, 1.3]),
+                "meshtalk": seeds([5.0, 5.1, 5.2])}  # fmt: skip
+    agg = {m: aggregate(dict(enumerate(r))) for m, r in per_seed.items()}
+    claims = {(c["metric"], c["better"], c["worse"]): c for c in check_claims(agg, per_seed)}
+    lve = claims[("lve", "codetalker", "faceformer")]
+    assert lve["verdict"] == "within seed variance"  # 0.38 apart, stds 0.1 + 0.46
+    assert (lve["seed_pairs_holding"], lve["seed_pairs"]) == (8, 9)  # 1.2 > 1.15 once
+    assert claims[("lve", "faceformer", "meshtalk")]["verdict"] == "holds"
+    fdd = claims[("fdd", "codetalker", "meshtalk")]  # |FDD|: 1.0-1.2 against 5.0-5.2
+    assert fdd["verdict"] == "holds" and fdd["seed_pairs_holding"] == 9
+
+
 @pytest.mark.parametrize(
     "changes, message",
     [
@@ -211,6 +229,12 @@ def test_end_to_end_then_resume_then_partial(bench_root):
     assert {c["worse"] for c in verdicts} == {"voca"} and len(verdicts) == 2  # FDD, 2 protocols
     assert verdicts[0]["verdict"] in ("holds", "contradicted", "within seed variance")
     assert verdicts[0]["verdict"] in md
+    for c in verdicts:  # every (codetalker seed, voca seed) pair, ordered as claimed or not
+        ct, vo = ([abs(report["methods"][m]["seeds"][s]["scores"][c["protocol"]]["fdd"])
+                   for s in ("0", "1")] for m in ("codetalker", "voca"))  # fmt: skip
+        assert c["seed_pairs"] == 4
+        assert c["seed_pairs_holding"] == sum(a < b for a in ct for b in vo)
+        assert f"| {c['seed_pairs_holding']} / 4 | **{c['verdict']}** |" in md
     cells = report["ablation"]["cells"]
     assert [c["label"] for c in cells] == ["P=1, H=4", "P=2, H=4"]
     assert all(0 < c["usage"]["codes_used"] <= 16 and c["physical"]["lve"] > 0 for c in cells)

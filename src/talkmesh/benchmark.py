@@ -163,6 +163,9 @@ class BenchmarkConfig:
     video: bool = True
     video_size: int = 256  # pixels per panel
     keep_checkpoints: bool = False  # keep Lightning's last.ckpt/epochNNN.ckpt of finished stages
+    discussion: str = (
+        ""  # a hand-written reading of the results (path or URL), linked from the report
+    )
 
     def __post_init__(self) -> None:
         if not NAME.match(self.name):
@@ -749,8 +752,15 @@ def aggregate(per_seed: dict[int, dict[str, dict[str, Any]]]) -> dict[str, dict[
     return out
 
 
-def check_claims(aggregated: dict[str, dict[str, dict[str, Any]]]) -> list[dict[str, Any]]:
-    """The paper's pairwise claims between the methods present, per protocol, with verdicts."""
+def check_claims(
+    aggregated: dict[str, dict[str, dict[str, Any]]],
+    per_seed: dict[str, list[dict[str, dict[str, Any]]]] | None = None,
+) -> list[dict[str, Any]]:
+    """The paper's pairwise claims between the methods present, per protocol, with verdicts.
+
+    ``per_seed`` (method -> one {protocol: summary} per seed) adds how many of the pairs
+    (seed of the better-claimed method, seed of the other) are ordered as claimed.
+    """
     rows = []
     for metric, better, worse in CLAIMS:
         if better not in aggregated or worse not in aggregated:
@@ -768,6 +778,12 @@ def check_claims(aggregated: dict[str, dict[str, dict[str, Any]]]) -> list[dict[
                     verdict += " (one seed: no variance estimate)"
             else:
                 verdict = "within seed variance"
+            pairs_holding = pairs_total = None
+            if per_seed and better in per_seed and worse in per_seed:
+                va = [_claim_value(r[protocol], metric) for r in per_seed[better]]
+                vb = [_claim_value(r[protocol], metric) for r in per_seed[worse]]
+                pairs_holding = sum(x < y for x in va for y in vb)
+                pairs_total = len(va) * len(vb)
             rows.append(
                 {
                     "metric": metric,
@@ -782,9 +798,17 @@ def check_claims(aggregated: dict[str, dict[str, dict[str, Any]]]) -> list[dict[
                     "std_sum": spread,
                     "seeds": min(a["n"], b["n"]),
                     "verdict": verdict,
+                    "seed_pairs_holding": pairs_holding,
+                    "seed_pairs": pairs_total,
                 }
             )
     return rows
+
+
+def _claim_value(summary: dict[str, Any], metric: str) -> float:
+    """One seed's value of a claim's metric (FDD by its absolute value, as the aggregate)."""
+    v = float(summary[metric])
+    return abs(v) if metric == "fdd" else v
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1020,6 +1044,12 @@ def _pm(agg: dict[str, Any], scale: float, digits: int = 3) -> str:
     return f"{agg['mean'] * scale:.{digits}f} ± {agg['std'] * scale:.{digits}f}"
 
 
+def _pairs(claim: dict[str, Any]) -> str:
+    if claim.get("seed_pairs") is None:
+        return "-"
+    return f"{claim['seed_pairs_holding']} / {claim['seed_pairs']}"
+
+
 def _secs(s: float | None) -> str:
     if s is None:
         return "-"
@@ -1080,11 +1110,13 @@ def render_markdown(report: dict[str, Any]) -> str:
             "CodeTalker (Table 1) reports LVE: CodeTalker < FaceFormer < MeshTalk and VOCA, and "
             "CodeTalker best in FDD (compared here by |FDD|). A claim *holds* (or is "
             "*contradicted*) only when the difference of the means exceeds the sum of the two "
-            "seed standard deviations; otherwise it is *within seed variance*.",
+            "seed standard deviations; otherwise it is *within seed variance*. *Seed pairs*: of "
+            "all pairs (a seed of one method, a seed of the other), how many are ordered as "
+            "claimed.",
             "",
             "| claim | protocol | lower (mean ± std) | higher (mean ± std) | difference | "
-            "sum of stds | verdict |",
-            "|---|---|---|---|---|---|---|",
+            "sum of stds | seed pairs | verdict |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for c in claims:
             scale = UNITS[c["protocol"]][c["metric"]][0]
@@ -1094,7 +1126,7 @@ def render_markdown(report: dict[str, Any]) -> str:
             out.append(
                 f"| {c['better']} < {c['worse']} in {metric} | {c['protocol']} | {_pm(a, scale)} | "
                 f"{_pm(b, scale)} | {c['difference'] * scale:+.3f} | {c['std_sum'] * scale:.3f} | "
-                f"**{c['verdict']}** |"
+                f"{_pairs(c)} | **{c['verdict']}** |"
             )
         out += [""]
         pairs: dict[tuple[str, str, str], list[str]] = {}
@@ -1106,6 +1138,9 @@ def render_markdown(report: dict[str, Any]) -> str:
             name = "|FDD|" if metric == "fdd" else LABELS[metric]
             seeds = len(report["seeds"])
             out.append(f"- {better} < {worse} in {name}: {'; '.join(verdicts)}; {seeds} seeds.")
+    if report.get("discussion"):
+        out += ["", "Why these orderings come out as they do (written by hand, not by this "
+                f"command): [{report['discussion'].split('#')[0]}]({report['discussion']})."]  # fmt: skip
     figs = report["figures"]
     out += ["", "## Figures", ""]
     if figs.get("lip_distance"):
@@ -1381,7 +1416,10 @@ def run_benchmark(
             "seeds": {str(s): r for s, r in per_seed.items()},
             "aggregate": agg,
         }
-    claims = check_claims({m: r["aggregate"] for m, r in results.items()})
+    claims = check_claims(
+        {m: r["aggregate"] for m, r in results.items()},
+        {m: [x["scores"] for x in r["seeds"].values()] for m, r in results.items()},
+    )
 
     # ablation
     fig_dir = docs / cfg.name
@@ -1503,6 +1541,7 @@ def run_benchmark(
         "methods": results,
         "baselines": baselines,
         "claims": claims,
+        "discussion": cfg.discussion,
         "ablation": ablation,
         "speed": speed,
         "figures": figures,
