@@ -15,6 +15,7 @@ from talkmesh.models.codetalker import (
     Quantizer,
     Stage2Config,
     VQConfig,
+    quantize_int8,
     temporal_bias,
 )
 from talkmesh.models.release import load_model, save_model
@@ -428,3 +429,32 @@ def test_mel_lookahead_is_a_runtime_choice_within_the_trained_range():
         enc.set_lookahead(150.0)
     with pytest.raises(ValueError, match="lookahead_max_ms"):
         SpeechEncoderConfig(kind="whisper", lookahead_max_ms=100.0)
+
+
+@pytest.mark.parametrize("causal", [False, True])
+def test_the_conv_step_is_the_convolutions_last_frame(causal):
+    conv = tiny(causal=causal).vqvae.decoder.conv
+    x = torch.randn(2, 5, conv.conv.in_channels)
+    full = conv(x)  # replicate padding: causal (4, 0), centred (2, 2)
+    # the last frame sees x0..x4 (causal) or x2, x3, x4 and x4 twice more (the right padding)
+    window = x if causal else torch.cat([x[:, 2:], x[:, 4:].expand(-1, 2, -1)], dim=1)
+    torch.testing.assert_close(conv.step(window), full[:, -1:])
+
+
+@pytest.mark.parametrize("causal", [False, True])
+def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causal):
+    model = tiny(vq_layers=2, causal=causal)
+    for p in model.feat_map.parameters():  # zero-initialised: give the codes something to do
+        torch.nn.init.normal_(p, std=0.3)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    audio, _ = clip(14)
+    templ = torch.zeros(1, 20, 3)
+    style = torch.tensor([1])
+    small = quantize_int8(model)
+    assert small.vqvae.decoder.conv.linear is not None and small.int8
+    fp32 = model.generate(audio, templ, styles=style)
+    int8 = small.generate(audio, templ, styles=style)
+    assert int8.shape == fp32.shape and torch.isfinite(int8).all()
+    assert (int8 - fp32).abs().mean() < 0.1 * fp32.abs().mean()  # close, not equal
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in before.items())
+    assert not hasattr(model, "int8") and model.vqvae.decoder.conv.linear is None

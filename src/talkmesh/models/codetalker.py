@@ -401,6 +401,7 @@ class TemporalConv(nn.Module):
         self.conv = nn.Conv1d(dim, dim, 5, stride=stride)
         self.norm = nn.InstanceNorm1d(dim, affine=False) if instance_norm else None
         self.padding = (4, 0) if causal else (2, 2)
+        self.linear: nn.Module | None = None  # the conv as an int8 matrix (quantize_int8)
 
     def forward(self, x: Tensor) -> Tensor:
         """(B, T, D) -> (B, T / stride, D)."""
@@ -409,6 +410,16 @@ class TemporalConv(nn.Module):
         if self.norm is not None:
             y = self.norm(y)
         return y.transpose(1, 2)
+
+    def step(self, window: Tensor) -> Tensor:
+        """One output frame from the 5 input frames under the kernel: (B, 5, D) -> (B, 1, D), the
+        convolution as one matrix product (no instance norm: generation steps have none)."""
+        x = window.transpose(1, 2).flatten(1)  # (B, D * 5) in the weight's (in, k) order
+        if self.linear is not None:
+            y = self.linear(x)
+        else:
+            y = F.linear(x, self.conv.weight.flatten(1), self.conv.bias)
+        return F.leaky_relu(y, 0.2)[:, None]
 
 
 class MotionEncoder(nn.Module):
@@ -504,7 +515,7 @@ class DecoderStep:
         dec = self.decoder
         x = dec.inp(z_q.flatten(2))
         self.inputs = (self.inputs or [x] * 4)[-4:] + [x]  # replicate padding on the left
-        h = dec.mid(dec.conv(torch.cat(self.inputs, dim=1))[:, -1:])
+        h = dec.mid(dec.conv.step(torch.cat(self.inputs, dim=1)))
         self.t += 1
         bias = self.bias[..., self.window - min(self.t, self.window) :]
         for block, cache in zip(dec.blocks, self.caches):
@@ -850,8 +861,11 @@ class FrameGenerator:
         self.conv_inputs: list[Tensor] = []
         # the VQ decoder's output map followed by the motion map is one linear map: fold them
         # (normalised motion in, so the decoder's scale cancels)
-        self.fold_w = model.motion_map.weight @ dec.out.weight  # (d, hidden)
-        self.fold_b = model.motion_map.weight @ dec.out.bias + model.motion_map.bias
+        self.fold = nn.utils.skip_init(nn.Linear, dec.cfg.hidden, s2.d_model, device=style.device)
+        self.fold.weight.data = model.motion_map.weight @ dec.out.weight
+        self.fold.bias.data = model.motion_map.weight @ dec.out.bias + model.motion_map.bias
+        if getattr(model, "int8", False):
+            self.fold = _int8(self.fold)
         device = style.device
         self.ppe = periodic_encoding(s2.period, s2.d_model, s2.period, device)[:, None]
         self.full_bias = temporal_bias(
@@ -876,24 +890,39 @@ class FrameGenerator:
             motion = (dec.out(h) * dec.scale)[:, 0]
         else:  # conv over the last frames (replicate padding on the right), cached attention
             self.conv_inputs = [*self.conv_inputs[-2:], dec.inp(q.z_q.flatten(2))]
+            n = len(self.conv_inputs)  # the kernel sees frames t-2..t+2; t+1, t+2 repeat t
+            window = [self.conv_inputs[min(max(n - 3 + j, 0), n - 1)] for j in range(5)]
             pos = sinusoid(torch.tensor([t], device=feats.device), dec.cfg.hidden)
-            h = dec.mid(dec.conv(torch.cat(self.conv_inputs, dim=1))[:, -1:]) + pos
+            h = dec.mid(dec.conv.step(torch.cat(window, dim=1))) + pos
             for n, block in enumerate(dec.blocks):
                 h = block(h, None, self.vq_caches[n])
             h = dec.norm(h)
-        self.x_in = F.linear(h, self.fold_w, self.fold_b) + self.style[:, None]
+        self.x_in = self.fold(h) + self.style[:, None]
         self.t += 1
         return q.codes[:, 0], motion
+
+
+def _int8(linear: nn.Linear) -> nn.Module:
+    """A dynamically quantised int8 copy of one linear layer."""
+    import warnings
+
+    from torch.ao.quantization import quantize_dynamic
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the eager-mode API is marked for migration to torchao
+        return quantize_dynamic(nn.Sequential(linear), {nn.Linear}, dtype=torch.qint8)
 
 
 def quantize_int8(model: CodeTalker) -> CodeTalker:
     """A copy of ``model`` for CPU generation whose per-frame weights are read as int8.
 
-    Generating one frame at a time is bound by reading the weights from memory, so the linear
-    layers of the stage-2 decoder and of the VQ decoder (the ones run at every step) are replaced
-    by PyTorch's dynamically quantised int8 versions (per-tensor weight scale, activations
-    quantised on the fly): about 4x fewer bytes per frame. Not exact: the effect on accuracy is
-    measured by ``bench/fast_vs_naive.py --int8``. Everything else stays float32.
+    Generating one frame at a time is bound by reading the weights from memory, so every linear
+    map run at each step is replaced by PyTorch's dynamically quantised int8 version (per-tensor
+    weight scale, activations quantised on the fly): the stage-2 decoder blocks and output map,
+    the VQ decoder's blocks, input and middle maps, its temporal convolution's per-frame step
+    (as one matrix) and the folded feedback map; about 4x fewer bytes per frame. The speech
+    encoder, the per-sequence maps and the final vertex decoding stay float32. Not exact: the
+    effect on accuracy is measured by ``bench/fast_vs_naive.py --int8``.
     """
     import copy
     import warnings
@@ -902,8 +931,15 @@ def quantize_int8(model: CodeTalker) -> CodeTalker:
 
     out = copy.deepcopy(model).eval()
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the eager-mode API is marked for migration to torchao
+        warnings.simplefilter("ignore")
         out.blocks = quantize_dynamic(out.blocks, {nn.Linear}, dtype=torch.qint8)
         dec = out.vqvae.decoder
         dec.blocks = quantize_dynamic(dec.blocks, {nn.Linear}, dtype=torch.qint8)
+    out.feat_map = _int8(out.feat_map)
+    dec.inp, dec.mid = _int8(dec.inp), _int8(dec.mid)
+    conv = dec.conv.conv
+    step = nn.Linear(conv.in_channels * conv.kernel_size[0], conv.out_channels)
+    step.weight.data, step.bias.data = conv.weight.detach().flatten(1), conv.bias.detach()
+    dec.conv.linear = _int8(step)
+    out.int8 = True  # FrameGenerator quantises its folded feedback map too
     return out
