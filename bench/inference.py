@@ -3,7 +3,8 @@
     python bench/inference.py                 # paper VOCASET config: 4 s / 30 s / 10 min fast, 4 s naive
     python bench/inference.py --quick         # skip the 10-minute rows
     python bench/inference.py --config small  # the synthetic-corpus config
-    python bench/inference.py --int8          # also fast mode with int8 weights (quantize_int8)
+    python bench/inference.py --int8          # also fast mode with int8 weights (quantize_int8),
+                                              # and with an int8 speech encoder too (speech=True)
 
 Random weights (no pretrained weights exist on this machine): timings do not depend on the values.
 The paper config uses a wav2vec2-base-sized random speech encoder (windows of 20 s with 2 s of
@@ -56,8 +57,8 @@ def row(config: str, mode: str, seconds: float, threads: int) -> dict:
     """One measurement, in this process."""
     torch.set_num_threads(threads)
     model = build(config)
-    if mode == "fast-int8":
-        model = quantize_int8(model)
+    if mode.startswith("fast-int8"):
+        model = quantize_int8(model, speech=mode == "fast-int8-speech")
     gen_mode = "naive" if mode == "naive" else "fast"
     template = torch.zeros(1, model.cfg.vq.num_vertices, 3)
     model.generate(torch.randn(1, SR) * 0.1, template, styles=torch.tensor([0]), mode=gen_mode)
@@ -84,6 +85,7 @@ def main() -> None:
     rows = [("fast", 4.0), ("naive", 4.0), ("fast", 30.0)]
     if args.int8:
         rows += [("fast-int8", 4.0), ("fast-int8", 30.0)]
+        rows += [("fast-int8-speech", 4.0), ("fast-int8-speech", 30.0)]
     if not args.quick:
         rows += [("fast", 600.0)] + ([("fast-int8", 600.0)] if args.int8 else [])
     params = sum(p.numel() for p in build(args.config).parameters()) / 1e6
