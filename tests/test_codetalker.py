@@ -444,8 +444,6 @@ def test_the_conv_step_is_the_convolutions_last_frame(causal):
 @pytest.mark.parametrize("causal", [False, True])
 def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causal):
     model = tiny(vq_layers=2, causal=causal)
-    for p in model.feat_map.parameters():  # zero-initialised: give the codes something to do
-        torch.nn.init.normal_(p, std=0.3)
     before = {k: v.clone() for k, v in model.state_dict().items()}
     audio, _ = clip(14)
     templ = torch.zeros(1, 20, 3)
@@ -458,3 +456,16 @@ def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causa
     assert (int8 - fp32).abs().mean() < 0.1 * fp32.abs().mean()  # close, not equal
     assert all(torch.equal(v, model.state_dict()[k]) for k, v in before.items())
     assert not hasattr(model, "int8") and model.vqvae.decoder.conv.linear is None
+
+    def quantized(module):
+        return any(isinstance(m, torch.ao.nn.quantized.dynamic.Linear) for m in module.modules())
+
+    for part in (small.blocks, small.feat_map, small.vqvae.decoder.blocks, small.vqvae.decoder.inp):
+        assert quantized(part)
+    w2v = tiny(vq_layers=2, speech="wav2vec2", causal=causal)  # a speech encoder with linears
+    assert not quantized(quantize_int8(w2v).speech)
+    both = quantize_int8(w2v, speech=True)  # the speech encoder's linear layers as well
+    assert quantized(both.speech) and not quantized(w2v.speech)
+    ref = w2v.generate(audio, templ, styles=style)
+    out = both.generate(audio, templ, styles=style)
+    assert (out - ref).abs().mean() < 0.1 * ref.abs().mean()
