@@ -460,7 +460,11 @@ def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causa
     def quantized(module):
         return any(isinstance(m, torch.ao.nn.quantized.dynamic.Linear) for m in module.modules())
 
-    for part in (small.blocks, small.feat_map, small.vqvae.decoder.blocks, small.vqvae.decoder.inp):
+    from talkmesh.models.codetalker import FrameGenerator
+
+    fold = FrameGenerator(small, small.style_vector(style)).fold
+    for part in (small.blocks, small.feat_map, small.vqvae.decoder.blocks, small.vqvae.decoder.inp,
+                 small.vqvae.decoder.mid, small.vqvae.decoder.conv.linear, fold):  # fmt: skip
         assert quantized(part)
     w2v = tiny(vq_layers=2, speech="wav2vec2", causal=causal)  # a speech encoder with linears
     assert not quantized(quantize_int8(w2v).speech)
@@ -469,3 +473,27 @@ def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causa
     ref = w2v.generate(audio, templ, styles=style)
     out = both.generate(audio, templ, styles=style)
     assert (out - ref).abs().mean() < 0.1 * ref.abs().mean()
+
+
+def test_the_folded_feedback_map_is_kept_until_its_weights_change():
+    from talkmesh.models.codetalker import FrameGenerator
+
+    model = tiny(vq_layers=2, causal=True)
+    audio, _ = clip(10)
+    templ, style = torch.zeros(1, 20, 3), torch.tensor([1])
+    first = model.generate(audio, templ, styles=style)
+    fold = FrameGenerator(model, model.style_vector(style)).fold
+    assert FrameGenerator(model, model.style_vector(style)).fold is fold  # built once
+    x = torch.randn(3, model.cfg.vq.hidden)
+    want = model.motion_map(model.vqvae.decoder.out(x))
+    torch.testing.assert_close(fold(x), want, atol=1e-5, rtol=1e-4)
+    with torch.no_grad():
+        model.motion_map.weight.mul_(3.0)  # an update in place (as an optimiser step)
+    again = FrameGenerator(model, model.style_vector(style)).fold
+    assert again is not fold
+    torch.testing.assert_close(again(x), model.motion_map(model.vqvae.decoder.out(x)))
+    fast = model.generate(audio, templ, styles=style)
+    assert not torch.allclose(fast, first)
+    torch.testing.assert_close(fast, model.generate(audio, templ, styles=style, mode="naive"),
+                               atol=1e-5, rtol=1e-4)  # fmt: skip
+    assert "_folded" not in "".join(model.state_dict())

@@ -56,7 +56,13 @@ from torch import Tensor, nn
 
 from talkmesh.audio import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker import Block, KVCache, periodic_encoding, temporal_bias
+from talkmesh.models.codetalker import (
+    Block,
+    KVCache,
+    folded_linear,
+    periodic_encoding,
+    temporal_bias,
+)
 from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
 
 MODES = ("fast", "naive")
@@ -417,8 +423,7 @@ class FrameGenerator:
         self.model, self.style = model, style
         self.window, self.period = cfg.attention_window, cfg.period
         self.caches = [KVCache(self.window) for _ in model.blocks]
-        self.fold_w = model.motion_map.weight @ model.out.weight  # (d, d)
-        self.fold_b = model.motion_map.weight @ model.out.bias + model.motion_map.bias
+        self.fold = folded_linear(model, model.out, model.motion_map)  # (d -> d)
         device = style.device
         self.ppe = periodic_encoding(cfg.period, cfg.d_model, cfg.period, device)
         self.bias = decoder_bias(
@@ -432,6 +437,6 @@ class FrameGenerator:
         x = (self.x_in + self.ppe[self.t % self.period])[:, None]
         bias = self.bias[..., self.window - min(self.t + 1, self.window) :]
         h = self.model._hidden(x, cross, bias, self.caches)[:, 0]
-        self.x_in = F.linear(h, self.fold_w, self.fold_b) + self.style
+        self.x_in = self.fold(h) + self.style
         self.t += 1
         return h
