@@ -6,7 +6,8 @@ of fast mode costs in accuracy, on the synthetic unseen-speaker test split, in o
 Both modes generate the same sequences with the same model (unseen speakers use the mean style);
 each prediction set is scored with both metric protocols. Prints LVE, FDD and MVE per mode, the
 relative LVE difference, the largest per-frame vertex difference between the two modes, and the
-generation time of each mode.
+generation time of each mode. ``fast-steps`` is fast mode one frame per pass (block=1): fast mode
+must give the same codes; how many frames its passes keep on a trained model is printed.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from inference import count_passes  # bench/inference.py (the scripts run from bench/)
 
 from talkmesh.datasets import open_dataset
 from talkmesh.evaluate import evaluate_dataset
@@ -38,7 +40,7 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     net = load_model(args.model)
-    nets = {"fast": net, "naive": net}
+    nets = {"fast": net, "fast-steps": net, "naive": net}
     if args.int8:
         nets["fast-int8"] = quantize_int8(net)
     if args.int8_speech:
@@ -47,7 +49,9 @@ def main() -> None:
     dataset = open_dataset("synth", args.data, args.split)
     indices = list(range(min(args.limit, len(dataset))))
     seconds = {m: 0.0 for m in nets}
-    biggest = 0.0
+    biggest = steps_diff = 0.0
+    passes = count_passes()
+    frames = fast_passes = 0
     with tempfile.TemporaryDirectory() as tmp:
         dirs = {m: Path(tmp) / m for m in seconds}
         for d in dirs.values():
@@ -60,11 +64,17 @@ def main() -> None:
             out = {}
             for mode in seconds:
                 start = time.perf_counter()
+                before = len(passes)
                 out[mode] = nets[mode].generate(audio, template, style_weights=weights,
-                    num_frames=len(s.vertices), mode=mode.split("-")[0])[0].numpy()  # fmt: skip
+                    num_frames=len(s.vertices), mode=mode.split("-")[0],
+                    block=1 if mode == "fast-steps" else None)[0].numpy()  # fmt: skip
+                if mode == "fast":
+                    frames += len(s.vertices)
+                    fast_passes += len(passes) - before
                 seconds[mode] += time.perf_counter() - start
                 np.save(dirs[mode] / f"{s.name}.npy", out[mode].reshape(len(out[mode]), -1))
             biggest = max(biggest, float(np.abs(out["fast"] - out["naive"]).max()))
+            steps_diff = max(steps_diff, float(np.abs(out["fast"] - out["fast-steps"]).max()))
             print(f"\r{i + 1}/{len(indices)} sequences", end="", flush=True)
         print()
         audio_s = sum(len(dataset[i].audio) for i in indices) / 16_000
@@ -81,8 +91,10 @@ def main() -> None:
             print(f"| {mode} | {phys.lve * 1e3:.3f} | {phys.fdd * 1e3:.3f} | {phys.mve * 1e3:.3f} | "
                   f"{anchor.lve * 1e4:.4f} | {seconds[mode]:.1f} | {seconds[mode] / audio_s:.3f} |")  # fmt: skip
     print(
-        f"\nlargest vertex difference fast vs naive {biggest * 1e3:.3f} mm; "
-        f"naive/fast time {seconds['naive'] / seconds['fast']:.1f}x"
+        f"\nlargest vertex difference fast vs naive {biggest * 1e3:.3f} mm, fast vs fast-steps "
+        f"{steps_diff * 1e3:.6f} mm; naive/fast time {seconds['naive'] / seconds['fast']:.1f}x, "
+        f"fast-steps/fast {seconds['fast-steps'] / seconds['fast']:.2f}x; "
+        f"fast mode kept {frames / max(fast_passes, 1):.1f} frames per pass"
     )
     for mode in nets:
         if mode != "naive":

@@ -6,7 +6,13 @@
     python bench/inference.py --int8          # also fast mode with int8 weights (quantize_int8),
                                               # and with an int8 speech encoder too (speech=True)
 
-Random weights (no pretrained weights exist on this machine): timings do not depend on the values.
+Random weights (no pretrained weights exist on this machine). Rows: ``fast`` is generate()'s
+default, passes of up to ``generate_block`` frames that keep the frames whose guessed codes held
+(FrameGenerator.block); ``fast-steps`` is the same computation one frame per pass (block=1);
+``naive`` is the paper's loop. The time of ``fast-steps`` and ``naive`` does not depend on the
+weights; the time of ``fast`` does: it depends on how often a frame's codes survive a change of
+the motion fed back, so the ``frames/pass`` column is printed with it (about 1 means no gain over
+steps; a trained model keeps fewer frames per pass than random weights, see docs/codetalker.md).
 The paper config uses a wav2vec2-base-sized random speech encoder (windows of 20 s with 2 s of
 context for long audio). Each row runs in its own process, so its peak memory (maximum resident
 set size, model weights included) is its own; the time covers speech encoding, generation and
@@ -26,6 +32,7 @@ import torch
 
 from talkmesh.models.codetalker import (
     CodeTalker,
+    FrameGenerator,
     paper_vocaset_config,
     quantize_int8,
     small_synth_config,
@@ -60,14 +67,31 @@ def row(config: str, mode: str, seconds: float, threads: int) -> dict:
     if mode.startswith("fast-int8"):
         model = quantize_int8(model, speech=mode == "fast-int8-speech")
     gen_mode = "naive" if mode == "naive" else "fast"
+    block = 1 if mode == "fast-steps" else None
+    passes = count_passes()
     template = torch.zeros(1, model.cfg.vq.num_vertices, 3)
-    model.generate(torch.randn(1, SR) * 0.1, template, styles=torch.tensor([0]), mode=gen_mode)
+    kwargs = dict(styles=torch.tensor([0]), mode=gen_mode, block=block)
+    model.generate(torch.randn(1, SR) * 0.1, template, **kwargs)
     audio = torch.randn(1, int(seconds * SR)) * 0.1
+    passes.clear()
     start = time.perf_counter()
-    out = model.generate(audio, template, styles=torch.tensor([0]), mode=gen_mode)
+    out = model.generate(audio, template, **kwargs)
     wall = time.perf_counter() - start
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    return {"wall": wall, "frames": out.shape[1], "peak_mb": peak}
+    per_pass = out.shape[1] / len(passes) if passes else None
+    return {"wall": wall, "frames": out.shape[1], "peak_mb": peak, "per_pass": per_pass}
+
+
+def count_passes() -> list[int]:
+    """Count FrameGenerator.block passes (fast mode) from now on, in this process."""
+    block, passes = FrameGenerator.block, []
+
+    def counted(self, cross, drafts):
+        passes.append(1)
+        return block(self, cross, drafts)
+
+    FrameGenerator.block = counted
+    return passes
 
 
 def main() -> None:
@@ -82,7 +106,13 @@ def main() -> None:
         mode, seconds = args.row.split(",")
         print(json.dumps(row(args.config, mode, float(seconds), args.threads)))
         return
-    rows = [("fast", 4.0), ("naive", 4.0), ("fast", 30.0)]
+    rows = [
+        ("fast", 4.0),
+        ("fast-steps", 4.0),
+        ("naive", 4.0),
+        ("fast", 30.0),
+        ("fast-steps", 30.0),
+    ]
     if args.int8:
         rows += [("fast-int8", 4.0), ("fast-int8", 30.0)]
         rows += [("fast-int8-speech", 4.0), ("fast-int8-speech", 30.0)]
@@ -92,17 +122,20 @@ def main() -> None:
     print(
         f"config {args.config}: {params:.0f} M parameters, {args.threads} threads, torch {torch.__version__}"
     )
-    print("| mode | audio | frames | time (s) | real-time factor | peak RSS (MB) |")
-    print("|---|---|---|---|---|---|")
+    print("| mode | audio | frames | frames/pass | time (s) | real-time factor | peak RSS (MB) |")
+    print("|---|---|---|---|---|---|---|")
     results = {}
     for mode, seconds in rows:
         cmd = [sys.executable, __file__, "--config", args.config, "--threads", str(args.threads),
                "--row", f"{mode},{seconds}"]  # fmt: skip
         r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
         results[(mode, seconds)] = r["wall"]
-        print(f"| {mode} | {seconds:g} s | {r['frames']} | {r['wall']:.2f} | "
+        per_pass = "" if r["per_pass"] is None else f"{r['per_pass']:.1f}"
+        print(f"| {mode} | {seconds:g} s | {r['frames']} | {per_pass} | {r['wall']:.2f} | "
               f"{r['wall'] / seconds:.3f} | {r['peak_mb']:.0f} |", flush=True)  # fmt: skip
-    print(f"\nnaive / fast at 4 s: {results[('naive', 4.0)] / results[('fast', 4.0)]:.1f}x")
+    naive = results[("naive", 4.0)]
+    print(f"\nnaive / fast at 4 s: {naive / results[('fast', 4.0)]:.1f}x; "
+          f"naive / fast-steps: {naive / results[('fast-steps', 4.0)]:.1f}x")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -179,6 +179,9 @@ def test_save_load_gives_identical_output(tmp_path):
     model = tiny()
     path = save_model(model, tmp_path / "m.safetensors")
     again = load_model(path)
+    import talkmesh
+
+    assert talkmesh.load_model is load_model  # the package's own entry point
     audio, _ = clip(8)
     templ = torch.zeros(1, 20, 3)
     torch.testing.assert_close(again.generate(audio, templ, styles=torch.tensor([0])),
@@ -298,6 +301,78 @@ def test_kv_cache_keeps_the_last_window_in_place():
         torch.testing.assert_close(got_k, want)
         torch.testing.assert_close(got_v, -want)
     assert cache.k.shape[2] == 10  # twice the window, never more
+
+
+def test_kv_cache_takes_several_rows_and_gives_the_last_ones_back():
+    from talkmesh.models.codetalker import KVCache
+
+    cache, kept = KVCache(window=5), []  # ``kept``: the rows the cache should hold, in order
+    g = torch.Generator().manual_seed(0)
+    for _ in range(30):
+        t = int(torch.randint(1, 8, (1,), generator=g))
+        k = torch.randn(1, 2, t, 3, generator=g)
+        got_k, got_v = cache.append(k, 2 * k)
+        kept.append(k)
+        want = torch.cat(kept, dim=2)[:, :, -(5 + t - 1) :]  # each new row's own window
+        torch.testing.assert_close(got_k, want)
+        torch.testing.assert_close(got_v, 2 * want)
+        back = int(torch.randint(0, t + 1, (1,), generator=g))
+        cache.drop(back)
+        kept[-1] = k[:, :, : t - back]
+
+
+def _count_passes(monkeypatch) -> list[tuple[int, int, int]]:
+    """Record (frames, guesses, frames kept) of every FrameGenerator.block pass."""
+    from talkmesh.models.codetalker import FrameGenerator
+
+    passes, block = [], FrameGenerator.block
+
+    def counted(self, cross, drafts):
+        out = block(self, cross, drafts)
+        passes.append((cross[0].shape[1], drafts.shape[1], out[0].shape[1]))
+        return out
+
+    monkeypatch.setattr(FrameGenerator, "block", counted)
+    return passes
+
+
+@pytest.mark.parametrize("causal", [False, True])
+def test_fast_generation_in_passes_equals_frame_by_frame(causal, monkeypatch):
+    from dataclasses import replace
+
+    model = tiny(vq_layers=2, causal=causal)
+    model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, attention_window=7))
+    with torch.no_grad():  # feedback strong enough that many guesses fail and are taken back
+        model.motion_map.weight.mul_(100.0)
+    audio = torch.cat([clip(40, seed=1)[0], clip(40, seed=2)[0]])  # a batch of two
+    style = model.style_vector(torch.tensor([0, 1]))
+    cross = model._cross(model.audio_tokens(audio, None, 40))
+    passes = _count_passes(monkeypatch)
+    one, one_motion = model._generate_fast(style, cross, 40, block=1)
+    assert all(p == (1, 0, 1) for p in passes) and len(passes) == 40
+    passes.clear()
+    many, motion = model._generate_fast(style, cross, 40, block=16)
+    assert torch.equal(many, one)  # the same codes, past both attention windows
+    if causal:
+        torch.testing.assert_close(motion, one_motion, atol=1e-5, rtol=1e-4)
+    assert len(passes) < 40  # passes kept several frames ...
+    assert any(kept <= guesses for _, guesses, kept in passes)  # ... and took some back
+    assert max(frames for frames, _, _ in passes) == 16
+    templ = torch.randn(2, 20, 3)
+    torch.testing.assert_close(
+        model.generate(audio, templ, styles=torch.tensor([0, 1])),
+        model.generate(audio, templ, styles=torch.tensor([0, 1]), block=1),
+    )
+
+
+def test_a_pass_takes_fewer_guesses_than_frames():
+    from talkmesh.models.codetalker import FrameGenerator
+
+    model = tiny()
+    gen = FrameGenerator(model, model.style_vector(torch.tensor([0])))
+    cross = model._cross(model.audio_tokens(clip(3)[0], None, 3))
+    with pytest.raises(ValueError, match="at most K - 1"):
+        gen.block(cross, torch.zeros(1, 3, 4, dtype=torch.long))
 
 
 def test_fast_generation_with_a_short_attention_window_runs_past_it():
@@ -438,7 +513,7 @@ def test_the_conv_step_is_the_convolutions_last_frame(causal):
     full = conv(x)  # replicate padding: causal (4, 0), centred (2, 2)
     # the last frame sees x0..x4 (causal) or x2, x3, x4 and x4 twice more (the right padding)
     window = x if causal else torch.cat([x[:, 2:], x[:, 4:].expand(-1, 2, -1)], dim=1)
-    torch.testing.assert_close(conv.step(window), full[:, -1:])
+    torch.testing.assert_close(conv.step(window.transpose(1, 2)[:, None]), full[:, -1:])
 
 
 @pytest.mark.parametrize("causal", [False, True])
@@ -488,7 +563,8 @@ def test_the_folded_feedback_map_is_kept_until_its_weights_change():
     want = model.motion_map(model.vqvae.decoder.out(x))
     torch.testing.assert_close(fold(x), want, atol=1e-5, rtol=1e-4)
     with torch.no_grad():
-        model.motion_map.weight.mul_(3.0)  # an update in place (as an optimiser step)
+        # an update in place (as an optimiser step), big enough to change the tiny model's codes
+        model.motion_map.weight.mul_(100.0)
     again = FrameGenerator(model, model.style_vector(style)).fold
     assert again is not fold
     torch.testing.assert_close(again(x), model.motion_map(model.vqvae.decoder.out(x)))

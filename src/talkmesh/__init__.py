@@ -4,6 +4,7 @@ import talkmesh
 anim = talkmesh.animate("speech.wav")           # the bundled CodeTalker on the bundled head
 talkmesh.save_animation(anim, "speech.glb")      # glTF morph-target animation
 talkmesh.render_video(anim, "speech.mp4")        # shaded head, with the audio
+model = talkmesh.load_model("codetalker-synth")  # a release by name or path, offline
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ __all__ = [
     "load_animation",
     "load_audio",
     "load_head",
+    "load_model",
     "load_template",
     "open_stream",
     "render_video",
@@ -45,6 +47,10 @@ def __getattr__(name: str):
         from talkmesh.audio import load_audio
 
         return load_audio
+    if name == "load_model":
+        from talkmesh.models.release import load_model
+
+        return load_model
     if name == "open_stream":
         from talkmesh.stream import open_stream
 

@@ -198,9 +198,11 @@ class KVCache:
         self.offset = 0  # absolute index of the first row of the buffers
 
     def append(self, k: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+        """Add ``t`` rows -> the keys and values they see: the last ``window + t - 1`` rows (each
+        new row's own window; the caller's bias masks the rows outside it)."""
         t = k.shape[2]
         if self.k is None or self.n + t > self.k.shape[2]:
-            keep = min(self.n, max(0, self.window - t))
+            keep = min(self.n, self.window - 1)
             shape = (*k.shape[:2], max(2 * self.window, keep + t), k.shape[3])
             new_k, new_v = k.new_empty(shape), v.new_empty(shape)
             if keep:
@@ -211,8 +213,28 @@ class KVCache:
         self.k[:, :, self.n : self.n + t] = k
         self.v[:, :, self.n : self.n + t] = v
         self.n += t
-        start = max(0, self.n - max(self.window, t))
+        start = max(0, self.n - (self.window + t - 1))
         return self.k[:, :, start : self.n], self.v[:, :, start : self.n]
+
+    def drop(self, rows: int) -> None:
+        """Forget the last ``rows`` rows (at most as many as the last append added)."""
+        self.n -= rows
+
+
+def window_bias(
+    heads: int, q_len: int, k_len: int, window: int, period: int | None, device=None
+) -> Tensor:
+    """(heads, q_len, k_len) bias of the last ``q_len`` of ``k_len`` positions as queries over all
+    of them: each sees the ``window`` positions up to itself (-inf elsewhere), with the periodic
+    ALiBi of :func:`temporal_bias` (``period``) or no bias within the window (``None``)."""
+    q_offset = k_len - q_len
+    if period is None:
+        bias = torch.zeros(heads, q_len, k_len, device=device)
+    else:
+        bias = temporal_bias(heads, q_len, k_len, period, device, q_offset=q_offset)
+    i = torch.arange(q_len, device=device)[:, None] + q_offset
+    j = torch.arange(k_len, device=device)[None]
+    return bias.masked_fill(((j > i) | (j <= i - window))[None], float("-inf"))
 
 
 class Attention(nn.Module):
@@ -411,15 +433,16 @@ class TemporalConv(nn.Module):
             y = self.norm(y)
         return y.transpose(1, 2)
 
-    def step(self, window: Tensor) -> Tensor:
-        """One output frame from the 5 input frames under the kernel: (B, 5, D) -> (B, 1, D), the
-        convolution as one matrix product (no instance norm: generation steps have none)."""
-        x = window.transpose(1, 2).flatten(1)  # (B, D * 5) in the weight's (in, k) order
+    def step(self, windows: Tensor) -> Tensor:
+        """K output frames from the input frames under the kernel, windows (B, K, D, 5) as
+        ``x.unfold(1, 5, 1)`` gives them -> (B, K, D): the convolution as one matrix product (no
+        instance norm: generation steps have none). The caller pads as the full pass would."""
+        windows = windows.flatten(2)  # (B, K, D * 5) in the weight's (in, k) order
         if self.linear is not None:
-            y = self.linear(x)
+            y = self.linear(windows)
         else:
-            y = F.linear(x, self.conv.weight.flatten(1), self.conv.bias)
-        return F.leaky_relu(y, 0.2)[:, None]
+            y = F.linear(windows, self.conv.weight.flatten(1), self.conv.bias)
+        return F.leaky_relu(y, 0.2)
 
 
 class MotionEncoder(nn.Module):
@@ -470,7 +493,8 @@ class MotionDecoder(nn.Module):
         x = self.mid(self.conv(hold_last_frame(x, mask)))
         bias = padding_bias(mask, x.dtype)
         if self.cfg.causal:
-            band = causal_band_bias(self.cfg.heads, x.shape[1], self.cfg.causal_window, x.device)
+            T = x.shape[1]
+            band = window_bias(self.cfg.heads, T, T, self.cfg.causal_window, 1, x.device)
             bias = band[None] if bias is None else bias + band
         else:
             x = x + sinusoid(
@@ -485,18 +509,10 @@ class MotionDecoder(nn.Module):
         return self.out(self.hidden(z_q, mask, offset=offset)) * self.scale
 
 
-def causal_band_bias(heads: int, length: int, window: int, device=None) -> Tensor:
-    """(heads, T, T) ALiBi bias of the causal VQ decoder: -slope_h * (i - j) for the ``window``
-    keys i - window < j <= i, -inf elsewhere."""
-    bias = temporal_bias(heads, length, length, 1, device)
-    i = torch.arange(length, device=device)[:, None]
-    j = torch.arange(length, device=device)[None]
-    return bias.masked_fill((j <= i - window)[None], float("-inf"))
-
-
 class DecoderStep:
-    """The causal VQ decoder one frame at a time: the last 5 conv inputs and a key/value cache of
-    ``causal_window`` frames per block, so each frame costs the same and equals the full pass."""
+    """The causal VQ decoder a few frames at a time: the last 4 conv inputs and a key/value cache
+    of ``causal_window`` frames per block, so each frame costs the same and equals the full pass.
+    The last frames can be taken back (:meth:`drop`) to decode other codes in their place."""
 
     def __init__(self, decoder: MotionDecoder) -> None:
         if not decoder.cfg.causal:
@@ -505,22 +521,36 @@ class DecoderStep:
         cfg = decoder.cfg
         self.window = cfg.causal_window
         self.caches = [KVCache(self.window) for _ in decoder.blocks]
-        self.inputs: list[Tensor] = []
+        self.inputs: Tensor | None = None  # (B, <= 4 + K, hidden) the conv's recent inputs
         self.t = 0
         device = decoder.out.weight.device
-        self.bias = causal_band_bias(cfg.heads, self.window, self.window, device)[None, :, -1:]
+        self.bias = window_bias(cfg.heads, 1, self.window, self.window, 1, device)[None]
 
     def hidden(self, z_q: Tensor) -> Tensor:
-        """z_q (B, 1, H, C) -> (B, 1, hidden), the normalised hidden state of the next frame."""
-        dec = self.decoder
+        """z_q (B, K, H, C) of the next K frames -> (B, K, hidden), their normalised hidden states."""
+        dec, K = self.decoder, z_q.shape[1]
         x = dec.inp(z_q.flatten(2))
-        self.inputs = (self.inputs or [x] * 4)[-4:] + [x]  # replicate padding on the left
-        h = dec.mid(dec.conv.step(torch.cat(self.inputs, dim=1)))
-        self.t += 1
-        bias = self.bias[..., self.window - min(self.t, self.window) :]
+        past = x[:, :1].expand(-1, 4, -1) if self.inputs is None else self.inputs[:, -4:]
+        self.inputs = torch.cat([past, x], dim=1)  # replicate padding on the left
+        h = dec.mid(dec.conv.step(self.inputs.unfold(1, 5, 1)))
+        self.t += K
+        if K == 1:
+            bias = self.bias[..., self.window - min(self.t, self.window) :]
+        else:
+            keys = min(self.t, self.window + K - 1)
+            bias = window_bias(dec.cfg.heads, K, keys, self.window, 1, x.device)[None]
         for block, cache in zip(dec.blocks, self.caches):
             h = block(h, bias, cache)
         return dec.norm(h)
+
+    def drop(self, frames: int) -> None:
+        """Take back the last ``frames`` frames (at most as many as the last call decoded)."""
+        if frames:
+            for cache in self.caches:
+                cache.drop(frames)
+            self.t -= frames
+            # the left padding repeats frame 0: gone with it
+            self.inputs = self.inputs[:, :-frames] if self.t else None
 
 
 class VQOutput(NamedTuple):
@@ -639,6 +669,7 @@ class CodeTalker(nn.Module):
     """Both stages; stage 1 is frozen while stage 2 trains."""
 
     family = "codetalker"
+    generate_block = 128  # most frames per pass of fast generation (see FrameGenerator.block)
 
     def __init__(self, cfg: CodeTalkerConfig) -> None:
         super().__init__()
@@ -779,6 +810,7 @@ class CodeTalker(nn.Module):
         num_frames: int | None = None,
         mode: str = "fast",
         seed: int = 0,
+        block: int | None = None,
     ) -> Tensor:
         """audio (B, S) at 16 kHz, template (B, V, 3) -> vertices (B, T, V, 3) (deterministic:
         ``seed`` is accepted for the common model surface and unused).
@@ -790,7 +822,10 @@ class CodeTalker(nn.Module):
         attends to frames <= t as computed when they were last, instead of re-running bidirectional
         attention over the prefix); final vertices come from a bidirectional decode of all codes,
         in windows of ``attention_window`` frames (with 30 frames of context each side) when the
-        audio is longer, so that memory stays bounded.
+        audio is longer, so that memory stays bounded. Fast mode runs up to ``block`` frames per
+        pass (default ``generate_block``) from guesses of their codes and keeps the frames whose
+        guesses held (:meth:`FrameGenerator.block`): the same codes as one frame at a time
+        (``block=1``), up to float rounding, which a tie between two codes could turn.
         """
         if mode not in ("fast", "naive"):
             raise TalkmeshError(f"unknown generation mode '{mode}': use fast or naive")
@@ -816,7 +851,7 @@ class CodeTalker(nn.Module):
                 inputs = torch.cat([inputs, nxt[:, None]], dim=1)
             all_codes = torch.stack(codes, dim=1)
         else:
-            all_codes, motion = self._generate_fast(style, cross, num_frames)
+            all_codes, motion = self._generate_fast(style, cross, num_frames, block)
         if mode == "naive" or motion is None:  # a causal decoder's steps are already final
             window = None if mode == "naive" else max(1, s2.attention_window // vq.temporal_unit)
             motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
@@ -824,26 +859,56 @@ class CodeTalker(nn.Module):
         return motion.add_(template[:, None])  # in place: 10 minutes are about 1 GB
 
     def _generate_fast(
-        self, style: Tensor, cross: list[Tensor], num_frames: int
+        self, style: Tensor, cross: list[Tensor], num_frames: int, block: int | None = None
     ) -> tuple[Tensor, Tensor | None]:
-        """-> codes (B, T, H), and with a causal VQ decoder the motion (B, T, V*3) as well."""
+        """-> codes (B, T, H), and with a causal VQ decoder the motion (B, T, V*3) as well.
+
+        Frames go through :meth:`FrameGenerator.block` up to ``block`` at a time (default
+        ``generate_block``), each pass guessing its codes from the previous one; ``block=1`` is
+        the plain frame-by-frame loop. Either way the codes are those of the frame-by-frame loop.
+        """
         gen = FrameGenerator(self, style)
-        codes, motion = [], None
+        vq = self.cfg.vq
+        B, most = style.shape[0], max(1, block or self.generate_block)
+        codes = torch.empty(B, num_frames, vq.components, dtype=torch.long, device=style.device)
+        motion = None
         if gen.causal:
-            motion = style.new_empty(style.shape[0], num_frames, self.cfg.vq.num_vertices * 3)
-        for t in range(num_frames):
-            code, frame = gen.step([c[:, t : t + 1] for c in cross])
-            codes.append(code)
-            if motion is not None:
-                motion[:, t] = frame
-        return torch.stack(codes, dim=1), motion
+            motion = style.new_empty(B, num_frames, vq.num_vertices * 3)
+        done = moved = 0  # frames whose codes are final; frames whose motion is written
+        guesses = codes[:, :0]  # the latest codes passes gave for the frames after ``done``
+        run = float(most)  # how many frames passes keep when a guess fails (running mean)
+        while done < num_frames:
+            K = min(most, max(2, round(4 * run)), num_frames - done)
+            if done == 0:  # frame 0 alone: drafts repeat the last input, frame 0's has no motion
+                K = 1
+            drafts = guesses[:, : K - 1]
+            used = drafts.shape[1]
+            kept, after, frames = gen.block([c[:, done : done + K] for c in cross], drafts)
+            guesses = torch.cat([after, guesses[:, K:]], dim=1)  # older ones past this pass stay
+            codes[:, done : done + kept.shape[1]] = kept
+            done += kept.shape[1]
+            if frames is not None:
+                motion[:, moved : moved + frames.shape[1]] = frames
+                moved += frames.shape[1]
+            # guesses that fail early again and again make long passes a waste: shorten them
+            run = most if kept.shape[1] > used else (run + kept.shape[1]) / 2
+        frames = gen.flush()
+        if frames is not None:
+            motion[:, moved:] = frames
+        return codes, motion
 
 
 class FrameGenerator:
-    """Stage 2 and the VQ decoder one frame at a time with key/value caches (``generate``'s fast
+    """Stage 2 and the VQ decoder over the next frames with key/value caches (``generate``'s fast
     mode, and streaming): every frame costs the same, whatever the length.
 
-    With a causal VQ decoder (``vq.causal``) each step also returns the frame's motion, exactly
+    :meth:`step` runs one frame. :meth:`block` runs K frames in one pass from guesses of their
+    codes and keeps those it got right (Jacobi decoding of the autoregressive loop): generating a
+    frame reads all the weights for one small matrix-vector product per layer, so a pass over K
+    frames costs little more than one, and a frame's codes depend mostly on its audio, so most
+    guesses taken from the previous pass hold.
+
+    With a causal VQ decoder (``vq.causal``) the motion of each frame is returned as well, exactly
     what a full pass would give. Otherwise the fed-back frame comes from a causal, cached pass
     through the bidirectional decoder (see :meth:`CodeTalker.generate`) and no motion is returned.
     """
@@ -858,46 +923,135 @@ class FrameGenerator:
         self.vq_step = DecoderStep(dec) if vq.causal else None
         # the bidirectional decoder's cached causal pass (unused with a causal decoder)
         self.vq_caches = [] if vq.causal else [KVCache(self.window) for _ in dec.blocks]
-        self.conv_inputs: list[Tensor] = []
+        self.conv_inputs: Tensor | None = None  # (B, 2 + K, hidden) its conv's recent inputs
         # the VQ decoder's output map followed by the motion map is one linear map: fold them
         # (normalised motion in, so the decoder's scale cancels)
         self.fold = folded_linear(
             model, dec.out, model.motion_map, int8=getattr(model, "int8", False)
         )
         device = style.device
-        self.ppe = periodic_encoding(s2.period, s2.d_model, s2.period, device)[:, None]
-        self.full_bias = temporal_bias(
-            s2.heads, 1, self.window, s2.period, device, q_offset=self.window - 1
-        )[None]
-        self.x_in = style[:, None]
-        self.t = 0
+        self.ppe = periodic_encoding(s2.period, s2.d_model, s2.period, device)
+        self.step_bias = window_bias(s2.heads, 1, self.window, self.window, s2.period, device)[None]
+        self.x_in: Tensor | None = style[:, None]  # (B, 1, d) the next frame's input ...
+        self.pending: Tensor | None = None  # ... or (B, H) codes of the last frame, not yet
+        # through the VQ decoder (after ``block``)
+        self.t = 0  # frames whose codes are final
+        self.vq_t = 0  # frames through the VQ decoder
+
+    def _stage2(self, x: Tensor, cross: list[Tensor]) -> Quantized:
+        """x (B, K, d) fed-back inputs of frames t..t+K-1 -> their codes; the rows join the cache."""
+        model, t = self.model, self.t
+        s2, vq = model.cfg.stage2, model.cfg.vq
+        B, K = x.shape[:2]
+        x = x + self.ppe[torch.arange(t, t + K, device=x.device) % len(self.ppe)]
+        if K == 1:
+            bias = self.step_bias[..., self.window - min(t + 1, self.window) :]
+        else:
+            keys = min(t + K, self.window + K - 1)
+            bias = window_bias(s2.heads, K, keys, self.window, s2.period, x.device)[None]
+        feats = model._decoder(x, cross, bias, self.caches)
+        return model.vqvae.quantizer(feats.view(B, K, vq.components, vq.code_dim))
+
+    def _vq_hidden(self, codes: Tensor) -> Tensor:
+        """codes (B, K, H) of the next K frames -> (B, K, hidden), the VQ decoder's normalised
+        hidden states before its output map; the rows join the caches."""
+        dec, K = self.model.vqvae.decoder, codes.shape[1]
+        z_q = self.model.vqvae.quantizer.lookup(codes)
+        if self.vq_step is not None:
+            h = self.vq_step.hidden(z_q)
+        else:
+            x = dec.inp(z_q.flatten(2))
+            past = x[:, :1].expand(-1, 2, -1) if self.conv_inputs is None else self.conv_inputs
+            seq = self.conv_inputs = torch.cat([past[:, -2:], x], dim=1)
+            # the kernel sees t-2..t+2; t+1 and t+2 are not decoded yet, so they repeat t
+            now = seq[:, 2:]
+            windows = torch.stack([seq[:, :K], seq[:, 1 : K + 1], now, now, now], dim=-1)
+            pos = torch.arange(self.vq_t, self.vq_t + K, device=x.device)
+            h = dec.mid(dec.conv.step(windows)) + sinusoid(pos, dec.cfg.hidden)
+            bias = None
+            if K > 1:
+                keys = min(self.vq_t + K, self.window + K - 1)
+                bias = window_bias(dec.cfg.heads, K, keys, self.window, None, x.device)[None]
+            for block, cache in zip(dec.blocks, self.vq_caches):
+                h = block(h, bias, cache)
+            h = dec.norm(h)
+        self.vq_t += K
+        return h
+
+    def _vq_drop(self, frames: int) -> None:
+        if not frames:
+            return
+        if self.vq_step is not None:
+            self.vq_step.drop(frames)
+        else:
+            for cache in self.vq_caches:
+                cache.drop(frames)
+            self.conv_inputs = self.conv_inputs[:, :-frames]
+        self.vq_t -= frames
+        if not self.vq_t:  # the conv's left padding repeats frame 0: gone with it
+            self.conv_inputs = None
+
+    def _motion(self, h: Tensor) -> Tensor | None:
+        dec = self.model.vqvae.decoder
+        return dec.out(h) * dec.scale if self.causal else None
 
     def step(self, cross: list[Tensor]) -> tuple[Tensor, Tensor | None]:
         """cross: per decoder layer the (B, 1, d) audio term of this frame -> codes (B, H) and,
         with a causal VQ decoder, motion (B, V*3)."""
-        model, vq, t = self.model, self.model.cfg.vq, self.t
-        B = self.style.shape[0]
-        x = self.x_in + self.ppe[t % len(self.ppe)]
-        bias = self.full_bias[..., self.window - min(t + 1, self.window) :]
-        feats = model._decoder(x, cross, bias, self.caches)
-        q = model.vqvae.quantizer(feats.view(B, 1, vq.components, vq.code_dim))
-        dec = model.vqvae.decoder
-        motion = None
-        if self.vq_step is not None:
-            h = self.vq_step.hidden(q.z_q)
-            motion = (dec.out(h) * dec.scale)[:, 0]
-        else:  # conv over the last frames (replicate padding on the right), cached attention
-            self.conv_inputs = [*self.conv_inputs[-2:], dec.inp(q.z_q.flatten(2))]
-            last = len(self.conv_inputs) - 1  # the kernel sees t-2..t+2; t+1, t+2 repeat t
-            window = [self.conv_inputs[min(max(last - 2 + j, 0), last)] for j in range(5)]
-            pos = sinusoid(torch.tensor([t], device=feats.device), dec.cfg.hidden)
-            h = dec.mid(dec.conv.step(torch.cat(window, dim=1))) + pos
-            for n, block in enumerate(dec.blocks):
-                h = block(h, None, self.vq_caches[n])
-            h = dec.norm(h)
-        self.x_in = self.fold(h) + self.style[:, None]
+        self.flush()
+        q = self._stage2(self.x_in, cross)
         self.t += 1
-        return q.codes[:, 0], motion
+        h = self._vq_hidden(q.codes)
+        self.x_in = self.fold(h) + self.style[:, None]
+        motion = self._motion(h)
+        return q.codes[:, 0], None if motion is None else motion[:, 0]
+
+    def block(self, cross: list[Tensor], drafts: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """The next K frames in one pass; cross: per decoder layer their (B, K, d) audio terms;
+        ``drafts`` (B, G, H), G < K, guess the codes of the first G of them.
+
+        Each frame is computed from the guessed codes before it, so the frames up to the first
+        wrong guess, and that one (its inputs were right), are exactly what K steps would give:
+        they are kept, the rest are taken back out of the caches. Frames after the G + 1 that
+        follow guesses are only drafts: they repeat the last input that a guess gave, so they
+        cost no VQ decoder step, and their codes serve as guesses for the next pass. The last
+        kept frame's codes wait for the next pass (or :meth:`flush`) to go through the VQ decoder.
+        -> codes (B, A, H) of the A >= 1 frames kept; this pass's codes (B, K - A, H) for the
+        frames after them (guesses for the next pass); with a causal VQ decoder the motion
+        (B, M, V*3) of the frames that went through it for good, else None.
+        """
+        K, G = cross[0].shape[1], drafts.shape[1]
+        if G >= K:
+            raise ValueError(f"{G} guesses for a pass of {K} frames: at most K - 1")
+        rows = drafts if self.pending is None else torch.cat([self.pending[:, None], drafts], 1)
+        x, h = self.x_in, None
+        if rows.shape[1]:
+            h = self._vq_hidden(rows)
+            fed = self.fold(h) + self.style[:, None]
+            x = fed if self.pending is not None else torch.cat([self.x_in, fed], dim=1)
+        if K > G + 1:
+            x = torch.cat([x, x[:, -1:].expand(-1, K - G - 1, -1)], dim=1)
+        codes = self._stage2(x, cross).codes
+        right = (codes[:, :G] == drafts).all(-1).all(0)
+        A = 1 + int(right.long().cumprod(0).sum())
+        for cache in self.caches:
+            cache.drop(K - A)
+        wrong = G + 1 - A  # VQ decoder rows from guesses that did not hold
+        self._vq_drop(wrong)
+        self.t += A
+        self.pending, self.x_in = codes[:, A - 1], None
+        exact = rows.shape[1] - wrong
+        motion = self._motion(h[:, :exact]) if exact else None
+        return codes[:, :A], codes[:, A:], motion
+
+    def flush(self) -> Tensor | None:
+        """Run the last frame's codes through the VQ decoder if :meth:`block` left them waiting
+        -> with a causal VQ decoder their motion (B, 1, V*3), else None."""
+        if self.pending is None:
+            return None
+        h = self._vq_hidden(self.pending[:, None])
+        self.pending, self.x_in = None, self.fold(h) + self.style[:, None]
+        return self._motion(h)
 
 
 def folded_linear(
@@ -969,4 +1123,7 @@ def quantize_int8(model: CodeTalker, *, speech: bool = False) -> CodeTalker:
     step.weight.data, step.bias.data = conv.weight.detach().flatten(1), conv.bias.detach()
     dec.conv.linear = _int8(step)
     out.int8 = True  # FrameGenerator quantises its folded feedback map too
+    # one frame per pass: dynamic int8 scales each pass's activations as a whole, so a frame's
+    # codes would depend on which frames share its pass, and guesses would rarely hold
+    out.generate_block = 1
     return out
