@@ -1,7 +1,7 @@
 """Fast (cached) against naive (the paper's loop) CodeTalker generation: what the one approximation
 of fast mode costs in accuracy, on the synthetic unseen-speaker test split, in one run.
 
-    python bench/fast_vs_naive.py --model codetalker-synth --data corpus/synth [--limit 40] [--int8] [--int8-speech]
+    python bench/fast_vs_naive.py --model codetalker-synth --data corpus/synth [--limit 40] [--int8]
 
 Both modes generate the same sequences with the same model (unseen speakers use the mean style);
 each prediction set is scored with both metric protocols. Prints LVE, FDD and MVE per mode, the
@@ -34,17 +34,16 @@ def main() -> None:
     p.add_argument("--split", default="test")
     p.add_argument("--limit", type=int, default=40, help="sequences to generate (default 40)")
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--int8", action="store_true", help="also fast mode with int8 weights")
-    p.add_argument("--int8-speech", action="store_true",
-                   help="also fast mode with int8 weights and an int8 speech encoder")  # fmt: skip
+    p.add_argument("--int8", action="store_true",
+                   help="also fast mode with int8 layers: speech encoder, decoders, both")  # fmt: skip
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     net = load_model(args.model)
     nets = {"fast": net, "fast-steps": net, "naive": net}
-    if args.int8:
+    if args.int8:  # the rows of bench/inference.py
+        nets["fast-int8-speech"] = quantize_int8(net, speech=True, decoders=False)
         nets["fast-int8"] = quantize_int8(net)
-    if args.int8_speech:
-        nets["fast-int8-speech"] = quantize_int8(net, speech=True)
+        nets["fast-int8-all"] = quantize_int8(net, speech=True)
     styles = len(net.cfg.stage2.styles)
     dataset = open_dataset("synth", args.data, args.split)
     indices = list(range(min(args.limit, len(dataset))))

@@ -3,20 +3,27 @@
     python bench/inference.py                 # paper VOCASET config: 4 s / 30 s / 10 min fast, 4 s naive
     python bench/inference.py --quick         # skip the 10-minute rows
     python bench/inference.py --config small  # the synthetic-corpus config
-    python bench/inference.py --int8          # also fast mode with int8 weights (quantize_int8),
-                                              # and with an int8 speech encoder too (speech=True)
+    python bench/inference.py --int8          # also fast mode with int8 layers (quantize_int8):
+                                              # speech encoder, decoders, or both
+    python bench/inference.py --rows fast-int8-speech:600,fast:600   # just these rows
 
 Random weights (no pretrained weights exist on this machine). Rows: ``fast`` is generate()'s
 default, passes of up to ``generate_block`` frames that keep the frames whose guessed codes held
 (FrameGenerator.block); ``fast-steps`` is the same computation one frame per pass (block=1);
-``naive`` is the paper's loop. The time of ``fast-steps`` and ``naive`` does not depend on the
+``naive`` is the paper's loop. ``fast-int8-speech`` is fast mode with the speech encoder's linear
+and convolution layers in int8 (decoders float32: the passes are exact for its features),
+``fast-int8`` with the decoders' per-frame layers in int8, ``fast-int8-all`` both
+(``quantize_int8``; their effect on accuracy: bench/fast_vs_naive.py --int8). The time of ``fast-steps`` and ``naive`` does not depend on the
 weights; the time of ``fast`` does: it depends on how often a frame's codes survive a change of
 the motion fed back, so the ``frames/pass`` column is printed with it (about 1 means no gain over
 steps; a trained model keeps fewer frames per pass than random weights, see docs/codetalker.md).
 The paper config uses a wav2vec2-base-sized random speech encoder (windows of 20 s with 2 s of
 context for long audio). Each row runs in its own process, so its peak memory (maximum resident
 set size, model weights included) is its own; the time covers speech encoding, generation and
-decoding the vertices, not building the model.
+decoding the vertices, not building the model. Rows of up to 5 s of audio (the 4 s ratios) report
+the median of 3 runs after a warm-up run on the same audio (oneDNN builds its kernels per shape on
+first use), every mode alike; the runs are printed next to the table; longer rows run once after
+a 1 s warm-up.
 """
 
 from __future__ import annotations
@@ -39,6 +46,7 @@ from talkmesh.models.codetalker import (
 )
 
 SR = 16_000
+SHORT, REPEATS = 5.0, 3  # rows of up to 5 s of audio: the median of 3 runs after a warm-up
 WAV2VEC2_BASE = dict(
     hidden_size=768, num_hidden_layers=12, num_attention_heads=12, intermediate_size=3072
 )
@@ -64,22 +72,29 @@ def row(config: str, mode: str, seconds: float, threads: int) -> dict:
     """One measurement, in this process."""
     torch.set_num_threads(threads)
     model = build(config)
-    if mode.startswith("fast-int8"):
-        model = quantize_int8(model, speech=mode == "fast-int8-speech")
+    if mode.startswith("fast-int8"):  # the float32 original is freed when the name is rebound
+        speech, decoders = mode != "fast-int8", mode != "fast-int8-speech"
+        model = quantize_int8(model, speech=speech, decoders=decoders)
     gen_mode = "naive" if mode == "naive" else "fast"
     block = 1 if mode == "fast-steps" else None
     passes = count_passes()
     template = torch.zeros(1, model.cfg.vq.num_vertices, 3)
     kwargs = dict(styles=torch.tensor([0]), mode=gen_mode, block=block)
-    model.generate(torch.randn(1, SR) * 0.1, template, **kwargs)
     audio = torch.randn(1, int(seconds * SR)) * 0.1
-    passes.clear()
-    start = time.perf_counter()
-    out = model.generate(audio, template, **kwargs)
-    wall = time.perf_counter() - start
+    short = seconds <= SHORT
+    # warm-up (oneDNN builds its kernels per shape on first use): short rows on the same audio
+    model.generate(audio if short else audio[:, :SR], template, **kwargs)
+    walls = []
+    for _ in range(REPEATS if short else 1):
+        passes.clear()
+        start = time.perf_counter()
+        out = model.generate(audio, template, **kwargs)
+        walls.append(time.perf_counter() - start)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     per_pass = out.shape[1] / len(passes) if passes else None
-    return {"wall": wall, "frames": out.shape[1], "peak_mb": peak, "per_pass": per_pass}
+    wall = sorted(walls)[len(walls) // 2]
+    return {"wall": wall, "walls": walls, "frames": out.shape[1], "peak_mb": peak,
+            "per_pass": per_pass}  # fmt: skip
 
 
 def count_passes() -> list[int]:
@@ -98,7 +113,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--config", choices=["paper", "small"], default="paper")
     p.add_argument("--quick", action="store_true", help="skip the 10-minute rows")
-    p.add_argument("--int8", action="store_true", help="also fast mode with int8 weights")
+    p.add_argument("--int8", action="store_true", help="also fast mode with int8 layers")
+    p.add_argument("--rows", help="only these rows: MODE:SECONDS,... (e.g. fast-int8-speech:600)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--row", help=argparse.SUPPRESS)  # internal: MODE,SECONDS
     args = p.parse_args()
@@ -114,28 +130,36 @@ def main() -> None:
         ("fast-steps", 30.0),
     ]
     if args.int8:
-        rows += [("fast-int8", 4.0), ("fast-int8", 30.0)]
-        rows += [("fast-int8-speech", 4.0), ("fast-int8-speech", 30.0)]
+        for mode in ("fast-int8-speech", "fast-int8", "fast-int8-all"):
+            rows += [(mode, 4.0), (mode, 30.0)]
     if not args.quick:
-        rows += [("fast", 600.0)] + ([("fast-int8", 600.0)] if args.int8 else [])
+        rows += [("fast", 600.0)] + ([("fast-int8-speech", 600.0)] if args.int8 else [])
+    if args.rows:
+        rows = [(m, float(sec)) for m, sec in (r.split(":") for r in args.rows.split(","))]
     params = sum(p.numel() for p in build(args.config).parameters()) / 1e6
     print(
         f"config {args.config}: {params:.0f} M parameters, {args.threads} threads, torch {torch.__version__}"
     )
     print("| mode | audio | frames | frames/pass | time (s) | real-time factor | peak RSS (MB) |")
     print("|---|---|---|---|---|---|---|")
-    results = {}
+    results, runs = {}, {}
     for mode, seconds in rows:
         cmd = [sys.executable, __file__, "--config", args.config, "--threads", str(args.threads),
                "--row", f"{mode},{seconds}"]  # fmt: skip
         r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
         results[(mode, seconds)] = r["wall"]
+        runs[(mode, seconds)] = r["walls"]
         per_pass = "" if r["per_pass"] is None else f"{r['per_pass']:.1f}"
         print(f"| {mode} | {seconds:g} s | {r['frames']} | {per_pass} | {r['wall']:.2f} | "
               f"{r['wall'] / seconds:.3f} | {r['peak_mb']:.0f} |", flush=True)  # fmt: skip
-    naive = results[("naive", 4.0)]
-    print(f"\nnaive / fast at 4 s: {naive / results[('fast', 4.0)]:.1f}x; "
-          f"naive / fast-steps: {naive / results[('fast-steps', 4.0)]:.1f}x")  # fmt: skip
+    naive = results.get(("naive", 4.0))
+    if naive:
+        ratios = [f"{m}: {naive / t:.1f}x" for (m, sec), t in results.items()
+                  if sec == 4.0 and m != "naive"]  # fmt: skip
+        print("\nnaive / each mode at 4 s: " + ", ".join(ratios))
+    for (mode, sec), walls in runs.items():
+        if len(walls) > 1:
+            print(f"runs of {mode} at {sec:g} s: " + ", ".join(f"{w:.2f}" for w in walls))
 
 
 if __name__ == "__main__":

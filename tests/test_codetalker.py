@@ -12,6 +12,7 @@ from talkmesh.models.codetalker import (
     CodeTalker,
     CodeTalkerConfig,
     DecoderStep,
+    Int8Linear,
     Quantizer,
     Stage2Config,
     VQConfig,
@@ -533,7 +534,7 @@ def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causa
     assert not hasattr(model, "int8") and model.vqvae.decoder.conv.linear is None
 
     def quantized(module):
-        return any(isinstance(m, torch.ao.nn.quantized.dynamic.Linear) for m in module.modules())
+        return any(isinstance(m, Int8Linear) for m in module.modules())
 
     from talkmesh.models.codetalker import FrameGenerator
 
@@ -545,9 +546,72 @@ def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causa
     assert not quantized(quantize_int8(w2v).speech)
     both = quantize_int8(w2v, speech=True)  # the speech encoder's linear layers as well
     assert quantized(both.speech) and not quantized(w2v.speech)
+    speech_only = quantize_int8(w2v, speech=True, decoders=False)
+    assert quantized(speech_only.speech) and not quantized(speech_only.blocks)
+    assert not getattr(speech_only, "int8", False)  # its feedback map stays float32 too
     ref = w2v.generate(audio, templ, styles=style)
     out = both.generate(audio, templ, styles=style)
     assert (out - ref).abs().mean() < 0.1 * ref.abs().mean()
+
+
+def test_int8_linear_rows_do_not_depend_on_each_other():
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(37, 11)  # odd sizes on purpose
+    q = Int8Linear(linear)
+    x = torch.randn(2, 9, 37)
+    x[0, 3] *= 100  # a row with a large range must not change the others' scale
+    together = q(x)
+    alone = torch.stack([torch.cat([q(x[b, t : t + 1]) for t in range(9)]) for b in range(2)])
+    assert torch.equal(together, alone)  # bitwise: integer sums, one scale per row
+    ref = linear(x)
+    assert (together - ref).abs().max() < 0.02 * ref.abs().max()
+    assert q(x[:, :0]).shape == (2, 0, 11)
+
+
+@pytest.mark.parametrize("stride,padding", [(1, 0), (2, 1), (5, 0)])
+def test_int8_conv1d_is_the_convolution_in_int8(stride, padding):
+    from talkmesh.models.codetalker import Int8Conv1d, _int8
+
+    torch.manual_seed(0)
+    conv = torch.nn.Conv1d(6, 10, 3, stride=stride, padding=padding)
+    q = _int8(torch.nn.Sequential(conv))[0]
+    assert isinstance(q, Int8Conv1d)
+    x = torch.randn(2, 6, 23)
+    ref, out = conv(x), q(x)
+    assert out.shape == ref.shape
+    assert (out - ref).abs().max() < 0.02 * ref.abs().max()
+    # each output frame is its own row: the frames outside its window do not change it
+    y = x.clone()
+    y[:, :, -1] *= 50
+    first = (ref.shape[-1] - 1) * stride - padding  # the first input the last window reads
+    assert torch.equal(q(y)[..., : first // stride], out[..., : first // stride])
+    grouped = torch.nn.Conv1d(6, 6, 3, groups=2)  # not a plain convolution: left as it is
+    assert _int8(torch.nn.Sequential(grouped))[0] is grouped
+
+
+@pytest.mark.parametrize("causal", [False, True])
+def test_int8_passes_give_the_codes_of_one_frame_at_a_time(causal):
+    from talkmesh.models.codetalker import FrameGenerator
+
+    model = quantize_int8(tiny(vq_layers=2, causal=causal))
+    audio, _ = clip(30)
+    templ, style = torch.zeros(1, 20, 3), torch.tensor([1])
+    calls = []
+    block = FrameGenerator.block
+
+    def counted(self, cross, drafts):
+        calls.append(cross[0].shape[1])
+        return block(self, cross, drafts)
+
+    FrameGenerator.block = counted
+    try:
+        steps = model.generate(audio, templ, styles=style, block=1)
+        calls.clear()
+        passes = model.generate(audio, templ, styles=style)
+    finally:
+        FrameGenerator.block = block
+    assert max(calls) > 1 and len(calls) < steps.shape[1]  # passes ran, several frames each
+    torch.testing.assert_close(passes, steps, atol=1e-5, rtol=1e-4)
 
 
 def test_the_folded_feedback_map_is_kept_until_its_weights_change():

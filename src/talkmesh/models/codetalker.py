@@ -816,7 +816,8 @@ class CodeTalker(nn.Module):
         ``seed`` is accepted for the common model surface and unused).
 
         ``mode="naive"`` is the paper's loop: at every step the whole decoder runs over the whole
-        prefix, the whole quantised prefix is decoded by the VQ decoder and its last frame fed back.
+        prefix (every sub-layer, the cross-attention onto the prefix's audio tokens included), the
+        whole quantised prefix is decoded by the VQ decoder and its last frame fed back.
         ``mode="fast"`` keeps key/value caches: the stage-2 decoder sees exactly the same inputs
         (causal), but the VQ decoder's feedback frame comes from a causal, cached pass (its frame t
         attends to frames <= t as computed when they were last, instead of re-running bidirectional
@@ -835,7 +836,7 @@ class CodeTalker(nn.Module):
             num_frames = max(1, round(audio.shape[1] / 16_000 * fps))
         s2, vq = self.cfg.stage2, self.cfg.vq
         style = self.style_vector(styles, style_weights)
-        cross = self._cross(self.audio_tokens(audio, audio_lengths, num_frames))
+        tokens = self.audio_tokens(audio, audio_lengths, num_frames)
         H, C = vq.components, vq.code_dim
         if mode == "naive":
             inputs = style[:, None]
@@ -843,7 +844,8 @@ class CodeTalker(nn.Module):
             for t in range(num_frames):
                 x = inputs + periodic_encoding(t + 1, s2.d_model, s2.period, inputs.device)
                 bias = temporal_bias(s2.heads, t + 1, t + 1, s2.period, x.device)[None]
-                feats = self._decoder(x, [c[:, : t + 1] for c in cross], bias)
+                # as the paper's decoder: its cross-attention runs over the prefix at every step
+                feats = self._decoder(x, self._cross(tokens[:, : t + 1]), bias)
                 q = self.vqvae.quantizer(feats.view(B, t + 1, H, C))
                 motion = self.vqvae.decoder(q.z_q)
                 codes.append(q.codes[:, -1])
@@ -851,7 +853,7 @@ class CodeTalker(nn.Module):
                 inputs = torch.cat([inputs, nxt[:, None]], dim=1)
             all_codes = torch.stack(codes, dim=1)
         else:
-            all_codes, motion = self._generate_fast(style, cross, num_frames, block)
+            all_codes, motion = self._generate_fast(style, self._cross(tokens), num_frames, block)
         if mode == "naive" or motion is None:  # a causal decoder's steps are already final
             window = None if mode == "naive" else max(1, s2.attention_window // vq.temporal_unit)
             motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
@@ -1080,35 +1082,118 @@ def folded_linear(
     return fold
 
 
+def _int8_rows(rows: Tensor, weight_int8: Tensor, weight_scale: Tensor) -> Tensor:
+    """rows (M, K) float @ weight (K, N) int8 with per-column scales -> (M, N) float32; each row
+    quantised with its own scale, integer products summed exactly."""
+    rows = rows.float()
+    scale = rows.abs().amax(1, keepdim=True).clamp_(min=1e-12) / 127
+    q = torch.round(rows / scale).to(torch.int8)
+    return torch._int_mm(q, weight_int8).float().mul_(scale * weight_scale)
+
+
+def _int8_weight(weight: Tensor) -> tuple[Tensor, Tensor]:
+    """(N, K) float -> (K, N) int8 as a transposed view of a contiguous (N, K) matrix (the layout
+    torch._int_mm reads fastest for one or two rows), and the (N,) scale of each output."""
+    w = weight.detach().float().flatten(1)
+    scale = w.abs().amax(1).clamp(min=1e-12) / 127
+    return (w / scale[:, None]).round_().to(torch.int8).t(), scale
+
+
+class Int8Linear(nn.Module):
+    """A linear map read as int8: the weight with one scale per output row, the input quantised
+    row by row (each row its own scale), integer products summed exactly in int32
+    (``torch._int_mm``), then rescaled. A row's result depends on that row alone, never on the
+    other rows of the batch, so passes of fast generation keep the codes of one frame at a time
+    (PyTorch's dynamic int8 scales the whole input together, which does not)."""
+
+    def __init__(self, linear: nn.Linear) -> None:
+        super().__init__()
+        self.in_features, self.out_features = linear.in_features, linear.out_features
+        weight, scale = _int8_weight(linear.weight)
+        self.register_buffer("weight_int8", weight)
+        self.register_buffer("weight_scale", scale)
+        bias = linear.bias.detach().float() if linear.bias is not None else None
+        self.register_buffer("bias", bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        y = _int8_rows(x.reshape(-1, self.in_features), self.weight_int8, self.weight_scale)
+        if self.bias is not None:
+            y.add_(self.bias)
+        return y.view(*x.shape[:-1], self.out_features)
+
+    def extra_repr(self) -> str:
+        return f"in_features={self.in_features}, out_features={self.out_features}, int8"
+
+
+class Int8Conv1d(nn.Module):
+    """A Conv1d (zero padding, no groups or dilation) as :class:`Int8Linear` over the windows
+    under its kernel: each output frame is one row, quantised on its own."""
+
+    def __init__(self, conv: nn.Conv1d) -> None:
+        super().__init__()
+        self.kernel, self.stride = conv.kernel_size[0], conv.stride[0]
+        self.padding, self.out_channels = conv.padding[0], conv.out_channels
+        weight, scale = _int8_weight(conv.weight)  # (C * k, O), rows in the (c, k) order
+        self.register_buffer("weight_int8", weight)
+        self.register_buffer("weight_scale", scale)
+        bias = conv.bias.detach().float() if conv.bias is not None else None
+        self.register_buffer("bias", bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """(B, C, L) -> (B, O, L')."""
+        if self.padding:
+            x = F.pad(x, (self.padding, self.padding))
+        windows = x.unfold(2, self.kernel, self.stride).transpose(1, 2)  # (B, L', C, k)
+        B, L = windows.shape[:2]
+        y = _int8_rows(windows.reshape(B * L, -1), self.weight_int8, self.weight_scale)
+        if self.bias is not None:
+            y.add_(self.bias)
+        return y.view(B, L, self.out_channels).transpose(1, 2)
+
+
+def _plain_conv1d(module: nn.Module) -> bool:
+    return (
+        type(module) is nn.Conv1d
+        and module.groups == 1
+        and module.dilation[0] == 1
+        and module.padding_mode == "zeros"
+        and isinstance(module.padding, tuple)
+    )
+
+
 def _int8(module: nn.Module) -> nn.Module:
-    """A copy of ``module`` with its linear layers dynamically quantised to int8."""
-    import warnings
+    """``module`` with its linear layers as :class:`Int8Linear` and its plain convolutions as
+    :class:`Int8Conv1d` (a bare layer is converted itself); the float weights are not kept."""
+    if type(module) is nn.Linear:
+        return Int8Linear(module)
+    if _plain_conv1d(module):
+        return Int8Conv1d(module)
+    for name, child in module.named_children():
+        setattr(module, name, _int8(child))
+    return module
 
-    from torch.ao.quantization import quantize_dynamic
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the eager-mode API is marked for migration to torchao
-        if isinstance(module, nn.Linear):  # only children are swapped: wrap a bare layer
-            module = nn.Sequential(module)
-        return quantize_dynamic(module, {nn.Linear}, dtype=torch.qint8)
+def quantize_int8(model: CodeTalker, *, speech: bool = False, decoders: bool = True) -> CodeTalker:
+    """A copy of ``model`` for CPU generation whose linear layers run in int8 (:class:`Int8Linear`).
 
-
-def quantize_int8(model: CodeTalker, *, speech: bool = False) -> CodeTalker:
-    """A copy of ``model`` for CPU generation whose per-frame weights are read as int8.
-
-    Generating one frame at a time is bound by reading the weights from memory, so every linear
-    map run at each step is replaced by PyTorch's dynamically quantised int8 version (per-tensor
-    weight scale, activations quantised on the fly): the stage-2 decoder blocks and output map,
-    the VQ decoder's blocks, input and middle maps, its temporal convolution's per-frame step
-    (as one matrix) and the folded feedback map; about 4x fewer bytes per frame. With
-    ``speech``, the speech encoder's linear layers too (it runs once per clip, but at paper size
-    it is a third of the time; it also moves the output further from float32). The per-sequence
-    maps and the final vertex output map stay float32. Not exact: the effect on accuracy is
-    measured by ``bench/fast_vs_naive.py --int8 [--int8-speech]``.
+    Generating a frame at a time is bound by reading the weights; a pass over many frames by
+    arithmetic. int8 helps both: 4x fewer bytes per weight, and integer products that this
+    machine's CPU runs several times faster than float32 ones (VNNI). Replaced: the stage-2
+    decoder blocks and output map, the VQ decoder's blocks, input and middle maps, its temporal
+    convolution's per-frame step (as one matrix) and the folded feedback map; with ``speech``,
+    the speech encoder's linear layers too. The per-sequence maps (audio map, cross terms, motion
+    map) and the final vertex output map stay float32. Each row is quantised on its own, so
+    passes give the codes of one frame at a time, as in float32. ``decoders=False`` with
+    ``speech=True`` quantises the speech encoder alone (the decoders stay float32). Not exact:
+    the effect on accuracy is measured by ``bench/fast_vs_naive.py --int8``.
     """
     import copy
 
     out = copy.deepcopy(model).eval()
+    if speech:
+        out.speech = _int8(out.speech)
+    if not decoders:
+        return out
     dec = out.vqvae.decoder
     # one at a time, so that each float32 original is freed before the next copy is made
     out.blocks = _int8(out.blocks)
@@ -1116,14 +1201,9 @@ def quantize_int8(model: CodeTalker, *, speech: bool = False) -> CodeTalker:
     out.feat_map = _int8(out.feat_map)
     dec.inp = _int8(dec.inp)
     dec.mid = _int8(dec.mid)
-    if speech:  # wav2vec2 base on 2 cores: RTF 0.18 in float32, 0.07 with int8 linears
-        out.speech = _int8(out.speech)
     conv = dec.conv.conv
     step = nn.Linear(conv.in_channels * conv.kernel_size[0], conv.out_channels)
     step.weight.data, step.bias.data = conv.weight.detach().flatten(1), conv.bias.detach()
     dec.conv.linear = _int8(step)
     out.int8 = True  # FrameGenerator quantises its folded feedback map too
-    # one frame per pass: dynamic int8 scales each pass's activations as a whole, so a frame's
-    # codes would depend on which frames share its pass, and guesses would rarely hold
-    out.generate_block = 1
     return out

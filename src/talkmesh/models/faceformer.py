@@ -381,10 +381,11 @@ class FaceFormer(nn.Module):
         style = self.style_vector(styles, style_weights)
         if len(style) != B:
             raise TalkmeshError(f"styles are given for {len(style)} samples but audio has {B}")
-        cross = self._cross(self.audio_tokens(audio, audio_lengths, num_frames))
+        tokens = self.audio_tokens(audio, audio_lengths, num_frames)
         if mode == "naive":
-            offsets = self._generate_naive(style, cross, num_frames)
+            offsets = self._generate_naive(style, tokens, num_frames)
             return offsets.view(B, num_frames, V, 3) + template[:, None]
+        cross = self._cross(tokens)
         gen = FrameGenerator(self, style)
         states = style.new_empty(B, num_frames, self.cfg.d_model)
         for t in range(num_frames):
@@ -395,15 +396,16 @@ class FaceFormer(nn.Module):
             result[:, a : a + OUTPUT_CHUNK] = offsets.view(B, -1, V, 3) + template[:, None]
         return result
 
-    def _generate_naive(self, style: Tensor, cross: list[Tensor], num_frames: int) -> Tensor:
-        """The official loop: every step runs the whole decoder and motion decoder over the whole
-        prefix and feeds its last frame back -> offsets (B, T, V*3)."""
+    def _generate_naive(self, style: Tensor, tokens: Tensor, num_frames: int) -> Tensor:
+        """The official loop: every step runs the whole decoder (its cross-attention onto the
+        prefix's audio ``tokens`` (B, T, d) included) and motion decoder over the whole prefix and
+        feeds its last frame back -> offsets (B, T, V*3)."""
         inputs = self.motion_map.bias + style  # frame 0 reads zero offsets
         previous = [inputs[:, None]]
         for t in range(num_frames):
             x = torch.cat(previous, dim=1)
             x = x + periodic_encoding(t + 1, self.cfg.d_model, self.cfg.period, x.device)
-            h = self._hidden(x, [c[:, : t + 1] for c in cross], self._bias(t + 1, x.device)[None])
+            h = self._hidden(x, self._cross(tokens[:, : t + 1]), self._bias(t + 1, x.device)[None])
             motion = self.out(h)
             previous.append((self.motion_map(motion[:, -1]) + style)[:, None])
         return motion * self.scale
