@@ -13,7 +13,8 @@ default, passes of up to ``generate_block`` frames that keep the frames whose gu
 ``naive`` is the paper's loop. ``fast-int8-speech`` is fast mode with the speech encoder's linear
 and convolution layers in int8 (decoders float32: the passes are exact for its features),
 ``fast-int8`` with the decoders' per-frame layers in int8, ``fast-int8-all`` both
-(``quantize_int8``; their effect on accuracy: bench/fast_vs_naive.py --int8). The time of ``fast-steps`` and ``naive`` does not depend on the
+(``quantize_int8``; their effect on accuracy: bench/fast_vs_naive.py --int8); ``-steps`` after
+any of them runs it one frame per pass. The time of ``fast-steps`` and ``naive`` does not depend on the
 weights; the time of ``fast`` does: it depends on how often a frame's codes survive a change of
 the motion fed back, so the ``frames/pass`` column is printed with it (about 1 means no gain over
 steps; a trained model keeps fewer frames per pass than random weights, see docs/codetalker.md).
@@ -72,11 +73,12 @@ def row(config: str, mode: str, seconds: float, threads: int) -> dict:
     """One measurement, in this process."""
     torch.set_num_threads(threads)
     model = build(config)
-    if mode.startswith("fast-int8"):  # the float32 original is freed when the name is rebound
-        speech, decoders = mode != "fast-int8", mode != "fast-int8-speech"
+    int8 = mode.removesuffix("-steps")
+    if int8.startswith("fast-int8"):  # the float32 original is freed when the name is rebound
+        speech, decoders = int8 != "fast-int8", int8 != "fast-int8-speech"
         model = quantize_int8(model, speech=speech, decoders=decoders)
     gen_mode = "naive" if mode == "naive" else "fast"
-    block = 1 if mode == "fast-steps" else None
+    block = 1 if mode.endswith("-steps") else None
     passes = count_passes()
     template = torch.zeros(1, model.cfg.vq.num_vertices, 3)
     kwargs = dict(styles=torch.tensor([0]), mode=gen_mode, block=block)

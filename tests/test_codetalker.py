@@ -413,6 +413,13 @@ def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(t
     torch.testing.assert_close(
         again.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([1])), a
     )
+    # int8 speech: Whisper's stem convolutions as Int8Conv1d (Whisper reads their strides)
+    from talkmesh.models.codetalker import Int8Conv1d
+
+    small = quantize_int8(model, speech=True, decoders=False)
+    assert sum(isinstance(m, Int8Conv1d) for m in small.speech.modules()) == 2
+    b = small.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([1]))
+    assert b.shape == a.shape and (b - a).abs().mean() < 0.1 * a.abs().mean()
 
 
 def test_history_dropout_only_acts_in_training():

@@ -1131,8 +1131,9 @@ class Int8Conv1d(nn.Module):
 
     def __init__(self, conv: nn.Conv1d) -> None:
         super().__init__()
-        self.kernel, self.stride = conv.kernel_size[0], conv.stride[0]
-        self.padding, self.out_channels = conv.padding[0], conv.out_channels
+        # Conv1d's own attributes, which callers read (Whisper checks its stem's strides)
+        self.in_channels, self.out_channels = conv.in_channels, conv.out_channels
+        self.kernel_size, self.stride, self.padding = conv.kernel_size, conv.stride, conv.padding
         weight, scale = _int8_weight(conv.weight)  # (C * k, O), rows in the (c, k) order
         self.register_buffer("weight_int8", weight)
         self.register_buffer("weight_scale", scale)
@@ -1141,9 +1142,9 @@ class Int8Conv1d(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """(B, C, L) -> (B, O, L')."""
-        if self.padding:
-            x = F.pad(x, (self.padding, self.padding))
-        windows = x.unfold(2, self.kernel, self.stride).transpose(1, 2)  # (B, L', C, k)
+        if self.padding[0]:
+            x = F.pad(x, (self.padding[0], self.padding[0]))
+        windows = x.unfold(2, self.kernel_size[0], self.stride[0]).transpose(1, 2)  # (B, L', C, k)
         B, L = windows.shape[:2]
         y = _int8_rows(windows.reshape(B * L, -1), self.weight_int8, self.weight_scale)
         if self.bias is not None:
