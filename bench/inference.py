@@ -47,6 +47,7 @@ from talkmesh.models.codetalker import (
 )
 
 SR = 16_000
+MODES = ("fast", "fast-steps", "naive", "fast-int8-speech", "fast-int8", "fast-int8-all")
 SHORT, REPEATS = 5.0, 3  # rows of up to 5 s of audio: the median of 3 runs after a warm-up
 WAV2VEC2_BASE = dict(
     hidden_size=768, num_hidden_layers=12, num_attention_heads=12, intermediate_size=3072
@@ -137,7 +138,14 @@ def main() -> None:
     if not args.quick:
         rows += [("fast", 600.0)] + ([("fast-int8-speech", 600.0)] if args.int8 else [])
     if args.rows:
-        rows = [(m, float(sec)) for m, sec in (r.split(":") for r in args.rows.split(","))]
+        rows = []
+        for r in args.rows.split(","):
+            mode, _, sec = r.partition(":")
+            base = mode if mode in ("fast-steps", "naive") else mode.removesuffix("-steps")
+            if base not in MODES or not sec.replace(".", "", 1).isdigit() or float(sec) <= 0:
+                p.error(f"--rows: {r!r} is not MODE:SECONDS with MODE one of {', '.join(MODES)} "
+                        "(any fast mode may end in -steps)")  # fmt: skip
+            rows.append((mode, float(sec)))
     params = sum(p.numel() for p in build(args.config).parameters()) / 1e6
     print(
         f"config {args.config}: {params:.0f} M parameters, {args.threads} threads, torch {torch.__version__}"

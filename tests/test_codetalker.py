@@ -564,7 +564,7 @@ def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causa
 def test_int8_linear_rows_do_not_depend_on_each_other():
     torch.manual_seed(0)
     linear = torch.nn.Linear(37, 11)  # odd sizes on purpose
-    q = Int8Linear(linear)
+    q = Int8Linear(linear.weight, linear.bias)
     x = torch.randn(2, 9, 37)
     x[0, 3] *= 100  # a row with a large range must not change the others' scale
     together = q(x)

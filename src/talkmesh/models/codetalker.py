@@ -1082,41 +1082,30 @@ def folded_linear(
     return fold
 
 
-def _int8_rows(rows: Tensor, weight_int8: Tensor, weight_scale: Tensor) -> Tensor:
-    """rows (M, K) float @ weight (K, N) int8 with per-column scales -> (M, N) float32; each row
-    quantised with its own scale, integer products summed exactly."""
-    rows = rows.float()
-    scale = rows.abs().amax(1, keepdim=True).clamp_(min=1e-12) / 127
-    q = torch.round(rows / scale).to(torch.int8)
-    return torch._int_mm(q, weight_int8).float().mul_(scale * weight_scale)
-
-
-def _int8_weight(weight: Tensor) -> tuple[Tensor, Tensor]:
-    """(N, K) float -> (K, N) int8 as a transposed view of a contiguous (N, K) matrix (the layout
-    torch._int_mm reads fastest for one or two rows), and the (N,) scale of each output."""
-    w = weight.detach().float().flatten(1)
-    scale = w.abs().amax(1).clamp(min=1e-12) / 127
-    return (w / scale[:, None]).round_().to(torch.int8).t(), scale
-
-
 class Int8Linear(nn.Module):
     """A linear map read as int8: the weight with one scale per output row, the input quantised
     row by row (each row its own scale), integer products summed exactly in int32
     (``torch._int_mm``), then rescaled. A row's result depends on that row alone, never on the
     other rows of the batch, so passes of fast generation keep the codes of one frame at a time
-    (PyTorch's dynamic int8 scales the whole input together, which does not)."""
+    (PyTorch's dynamic int8 scales the whole input together, which does not).
+    ``weight`` (out, in), ``bias`` (out,) or None: the float originals are not kept."""
 
-    def __init__(self, linear: nn.Linear) -> None:
+    def __init__(self, weight: Tensor, bias: Tensor | None) -> None:
         super().__init__()
-        self.in_features, self.out_features = linear.in_features, linear.out_features
-        weight, scale = _int8_weight(linear.weight)
-        self.register_buffer("weight_int8", weight)
+        w = weight.detach().float()
+        self.out_features, self.in_features = w.shape
+        scale = w.abs().amax(1).clamp(min=1e-12) / 127
+        # (in, out) as a transposed view of a contiguous (out, in) matrix: the layout
+        # torch._int_mm reads fastest for one or two rows
+        self.register_buffer("weight_int8", (w / scale[:, None]).round_().to(torch.int8).t())
         self.register_buffer("weight_scale", scale)
-        bias = linear.bias.detach().float() if linear.bias is not None else None
-        self.register_buffer("bias", bias)
+        self.register_buffer("bias", None if bias is None else bias.detach().float())
 
     def forward(self, x: Tensor) -> Tensor:
-        y = _int8_rows(x.reshape(-1, self.in_features), self.weight_int8, self.weight_scale)
+        rows = x.reshape(-1, self.in_features).float()
+        scale = rows.abs().amax(1, keepdim=True).clamp_(min=1e-12) / 127
+        y = torch._int_mm(torch.round(rows / scale).to(torch.int8), self.weight_int8).float()
+        y.mul_(scale).mul_(self.weight_scale)
         if self.bias is not None:
             y.add_(self.bias)
         return y.view(*x.shape[:-1], self.out_features)
@@ -1134,22 +1123,14 @@ class Int8Conv1d(nn.Module):
         # Conv1d's own attributes, which callers read (Whisper checks its stem's strides)
         self.in_channels, self.out_channels = conv.in_channels, conv.out_channels
         self.kernel_size, self.stride, self.padding = conv.kernel_size, conv.stride, conv.padding
-        weight, scale = _int8_weight(conv.weight)  # (C * k, O), rows in the (c, k) order
-        self.register_buffer("weight_int8", weight)
-        self.register_buffer("weight_scale", scale)
-        bias = conv.bias.detach().float() if conv.bias is not None else None
-        self.register_buffer("bias", bias)
+        self.linear = Int8Linear(conv.weight.flatten(1), conv.bias)  # inputs in (c, k) order
 
     def forward(self, x: Tensor) -> Tensor:
         """(B, C, L) -> (B, O, L')."""
         if self.padding[0]:
             x = F.pad(x, (self.padding[0], self.padding[0]))
         windows = x.unfold(2, self.kernel_size[0], self.stride[0]).transpose(1, 2)  # (B, L', C, k)
-        B, L = windows.shape[:2]
-        y = _int8_rows(windows.reshape(B * L, -1), self.weight_int8, self.weight_scale)
-        if self.bias is not None:
-            y.add_(self.bias)
-        return y.view(B, L, self.out_channels).transpose(1, 2)
+        return self.linear(windows.flatten(2)).transpose(1, 2)
 
 
 def _plain_conv1d(module: nn.Module) -> bool:
@@ -1166,7 +1147,7 @@ def _int8(module: nn.Module) -> nn.Module:
     """``module`` with its linear layers as :class:`Int8Linear` and its plain convolutions as
     :class:`Int8Conv1d` (a bare layer is converted itself); the float weights are not kept."""
     if type(module) is nn.Linear:
-        return Int8Linear(module)
+        return Int8Linear(module.weight, module.bias)
     if _plain_conv1d(module):
         return Int8Conv1d(module)
     for name, child in module.named_children():
@@ -1182,7 +1163,7 @@ def quantize_int8(model: CodeTalker, *, speech: bool = False, decoders: bool = T
     machine's CPU runs several times faster than float32 ones (VNNI). Replaced: the stage-2
     decoder blocks and output map, the VQ decoder's blocks, input and middle maps, its temporal
     convolution's per-frame step (as one matrix) and the folded feedback map; with ``speech``,
-    the speech encoder's linear layers too. The per-sequence maps (audio map, cross terms, motion
+    the speech encoder's linear layers and plain convolutions (:class:`Int8Conv1d`) too. The per-sequence maps (audio map, cross terms, motion
     map) and the final vertex output map stay float32. Each row is quantised on its own, so
     passes give the codes of one frame at a time, as in float32. ``decoders=False`` with
     ``speech=True`` quantises the speech encoder alone (the decoders stay float32). Not exact:
@@ -1202,9 +1183,7 @@ def quantize_int8(model: CodeTalker, *, speech: bool = False, decoders: bool = T
     out.feat_map = _int8(out.feat_map)
     dec.inp = _int8(dec.inp)
     dec.mid = _int8(dec.mid)
-    conv = dec.conv.conv
-    step = nn.Linear(conv.in_channels * conv.kernel_size[0], conv.out_channels)
-    step.weight.data, step.bias.data = conv.weight.detach().flatten(1), conv.bias.detach()
-    dec.conv.linear = _int8(step)
+    conv = dec.conv.conv  # its per-frame step as one matrix, inputs in the (c, k) order
+    dec.conv.linear = Int8Linear(conv.weight.flatten(1), conv.bias)
     out.int8 = True  # FrameGenerator quantises its folded feedback map too
     return out
