@@ -141,7 +141,11 @@ def main() -> None:
         rows = []
         for r in args.rows.split(","):
             mode, _, sec = r.partition(":")
-            base = mode if mode in ("fast-steps", "naive") else mode.removesuffix("-steps")
+            base = (
+                mode
+                if mode == "fast-steps" or not mode.startswith("fast")
+                else mode.removesuffix("-steps")
+            )
             if base not in MODES or not sec.replace(".", "", 1).isdigit() or float(sec) <= 0:
                 p.error(f"--rows: {r!r} is not MODE:SECONDS with MODE one of {', '.join(MODES)} "
                         "(any fast mode may end in -steps)")  # fmt: skip
