@@ -73,6 +73,26 @@ def test_animate_real_clip_end_to_end(speech, tmp_path):
     assert 1e-3 < motion < 0.05  # the face moves, by millimetres to centimetres
 
 
+def test_int8_animation_stays_close_to_float32(speech, tmp_path, capsys):
+    exact, out = tmp_path / "a.npy", {}
+    assert main(["animate", str(speech), "-o", str(exact), "-q", "--no-blinks"]) == 0
+    head = load_head()
+    ref = np.load(exact).reshape(90, -1, 3)
+    motion = np.abs(ref - head.template).max()
+    for mode in ("speech", "all"):
+        path = tmp_path / f"{mode}.npy"
+        args = ["animate", str(speech), "-o", str(path), "-q", "--no-blinks", "--int8", mode]
+        assert main(args) == 0
+        out[mode] = np.load(path).reshape(90, -1, 3)
+        diff = np.abs(out[mode] - ref).max(-1).mean()  # mean per-vertex distance
+        assert 0 < diff < 0.1 * motion, (mode, diff, motion)  # int8 ran, and is close
+    assert not np.array_equal(out["speech"], out["all"])
+    rc = main(["animate", str(speech), "--model", "procedural", "--int8", "all",
+               "-o", str(tmp_path / "p.npy")])  # fmt: skip
+    assert rc == 1 and not (tmp_path / "p.npy").exists()
+    assert_one_line_error(capsys.readouterr().err, "--int8", "procedural")
+
+
 def test_python_module_entry_point_prints_version():
     res = run_cli("--version")
     assert res.returncode == 0

@@ -97,6 +97,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
                 model=args.model,
                 style_mix=parse_style(args.style),
                 blinks=not args.no_blinks,
+                int8=args.int8,
             )
             for p in paths:
                 write_animation(anim, p, overwrite=args.overwrite, size=args.size)
@@ -399,6 +400,9 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="learned models: do not add the procedural blinks and gaze (speech cannot predict them)",
     )
+    a.add_argument("--int8", choices=("speech", "decoders", "all"),
+                   help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
+                   "(faster on CPUs, not exact: see docs/codetalker.md)")  # fmt: skip
     common(a)
     a.set_defaults(func=cmd_animate)
 

@@ -16,6 +16,7 @@ from talkmesh.phonemes import Phone, recognize_phones
 
 DEFAULT_FPS = 30.0
 MAX_FPS = 240.0
+INT8_MODES = ("speech", "decoders", "all")  # animate(int8=...): CodeTalker layers run in int8
 MODELS = ("procedural",)
 BLOCK = 2048  # frames processed at once on long animations
 
@@ -59,6 +60,7 @@ def animate(
     model: str | None = None,
     style_mix: dict[str, float] | None = None,
     blinks: bool = True,
+    int8: str | None = None,
 ) -> Animation:
     """Animate a face from speech.
 
@@ -77,6 +79,9 @@ def animate(
             default the mean of all of them (the model has never heard this speaker).
         blinks: learned models: add the procedural animator's blinks and gaze saccades (seeded by
             ``seed``), which speech cannot predict and a speech-driven model does not make.
+        int8: CodeTalker models: run these layers in int8 on the CPU (``speech``: the speech
+            encoder, ``decoders``: the per-frame decoder layers, ``all``: both); faster, not
+            exact (its effect on accuracy: docs/codetalker.md).
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
@@ -89,13 +94,19 @@ def animate(
         raise TalkmeshError("audio must be a non-empty mono waveform")
     if model is None:  # a transcript or phones ask for the phone-driven animator
         model = "procedural" if text is not None or phones is not None else default_model()
+    if int8 is not None and int8 not in INT8_MODES:
+        raise TalkmeshError(f"--int8 {int8}: use one of {', '.join(INT8_MODES)}")
+    if model == "procedural" and int8 is not None:
+        raise TalkmeshError("--int8 applies to CodeTalker models, not the procedural animator")
     if model != "procedural":
         if text is not None or phones is not None:
             raise TalkmeshError(
                 f"--text and phones drive the procedural animator, not {model}: drop them or "
                 "pass --model procedural"
             )
-        anim = animate_learned(wave, head, model, fps=fps, style_mix=style_mix, seed=seed)
+        anim = animate_learned(
+            wave, head, model, fps=fps, style_mix=style_mix, seed=seed, int8=int8
+        )
         if blinks:
             eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
             basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
@@ -148,9 +159,10 @@ def animate_learned(
     fps: float,
     style_mix: dict[str, float] | None,
     seed: int = 0,
+    int8: str | None = None,
 ) -> Animation:
     """Animate with a released learned model (any family of talkmesh.models.release) on
-    ``head``'s neutral face."""
+    ``head``'s neutral face; ``int8`` (CodeTalker: speech, decoders or all) as in :func:`animate`."""
     try:
         import torch
     except ImportError:
@@ -158,6 +170,12 @@ def animate_learned(
     from talkmesh.models.release import load_model
 
     net = load_model(model)
+    if int8 is not None:
+        from talkmesh.models.codetalker import CodeTalker, quantize_int8
+
+        if not isinstance(net, CodeTalker):
+            raise TalkmeshError(f"--int8 applies to CodeTalker models; {model} is not one")
+        net = quantize_int8(net, speech=int8 != "decoders", decoders=int8 != "speech")
     if net.num_vertices != head.num_vertices:
         raise TalkmeshError(
             f"model {model} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"

@@ -881,6 +881,8 @@ class CodeTalker(nn.Module):
         run = float(most)  # how many frames passes keep when a guess fails (running mean)
         while done < num_frames:
             K = min(most, max(2, round(4 * run)), num_frames - done)
+            if done == 0:  # frame 0 alone: its input has no motion, it needs no guess
+                K = 1
             drafts = guesses[:, : K - 1]
             used = drafts.shape[1]
             kept, after, frames = gen.block([c[:, done : done + K] for c in cross], drafts)
@@ -937,7 +939,6 @@ class FrameGenerator:
         # through the VQ decoder (after ``block``)
         self.t = 0  # frames whose codes are final
         self.vq_t = 0  # frames through the VQ decoder
-        self._rest: Tensor | None = None  # see rest_codes
 
     def _stage2(self, x: Tensor, cross: list[Tensor]) -> Quantized:
         """x (B, K, d) fed-back inputs of frames t..t+K-1 -> their codes; the rows join the cache."""
@@ -1013,12 +1014,14 @@ class FrameGenerator:
 
         Each frame is computed from the guessed codes before it, so the frames up to the first
         wrong guess, and that one (its inputs were right), are exactly what K steps would give:
-        they are kept, the rest are taken back out of the caches. Frames without a guess among
-        the first K - 1 get one: the last guess repeated (or the last kept frame's codes, or at
-        the start the codes of the face at rest, :meth:`rest_codes`), so that every frame is fed
-        motion the VQ decoder made from real codes, which is what the next pass feeds it too.
-        The last kept frame's codes wait for the next pass (or :meth:`flush`) to go through the
-        VQ decoder.
+        they are kept, the rest are taken back out of the caches. A pass without any guesses
+        guesses that the codes of the last kept frame hold still, so that every frame is fed
+        motion that the VQ decoder made from real codes, as in the next pass (on random
+        weights, codes computed from such motion hold there; from a repeated input they do
+        not). Frames after the G + 1 that follow guesses are only drafts: they repeat the last
+        input that a guess gave, so they cost no VQ decoder step, and their codes serve as
+        guesses for the next pass. The last kept frame's codes wait for the next pass (or
+        :meth:`flush`) to go through the VQ decoder.
         -> codes (B, A, H) of the A >= 1 frames kept; this pass's codes (B, K - A, H) for the
         frames after them (guesses for the next pass); with a causal VQ decoder the motion
         (B, M, V*3) of the frames that went through it for good, else None.
@@ -1026,20 +1029,17 @@ class FrameGenerator:
         K = cross[0].shape[1]
         if drafts.shape[1] >= K:
             raise ValueError(f"{drafts.shape[1]} guesses for a pass of {K} frames: at most K - 1")
-        if drafts.shape[1] < K - 1:
-            if drafts.shape[1]:
-                last = drafts[:, -1]
-            else:
-                last = self.rest_codes() if self.pending is None else self.pending
-            more = last[:, None].expand(-1, K - 1 - drafts.shape[1], -1)
-            drafts = torch.cat([drafts, more], dim=1)
-        G = K - 1
+        if not drafts.shape[1] and self.pending is not None:
+            drafts = self.pending[:, None].expand(-1, K - 1, -1)
+        G = drafts.shape[1]
         rows = drafts if self.pending is None else torch.cat([self.pending[:, None], drafts], 1)
         x, h = self.x_in, None
         if rows.shape[1]:
             h = self._vq_hidden(rows)
             fed = self.fold(h) + self.style[:, None]
             x = fed if self.pending is not None else torch.cat([self.x_in, fed], dim=1)
+        if K > G + 1:
+            x = torch.cat([x, x[:, -1:].expand(-1, K - G - 1, -1)], dim=1)
         codes = self._stage2(x, cross).codes
         right = (codes[:, :G] == drafts).all(-1).all(0)
         A = 1 + int(right.long().cumprod(0).sum())
@@ -1052,14 +1052,6 @@ class FrameGenerator:
         exact = rows.shape[1] - wrong
         motion = self._motion(h[:, :exact]) if exact else None
         return codes[:, :A], codes[:, A:], motion
-
-    def rest_codes(self) -> Tensor:
-        """(B, H) the codes of the face at rest (zero motion), the first pass's guesses."""
-        if self._rest is None:
-            vqvae = self.model.vqvae
-            still = self.style.new_zeros(1, vqvae.cfg.temporal_unit, vqvae.cfg.num_vertices * 3)
-            self._rest = vqvae.encode(still).codes[:, 0].expand(self.style.shape[0], -1)
-        return self._rest
 
     def flush(self) -> Tensor | None:
         """Run the last frame's codes through the VQ decoder if :meth:`block` left them waiting
