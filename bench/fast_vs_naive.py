@@ -2,12 +2,16 @@
 of fast mode costs in accuracy, on the synthetic unseen-speaker test split, in one run.
 
     python bench/fast_vs_naive.py --model codetalker-synth --data corpus/synth [--limit 40] [--int8]
+        [--dither]
 
 Both modes generate the same sequences with the same model (unseen speakers use the mean style);
 each prediction set is scored with both metric protocols. Prints LVE, FDD and MVE per mode, the
 relative LVE difference, the largest per-frame vertex difference between the two modes, and the
 generation time of each mode. ``fast-steps`` is fast mode one frame per pass (block=1): fast mode
 must give the same codes; how many frames its passes keep on a trained model is printed.
+``--dither`` adds exact fast mode on the audio plus inaudible noise (uniform, half a 16-bit step):
+an autoregressive model's trajectory can turn on a near-tie between two codes, so even such a
+change moves LVE; it is the yardstick for the int8 rows.
 """
 
 from __future__ import annotations
@@ -36,10 +40,15 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--int8", action="store_true",
                    help="also fast mode with int8 layers: speech encoder, decoders, both")  # fmt: skip
+    p.add_argument("--dither", action="store_true",
+                   help="also fast mode on the audio plus uniform noise of half a 16-bit step: "
+                   "the LVE change that inaudible input changes cause, next to int8's")  # fmt: skip
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     net = load_model(args.model)
     nets = {"fast": net, "fast-steps": net, "naive": net}
+    if args.dither:  # the same exact fast mode on audio with inaudible noise: how much LVE moves
+        nets["fast-dither"] = net  # when nothing but the last bits of the input change
     if args.int8:  # the rows of bench/inference.py
         nets["fast-int8-speech"] = quantize_int8(net, speech=True, decoders=False)
         nets["fast-int8"] = quantize_int8(net)
@@ -61,10 +70,13 @@ def main() -> None:
             template = torch.from_numpy(s.template)[None]
             weights = torch.full((1, styles), 1.0 / styles)
             out = {}
+            g = torch.Generator().manual_seed(i)
+            dither = (torch.rand(audio.shape, generator=g) - 0.5) / 32768
             for mode in seconds:
                 start = time.perf_counter()
                 before = len(passes)
-                out[mode] = nets[mode].generate(audio, template, style_weights=weights,
+                heard = audio + dither if mode == "fast-dither" else audio
+                out[mode] = nets[mode].generate(heard, template, style_weights=weights,
                     num_frames=len(s.vertices), mode=mode.split("-")[0],
                     block=1 if mode == "fast-steps" else None)[0].numpy()  # fmt: skip
                 if mode == "fast":
