@@ -70,12 +70,13 @@ def main() -> None:
             template = torch.from_numpy(s.template)[None]
             weights = torch.full((1, styles), 1.0 / styles)
             out = {}
-            g = torch.Generator().manual_seed(i)
-            dither = (torch.rand(audio.shape, generator=g) - 0.5) / 32768
             for mode in seconds:
+                heard = audio
+                if mode == "fast-dither":  # seeded per sequence, outside the timed part
+                    g = torch.Generator().manual_seed(i)
+                    heard = audio + (torch.rand(audio.shape, generator=g) - 0.5) / 32768
                 start = time.perf_counter()
                 before = len(passes)
-                heard = audio + dither if mode == "fast-dither" else audio
                 out[mode] = nets[mode].generate(heard, template, style_weights=weights,
                     num_frames=len(s.vertices), mode=mode.split("-")[0],
                     block=1 if mode == "fast-steps" else None)[0].numpy()  # fmt: skip

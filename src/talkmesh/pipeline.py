@@ -170,16 +170,16 @@ def animate_learned(
     from talkmesh.models.release import load_model
 
     net = load_model(model)
+    if net.num_vertices != head.num_vertices:
+        raise TalkmeshError(
+            f"model {model} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
+        )
     if int8 is not None:
         from talkmesh.models.codetalker import CodeTalker, quantize_int8
 
         if not isinstance(net, CodeTalker):
             raise TalkmeshError(f"--int8 applies to CodeTalker models; {model} is not one")
         net = quantize_int8(net, speech=int8 != "decoders", decoders=int8 != "speech")
-    if net.num_vertices != head.num_vertices:
-        raise TalkmeshError(
-            f"model {model} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
-        )
     styles = list(net.styles)
     weights = None
     if styles:
