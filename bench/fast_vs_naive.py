@@ -11,7 +11,10 @@ generation time of each mode. ``fast-steps`` is fast mode one frame per pass (bl
 must give the same codes; how many frames its passes keep on a trained model is printed.
 ``--dither`` adds exact fast mode on the audio plus inaudible noise (uniform, half a 16-bit step):
 an autoregressive model's trajectory can turn on a near-tie between two codes, so even such a
-change moves LVE; it is the yardstick for the int8 rows.
+change moves LVE; it is the yardstick for the int8 rows. ``--noise 1e-3,1e-2`` adds exact fast mode
+with Gaussian noise of that size (relative to the features' standard deviation, seeded per
+sequence) added to the speech encoder's output: how far LVE moves for a given size of error in the
+features, whatever its source (int8 or bf16 arithmetic has errors of about 1e-2 to 5e-2).
 """
 
 from __future__ import annotations
@@ -43,12 +46,26 @@ def main() -> None:
     p.add_argument("--dither", action="store_true",
                    help="also fast mode on the audio plus uniform noise of half a 16-bit step: "
                    "the LVE change that inaudible input changes cause, next to int8's")  # fmt: skip
+    p.add_argument("--noise", type=lambda v: [float(r) for r in v.split(",")], default=[],
+                   help="also fast mode with Gaussian noise of these sizes (relative to their "
+                   "standard deviation) added to the speech features, e.g. 1e-3,1e-2")  # fmt: skip
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     net = load_model(args.model)
+    noise = {"size": 0.0, "seed": 0}  # of the row being generated
+
+    def add_noise(module, inputs, feats):
+        if not noise["size"]:
+            return feats
+        g = torch.Generator().manual_seed(noise["seed"])
+        return feats + torch.randn(feats.shape, generator=g) * (noise["size"] * feats.std())
+
+    net.speech.register_forward_hook(add_noise)
     nets = {"fast": net, "fast-steps": net, "naive": net}
     if args.dither:  # the same exact fast mode on audio with inaudible noise: how much LVE moves
         nets["fast-dither"] = net  # when nothing but the last bits of the input change
+    for size in args.noise:
+        nets[f"fast-noise{size:g}"] = net
     if args.int8:  # the rows of bench/inference.py
         nets["fast-int8-speech"] = quantize_int8(net, speech=True, decoders=False)
         nets["fast-int8"] = quantize_int8(net)
@@ -75,6 +92,8 @@ def main() -> None:
                 if mode == "fast-dither":  # seeded per sequence, outside the timed part
                     g = torch.Generator().manual_seed(i)
                     heard = audio + (torch.rand(audio.shape, generator=g) - 0.5) / 32768
+                noise["size"] = float(mode[10:]) if mode.startswith("fast-noise") else 0.0
+                noise["seed"] = i
                 start = time.perf_counter()
                 before = len(passes)
                 out[mode] = nets[mode].generate(heard, template, style_weights=weights,

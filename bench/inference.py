@@ -22,7 +22,7 @@ The paper config uses a wav2vec2-base-sized random speech encoder (windows of 20
 context for long audio). Each row runs in its own process, so its peak memory (maximum resident
 set size, model weights included) is its own; the time covers speech encoding, generation and
 decoding the vertices, not building the model. Rows of up to 5 s of audio (the 4 s ratios) report
-the median of 3 runs after a warm-up run on the same audio (oneDNN builds its kernels per shape on
+the median of 5 runs after a warm-up run on the same audio (oneDNN builds its kernels per shape on
 first use), every mode alike; the runs are printed next to the table; longer rows run once after
 a 1 s warm-up.
 """
@@ -48,7 +48,7 @@ from talkmesh.models.codetalker import (
 
 SR = 16_000
 MODES = ("fast", "fast-steps", "naive", "fast-int8-speech", "fast-int8", "fast-int8-all")
-SHORT, REPEATS = 5.0, 3  # rows of up to 5 s of audio: the median of 3 runs after a warm-up
+SHORT, REPEATS = 5.0, 5  # rows of up to 5 s of audio: the median of 5 runs after a warm-up
 WAV2VEC2_BASE = dict(
     hidden_size=768, num_hidden_layers=12, num_attention_heads=12, intermediate_size=3072
 )

@@ -894,9 +894,8 @@ class CodeTalker(nn.Module):
                 moved += frames.shape[1]
             # guesses that fail early again and again make long passes a waste: shorten them
             run = most if kept.shape[1] > used else (run + kept.shape[1]) / 2
-        frames = gen.flush()
-        if frames is not None:
-            motion[:, moved:] = frames
+        if gen.causal:  # the last frame's motion; a bidirectional decoder's feedback is not needed
+            motion[:, moved:] = gen.flush()
         return codes, motion
 
 
