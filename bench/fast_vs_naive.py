@@ -7,7 +7,8 @@ of fast mode costs in accuracy, on the synthetic unseen-speaker test split, in o
 Both modes generate the same sequences with the same model (unseen speakers use the mean style);
 each prediction set is scored with both metric protocols. Prints LVE, FDD and MVE per mode, the
 relative LVE difference, the largest per-frame vertex difference between the two modes, and the
-generation time of each mode. ``fast-steps`` is fast mode one frame per pass (block=1): fast mode
+generation time of each mode. ``exact`` is the naive loop's output with the stage-2 caches (it
+differs from ``fast`` only with the paper's bidirectional VQ decoder). ``fast-steps`` is fast mode one frame per pass (block=1): fast mode
 must give the same codes; how many frames its passes keep on a trained model is printed.
 ``--dither`` adds exact fast mode on the audio plus inaudible noise (uniform, half a 16-bit step):
 an autoregressive model's trajectory can turn on a near-tie between two codes, so even such a
@@ -61,7 +62,7 @@ def main() -> None:
         return feats + torch.randn(feats.shape, generator=g) * (noise["size"] * feats.std())
 
     net.speech.register_forward_hook(add_noise)
-    nets = {"fast": net, "fast-steps": net, "naive": net}
+    nets = {"fast": net, "fast-steps": net, "naive": net, "exact": net}
     if args.dither:  # the same exact fast mode on audio with inaudible noise: how much LVE moves
         nets["fast-dither"] = net  # when nothing but the last bits of the input change
     for size in args.noise:

@@ -10,7 +10,10 @@
 Random weights (no pretrained weights exist on this machine). Rows: ``fast`` is generate()'s
 default, passes of up to ``generate_block`` frames that keep the frames whose guessed codes held
 (FrameGenerator.block); ``fast-steps`` is the same computation one frame per pass (block=1);
-``naive`` is the paper's loop. ``fast-int8-speech`` is fast mode with the speech encoder's linear
+``naive`` is the paper's loop; ``exact`` is its output with the stage-2 caches, one frame at a
+time, the fed-back frame from the paper's bidirectional VQ decoder re-run over the prefix (the
+paper config's ``fast`` feeds back a cached causal pass instead: an approximation).
+``fast-int8-speech`` is fast mode with the speech encoder's linear
 and convolution layers in int8 (decoders float32: the passes are exact for its features),
 ``fast-int8`` with the decoders' per-frame layers in int8, ``fast-int8-all`` both
 (``quantize_int8``; their effect on accuracy: bench/fast_vs_naive.py --int8); ``-steps`` after
@@ -47,7 +50,7 @@ from talkmesh.models.codetalker import (
 )
 
 SR = 16_000
-MODES = ("fast", "fast-steps", "naive", "fast-int8-speech", "fast-int8", "fast-int8-all")
+MODES = ("fast", "fast-steps", "naive", "exact", "fast-int8-speech", "fast-int8", "fast-int8-all")
 SHORT, REPEATS = 5.0, 5  # rows of up to 5 s of audio: the median of 5 runs after a warm-up
 WAV2VEC2_BASE = dict(
     hidden_size=768, num_hidden_layers=12, num_attention_heads=12, intermediate_size=3072
@@ -78,7 +81,7 @@ def row(config: str, mode: str, seconds: float, threads: int) -> dict:
     if int8.startswith("fast-int8"):  # the float32 original is freed when the name is rebound
         speech, decoders = int8 != "fast-int8", int8 != "fast-int8-speech"
         model = quantize_int8(model, speech=speech, decoders=decoders)
-    gen_mode = "naive" if mode == "naive" else "fast"
+    gen_mode = mode if mode in ("naive", "exact") else "fast"
     block = 1 if mode.endswith("-steps") else None
     passes = count_passes()
     template = torch.zeros(1, model.cfg.vq.num_vertices, 3)
@@ -129,6 +132,7 @@ def main() -> None:
         ("fast", 4.0),
         ("fast-steps", 4.0),
         ("naive", 4.0),
+        ("exact", 4.0),
         ("fast", 30.0),
         ("fast-steps", 30.0),
     ]

@@ -481,6 +481,27 @@ def test_fast_generation_equals_naive_with_a_causal_vq_decoder():
     torch.testing.assert_close(fast, naive, atol=1e-5, rtol=1e-4)
 
 
+def test_exact_generation_equals_naive_with_the_papers_bidirectional_vq_decoder():
+    model = tiny(vq_layers=2)  # bidirectional: fast mode's cached feedback is an approximation
+    audio, _ = clip(15)
+    templ = torch.randn(1, 20, 3)
+    style = torch.tensor([1])
+    naive = model.generate(audio, templ, styles=style, mode="naive")
+    exact = model.generate(audio, templ, styles=style, mode="exact")
+    fast = model.generate(audio, templ, styles=style, mode="fast")
+    torch.testing.assert_close(exact, naive, atol=1e-5, rtol=1e-4)
+    assert (fast - naive).abs().max() > 1e-3  # the model tells the feedbacks apart
+    causal = tiny(vq_layers=2, causal=True)  # exact there is fast mode, which is exact
+    torch.testing.assert_close(
+        causal.generate(audio, templ, styles=style, mode="exact"),
+        causal.generate(audio, templ, styles=style, mode="fast"),
+        atol=0,
+        rtol=0,
+    )
+    with pytest.raises(TalkmeshError, match="fast, naive, exact"):
+        model.generate(audio, templ, styles=style, mode="slow")
+
+
 def test_self_feedback_feeds_back_the_models_own_teacher_forced_prediction(monkeypatch):
     from dataclasses import replace
 

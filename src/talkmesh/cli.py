@@ -470,9 +470,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     pr.add_argument(
         "--mode",
-        choices=("fast", "naive", "reconstruct"),
+        choices=("fast", "naive", "exact", "reconstruct"),
         default="fast",
-        help="generation mode; reconstruct: pass the true motion through the stage-1 VQ-VAE",
+        help="generation mode (CodeTalker): fast (cached, the default), naive (the paper's loop), "
+        "exact (the naive loop's output with the stage-2 caches; differs from fast only with a "
+        "bidirectional VQ decoder); reconstruct: pass the true motion through the stage-1 VQ-VAE",
     )
     pr.add_argument(
         "--blinks", action="store_true", help="add the procedural blinks and gaze, as animate does"

@@ -227,6 +227,9 @@ def write_baseline(
     return written
 
 
+PREDICTION_MODES = ("fast", "naive", "exact", "reconstruct")  # write_model_predictions(mode=)
+
+
 def write_model_predictions(
     kind: str,
     data: str | Path,
@@ -258,8 +261,8 @@ def write_model_predictions(
     dataset = open_dataset(kind, data, split)
     if net.num_vertices != len(dataset.templates[next(iter(dataset.templates))]):
         raise TalkmeshError(f"model {model} and the {kind} data at {data} differ in vertex count")
-    if mode not in ("fast", "naive", "reconstruct"):
-        raise TalkmeshError(f"unknown prediction mode '{mode}': use fast, naive or reconstruct")
+    if mode not in PREDICTION_MODES:
+        raise TalkmeshError(f"unknown prediction mode '{mode}': use {', '.join(PREDICTION_MODES)}")
     if mode != "fast" and net.family != "codetalker":
         raise TalkmeshError(f"mode {mode} is a CodeTalker mode; {net.family} models use fast")
     if blinks:

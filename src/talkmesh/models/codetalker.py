@@ -26,6 +26,8 @@ from torch import Tensor, nn
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
 
+GENERATION_MODES = ("fast", "naive", "exact")  # CodeTalker.generate(mode=...)
+
 # ---------------------------------------------------------------------------------------------
 # Configuration
 
@@ -827,9 +829,17 @@ class CodeTalker(nn.Module):
         pass (default ``generate_block``) from guesses of their codes and keeps the frames whose
         guesses held (:meth:`FrameGenerator.block`): the same codes as one frame at a time
         (``block=1``), up to float rounding, which a tie between two codes could turn.
+        ``mode="exact"`` is the naive loop's computation with the stage-2 caches: one frame at a
+        time, the fed-back frame decoded by the bidirectional VQ decoder over the whole prefix
+        (its last ``attention_window`` frames past that length), as the paper's loop does; with a
+        causal VQ decoder it is fast mode, which is exact there.
         """
-        if mode not in ("fast", "naive"):
-            raise TalkmeshError(f"unknown generation mode '{mode}': use fast or naive")
+        if mode not in GENERATION_MODES:
+            raise TalkmeshError(
+                f"unknown generation mode '{mode}': use {', '.join(GENERATION_MODES)}"
+            )
+        if mode == "exact" and self.cfg.vq.causal:
+            mode = "fast"
         B = audio.shape[0]
         fps = self.cfg.motion_fps
         if num_frames is None:
@@ -852,6 +862,8 @@ class CodeTalker(nn.Module):
                 nxt = self.motion_map(motion[:, -1] / self.vqvae.decoder.scale) + style
                 inputs = torch.cat([inputs, nxt[:, None]], dim=1)
             all_codes = torch.stack(codes, dim=1)
+        elif mode == "exact":
+            all_codes, motion = self._generate_exact(style, self._cross(tokens), num_frames), None
         else:
             all_codes, motion = self._generate_fast(style, self._cross(tokens), num_frames, block)
         if mode == "naive" or motion is None:  # a causal decoder's steps are already final
@@ -859,6 +871,26 @@ class CodeTalker(nn.Module):
             motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
         motion = motion.reshape(B, num_frames, vq.num_vertices, 3)  # a view: no copy
         return motion.add_(template[:, None])  # in place: 10 minutes are about 1 GB
+
+    def _generate_exact(self, style: Tensor, cross: list[Tensor], num_frames: int) -> Tensor:
+        """-> codes (B, T, H) of the naive loop, one frame at a time: the stage-2 decoder with
+        its caches (the same computation: it is causal), the fed-back frame from the
+        bidirectional VQ decoder over the prefix, re-run at every step as in the paper's loop
+        (only its hidden states: the output and motion maps are folded into one)."""
+        gen = FrameGenerator(self, style)
+        vq = self.cfg.vq
+        B, window = style.shape[0], max(1, self.cfg.stage2.attention_window // vq.temporal_unit)
+        codes = torch.empty(B, num_frames, vq.components, dtype=torch.long, device=style.device)
+        for t in range(num_frames):
+            q = gen._stage2(gen.x_in, [c[:, t : t + 1] for c in cross])
+            gen.t += 1
+            codes[:, t] = q.codes[:, 0]
+            if t + 1 < num_frames:
+                start = max(0, t + 1 - window)
+                z_q = self.vqvae.quantizer.lookup(codes[:, start : t + 1])
+                h = self.vqvae.decoder.hidden(z_q, offset=start * vq.temporal_unit)[:, -1:]
+                gen.x_in = gen.fold(h) + style[:, None]
+        return codes
 
     def _generate_fast(
         self, style: Tensor, cross: list[Tensor], num_frames: int, block: int | None = None
