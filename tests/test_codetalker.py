@@ -379,6 +379,28 @@ def test_a_pass_without_guesses_guesses_that_the_codes_hold_still(monkeypatch):
     assert passes == [(1, 0, 1), (11, 0, 11)]  # frame 0 alone, then the guesses all held
 
 
+def test_when_guesses_keep_failing_fast_mode_runs_frames_one_at_a_time(monkeypatch):
+    from talkmesh.models.codetalker import FrameGenerator
+
+    model = tiny(vq_layers=2)
+    style = model.style_vector(torch.tensor([0]))
+    cross = model._cross(model.audio_tokens(clip(80)[0], None, 80))
+    steps, _ = model._generate_fast(style, cross, 80, block=1)
+    block, passes = FrameGenerator.block, []
+
+    def wrong_guesses(self, cross, drafts):  # every guess fails: each pass keeps one frame
+        out = block(self, cross, (drafts + 1) % 16)
+        passes.append((cross[0].shape[1], out[0].shape[1]))
+        return out
+
+    monkeypatch.setattr(FrameGenerator, "block", wrong_guesses)
+    codes, _ = model._generate_fast(style, cross, 80)
+    assert torch.equal(codes, steps)  # kept frames are exact whatever the guesses
+    assert all(kept == 1 for _, kept in passes[2:])
+    long = [K for K, _ in passes if K > 1]
+    assert len(long) <= 16 and len(passes) - len(long) >= 60, passes  # mostly steps
+
+
 def test_a_pass_takes_fewer_guesses_than_frames():
     from talkmesh.models.codetalker import FrameGenerator
 

@@ -27,6 +27,7 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
 
 GENERATION_MODES = ("fast", "naive", "exact")  # CodeTalker.generate(mode=...)
+STEPS_BEFORE_RETRY = 8  # fast mode: frames run one at a time when passes stop paying, at first
 
 # ---------------------------------------------------------------------------------------------
 # Configuration
@@ -911,10 +912,12 @@ class CodeTalker(nn.Module):
         done = moved = 0  # frames whose codes are final; frames whose motion is written
         guesses = codes[:, :0]  # the latest codes passes gave for the frames after ``done``
         run = float(most)  # how many frames passes keep when a guess fails (running mean)
+        alone = 0  # frames to run one at a time before passes are tried again ...
+        wait = STEPS_BEFORE_RETRY  # ... the next time passes keep one frame only
         while done < num_frames:
             K = min(most, max(2, round(4 * run)), num_frames - done)
-            if done == 0:  # frame 0 alone: its input has no motion, it needs no guess
-                K = 1
+            if done == 0 or alone:  # frame 0 needs no guess: its input has no motion
+                K, alone = 1, max(0, alone - 1)
             drafts = guesses[:, : K - 1]
             used = drafts.shape[1]
             kept, after, frames = gen.block([c[:, done : done + K] for c in cross], drafts)
@@ -924,8 +927,15 @@ class CodeTalker(nn.Module):
             if frames is not None:
                 motion[:, moved : moved + frames.shape[1]] = frames
                 moved += frames.shape[1]
+            if K == 1:
+                continue
             # guesses that fail early again and again make long passes a waste: shorten them
             run = most if kept.shape[1] > used else (run + kept.shape[1]) / 2
+            if run < 1.5:  # passes keep one frame, and each costs more than a step: steps for a
+                alone, wait = wait, min(2 * wait, 16 * STEPS_BEFORE_RETRY)  # while (longer each
+                run = 2.0  # time), then a short pass
+            elif kept.shape[1] > 1:
+                wait = STEPS_BEFORE_RETRY
         if gen.causal:  # the last frame's motion; a bidirectional decoder's feedback is not needed
             motion[:, moved:] = gen.flush()
         return codes, motion
