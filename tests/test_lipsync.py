@@ -128,3 +128,23 @@ def test_arkit_weights_are_recovered_from_vertices():
     pushed = fit_weights(offsets * 3.0, head.blendshapes)  # outside the box: clipped to [0, 1]
     assert pushed.min() >= 0.0 and pushed.max() <= 1.0
     assert fit_weights(offsets[:0], head.blendshapes).shape == (0, 52)
+
+
+def test_a_models_own_eye_motion_is_replaced_by_procedural_eyes_not_added_to():
+    from talkmesh.lipsync import BLINK_GAZE, INDEX, blink_gaze_weights, replace_eye_motion
+
+    rng = np.random.default_rng(0)
+    basis = rng.standard_normal((52, 30)).astype(np.float32)
+    eyes_at = [INDEX[n] for n in BLINK_GAZE]
+    own = np.zeros((90, 52), np.float32)
+    own[:, eyes_at] = rng.uniform(0, 0.3, (90, len(eyes_at)))  # a model's faint eye motion
+    own[:, INDEX["jawOpen"]] = rng.uniform(0, 1, 90)
+    offsets = own @ basis
+    weights = own.copy()  # as fitted to the offsets
+    eyes = blink_gaze_weights(90, 30.0, seed=4)
+    assert eyes[:, eyes_at].max() > 0.5  # a blink in these 3 s
+    replace_eye_motion(offsets, weights, eyes, basis, block=32)
+    expected = own.copy()
+    expected[:, eyes_at] = eyes[:, eyes_at]
+    np.testing.assert_allclose(weights, expected)
+    np.testing.assert_allclose(offsets, expected @ basis, atol=1e-4)  # the jaw untouched

@@ -398,7 +398,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument(
         "--no-blinks",
         action="store_true",
-        help="learned models: do not add the procedural blinks and gaze (speech cannot predict them)",
+        help="learned models: keep the model's own eye motion instead of procedural blinks and "
+        "gaze (speech cannot predict them)",
     )
     a.add_argument("--int8", choices=("speech", "decoders", "all"),
                    help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
@@ -477,7 +478,9 @@ def build_parser() -> argparse.ArgumentParser:
         "bidirectional VQ decoder); reconstruct: pass the true motion through the stage-1 VQ-VAE",
     )
     pr.add_argument(
-        "--blinks", action="store_true", help="add the procedural blinks and gaze, as animate does"
+        "--blinks",
+        action="store_true",
+        help="replace the model's eye motion with procedural blinks and gaze, as animate does",
     )
     pr.add_argument("-o", "--out", required=True, help="output directory")
     pr.add_argument("-q", "--quiet", action="store_true")

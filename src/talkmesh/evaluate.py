@@ -266,8 +266,9 @@ def write_model_predictions(
     if mode != "fast" and net.family != "codetalker":
         raise TalkmeshError(f"mode {mode} is a CodeTalker mode; {net.family} models use fast")
     if blinks:
+        from talkmesh.arkit import fit_weights
         from talkmesh.assets import load_head
-        from talkmesh.lipsync import blink_gaze_weights
+        from talkmesh.lipsync import blink_gaze_weights, replace_eye_motion
 
         head = load_head()
         if head.num_vertices != net.num_vertices:
@@ -310,9 +311,10 @@ def write_model_predictions(
                         seed=index,
                         **kwargs,
                     )[0].numpy()
-            if blinks:
+            if blinks:  # as animate: the model's own eye motion becomes procedural eyes
                 eyes = blink_gaze_weights(len(verts), dataset.spec.motion_fps, seed=index)
-                verts = verts + (eyes @ basis).reshape(verts.shape)
+                fitted = fit_weights(verts, head.blendshapes, sample.template)
+                replace_eye_motion(verts, fitted, eyes, basis)
             np.save(path, verts.reshape(len(verts), -1).astype(np.float32))
             written += 1
     return written

@@ -343,6 +343,32 @@ def blink_gaze_weights(
     return out
 
 
+def replace_eye_motion(
+    offsets: np.ndarray,
+    weights: np.ndarray,
+    eyes: np.ndarray,
+    basis: np.ndarray,
+    block: int = 2048,
+) -> None:
+    """Swaps a learned model's own eye motion for procedural eyes, in place.
+
+    ``offsets`` (T, ...) the model's vertices or vertex offsets, ``weights`` (T, 52) the ARKit
+    weights fitted to them, ``eyes`` (T, 52) procedural blinks and gaze
+    (:func:`blink_gaze_weights`), ``basis`` (52, V*3) the blendshapes. The fitted blink and gaze
+    channels are taken out of the motion and the procedural ones put in (and into ``weights``), so
+    the fit's residual is unchanged. A speech-driven model cannot time blinks; what it makes of
+    them is a faint average, and procedural blinks added on top of it overshoot the upper face's
+    dynamics (FDD; docs/codetalker.md). Blocks of ``block`` frames keep memory bounded.
+    """
+    keep = np.array([INDEX[n] for n in BLINK_GAZE])
+    delta = eyes[:, keep] - weights[:, keep]
+    part = basis[keep]
+    for i in range(0, len(offsets), block):
+        rows = offsets[i : i + block]
+        rows += (delta[i : i + block] @ part).reshape(rows.shape).astype(rows.dtype, copy=False)
+    weights[:, keep] = eyes[:, keep]
+
+
 def phones_to_weights(
     phones: list[Phone],
     num_frames: int,

@@ -11,7 +11,12 @@ from talkmesh.arkit import ARKIT_NAMES, fit_weights
 from talkmesh.assets import Head, load_head
 from talkmesh.audio import SAMPLE_RATE, load_audio
 from talkmesh.errors import TalkmeshError
-from talkmesh.lipsync import SpeakingStyle, blink_gaze_weights, phones_to_weights
+from talkmesh.lipsync import (
+    SpeakingStyle,
+    blink_gaze_weights,
+    phones_to_weights,
+    replace_eye_motion,
+)
 from talkmesh.phonemes import Phone, recognize_phones
 
 DEFAULT_FPS = 30.0
@@ -107,14 +112,12 @@ def animate(
         anim = animate_learned(
             wave, head, model, fps=fps, style_mix=style_mix, seed=seed, int8=int8
         )
-        if blinks:
-            eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
-            basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
-            for i in range(0, len(eyes), BLOCK):  # in place, in blocks: bounded memory
-                block = anim.vertices[i : i + BLOCK]
-                block += (eyes[i : i + BLOCK] @ basis).reshape(block.shape)
         # ARKit weights that best explain the motion, so ARKit exports work for learned models
         anim.weights = fit_weights(anim.vertices, head.blendshapes, head.template)
+        if blinks:  # the model's own eye motion becomes procedural blinks and gaze
+            eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
+            basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
+            replace_eye_motion(anim.vertices, anim.weights, eyes, basis, block=BLOCK)
         anim.weight_names = list(ARKIT_NAMES)
         anim.basis = head.blendshapes
         return anim

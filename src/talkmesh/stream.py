@@ -36,6 +36,7 @@ from talkmesh.lipsync import (
     SpeakingStyle,
     add_mouth,
     mouth_curves,
+    replace_eye_motion,
     upper_face_curves,
 )
 from talkmesh.phonemes import FRAME_RATE, SILENCE_RMS, Phone
@@ -378,10 +379,8 @@ class CodeTalkerStreamer(Streamer):
             self.buffer = self.buffer[drop:]
             self.buffer_start += drop
         weights = self.fitter(motion)
-        if self.blinks is not None:
-            eyes = self.blinks(start, end)
-            motion += eyes @ self.basis
-            weights = np.maximum(weights, eyes)
+        if self.blinks is not None:  # the model's own eye motion becomes procedural eyes
+            replace_eye_motion(motion, weights, self.blinks(start, end), self.basis)
         offsets = motion.reshape(len(motion), -1, 3) if self.offsets else None
         return weights, offsets
 
