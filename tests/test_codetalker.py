@@ -419,6 +419,10 @@ def test_fast_generation_with_a_short_attention_window_runs_past_it():
     audio, _ = clip(15)
     out = model.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([0]))
     assert out.shape == (1, 15, 20, 3) and torch.isfinite(out).all()
+    model = tiny(vq_layers=2)  # exact mode re-decodes the last 4 frames past the window
+    model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, attention_window=4))
+    exact = model.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([0]), mode="exact")
+    assert exact.shape == (1, 15, 20, 3) and torch.isfinite(exact).all()
 
 
 def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(tmp_path):
