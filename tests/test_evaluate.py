@@ -103,7 +103,7 @@ def test_wrong_vertex_count_prediction(corpus, tmp_path, capsys):
     assert len(available_voices()) >= 3
 
 
-def tiny_release(path):
+def tiny_release(path, causal: bool | None = None):
     import torch
 
     from talkmesh.models.codetalker import CodeTalker
@@ -114,6 +114,8 @@ def tiny_release(path):
     tiny = {"preset": "small",
             "vq": {"hidden": 32, "layers": 1, "heads": 2, "ff": 64, "components": 4, "code_dim": 8, "codebook_size": 16},
             "stage2": {"d_model": 32, "heads": 2, "ff": 64, "layers": 1, "speech": {"dim": 16}}}  # fmt: skip
+    if causal is not None:
+        tiny["vq"]["causal"] = causal
     info = DatasetInfo(
         num_vertices=4766, motion_fps=30.0, train_subjects=("Synth_01_ada", "Synth_02_bo")
     )
@@ -138,6 +140,19 @@ def test_learned_model_predictions_named_like_the_anchors(corpus, tmp_path):
         "Synth_01_ada",
         "Synth_02_bo",
     }
+
+
+def test_predict_points_to_exact_mode_for_a_bidirectional_vq_decoder(corpus, tmp_path, capsys):
+    release = tiny_release(tmp_path / "m.safetensors", causal=False)
+    args = ["predict", "--model", str(release), "--dataset", "synth", "--data", str(corpus)]
+    assert main([*args, "-o", str(tmp_path / "fast")]) == 0
+    assert "--mode exact" in capsys.readouterr().err
+    assert main([*args, "--mode", "exact", "-o", str(tmp_path / "exact")]) == 0
+    assert "--mode exact" not in capsys.readouterr().err
+    causal = tiny_release(tmp_path / "c.safetensors", causal=True)
+    assert main(["predict", "--model", str(causal), "--dataset", "synth", "--data", str(corpus),
+                 "-o", str(tmp_path / "causal")]) == 0  # fmt: skip
+    assert "--mode exact" not in capsys.readouterr().err
 
 
 def test_stage1_reconstructions_are_scored_like_predictions(corpus, tmp_path):

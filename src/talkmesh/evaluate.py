@@ -8,6 +8,7 @@ motion frame rate. Every (sequence, condition) is a row; LVE and MVE pool all th
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -265,6 +266,12 @@ def write_model_predictions(
         raise TalkmeshError(f"unknown prediction mode '{mode}': use {', '.join(PREDICTION_MODES)}")
     if mode != "fast" and net.family != "codetalker":
         raise TalkmeshError(f"mode {mode} is a CodeTalker mode; {net.family} models use fast")
+    if progress and mode == "fast" and net.family == "codetalker" and not net.cfg.vq.causal:
+        print(
+            "talkmesh: note: this model's VQ decoder is bidirectional (the paper's), so fast mode "
+            "approximates the paper's loop (docs/codetalker.md); --mode exact gives its output",
+            file=sys.stderr,
+        )
     if blinks:
         from talkmesh.arkit import fit_weights
         from talkmesh.assets import load_head
