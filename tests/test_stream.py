@@ -90,6 +90,26 @@ def test_codetalker_stream_equals_offline_generation(tmp_path, lookahead):
     assert weights.shape == (57, 52) and weights.min() >= 0 and weights.max() <= 1
 
 
+def test_codetalker_stream_replaces_the_models_eye_motion_with_procedural_eyes(tmp_path):
+    from talkmesh.lipsync import BLINK_GAZE, INDEX, SpeakingStyle
+    from talkmesh.stream import UpperFace
+
+    path, head = tiny_model(tmp_path), tiny_head()
+    audio = np.random.default_rng(3).normal(0, 0.1, 4 * SR).astype(np.float32)
+    plain = stream_all(open_stream(path, head=head, offsets=True, blinks=False), audio, [1600])
+    eyed = stream_all(open_stream(path, head=head, offsets=True, seed=5), audio, [1600])
+    wp, we = (np.stack([f.weights for f in fs]) for fs in (plain, eyed))
+    keep = [INDEX[n] for n in BLINK_GAZE]
+    other = [i for i in range(52) if i not in keep]
+    procedural = UpperFace(30.0, 5, SpeakingStyle(), keep)(0, len(we))
+    assert procedural[:, keep].max() > 0.5  # a blink in these 4 s
+    np.testing.assert_allclose(we[:, keep], procedural[:, keep])  # replaced, not added to
+    np.testing.assert_allclose(we[:, other], wp[:, other])
+    basis = head.blendshapes.reshape(52, -1)[keep]
+    moved = np.stack([f.offsets for f in eyed]) - np.stack([f.offsets for f in plain])
+    np.testing.assert_allclose(moved.reshape(len(we), -1), (we - wp)[:, keep] @ basis, atol=1e-5)
+
+
 def test_stream_waits_for_its_lookahead_and_lookahead_changes_the_output(tmp_path):
     path = tiny_model(tmp_path)
     head = tiny_head()

@@ -245,8 +245,9 @@ def write_model_predictions(
 ) -> int:
     """Predictions of a learned model (a release file or bundled name) for a split.
 
-    With ``blinks``, the procedural animator's blinks and gaze (seeded by the sequence index, as
-    ``talkmesh animate`` adds them) are added through the bundled head's blendshapes.
+    With ``blinks``, the model's own eye motion is replaced by the procedural animator's blinks
+    and gaze (seeded by the sequence index), through the bundled head's blendshapes, as
+    ``talkmesh animate`` does.
 
     Speakers seen in training use their own style. Unseen speakers get the mean of the training
     styles (``SUBJECT_SENTENCE.npy``) or, with ``conditions``, one prediction per training style

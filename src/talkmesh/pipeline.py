@@ -82,8 +82,9 @@ def animate(
             (default: the bundled CodeTalker, ``codetalker-synth``; ``procedural`` without it).
         style_mix: learned models: weights over the training speakers (``{"A": 0.7, "B": 0.3}``);
             default the mean of all of them (the model has never heard this speaker).
-        blinks: learned models: add the procedural animator's blinks and gaze saccades (seeded by
-            ``seed``), which speech cannot predict and a speech-driven model does not make.
+        blinks: learned models: replace the model's own eye motion (its fitted blink and gaze
+            channels) with the procedural animator's blinks and gaze saccades (seeded by
+            ``seed``), which speech cannot predict.
         int8: CodeTalker models: run these layers in int8 on the CPU (``speech``: the speech
             encoder, ``decoders``: the per-frame decoder layers, ``all``: both); faster, not
             exact (its effect on accuracy: docs/codetalker.md).

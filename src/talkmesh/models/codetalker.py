@@ -1134,8 +1134,8 @@ class Int8Linear(nn.Module):
     """A linear map read as int8: the weight with one scale per output row, the input quantised
     row by row (each row its own scale), integer products summed exactly in int32
     (``torch._int_mm``), then rescaled. A row's result depends on that row alone, never on the
-    other rows of the batch, so passes of fast generation keep the codes of one frame at a time
-    (PyTorch's dynamic int8 scales the whole input together, which does not).
+    other rows of the batch, so a pass of fast generation quantises each frame as one frame at a
+    time would (PyTorch's dynamic int8 scales the whole input together, which does not).
     ``weight`` (out, in), ``bias`` (out,) or None: the float originals are not kept."""
 
     def __init__(self, weight: Tensor, bias: Tensor | None) -> None:
@@ -1211,9 +1211,11 @@ def quantize_int8(model: CodeTalker, *, speech: bool = False, decoders: bool = T
     machine's CPU runs several times faster than float32 ones (VNNI). Replaced: the stage-2
     decoder blocks and output map, the VQ decoder's blocks, input and middle maps, its temporal
     convolution's per-frame step (as one matrix) and the folded feedback map; with ``speech``,
-    the speech encoder's linear layers and plain convolutions (:class:`Int8Conv1d`) too. The per-sequence maps (audio map, cross terms, motion
-    map) and the final vertex output map stay float32. Each row is quantised on its own, so
-    passes give the codes of one frame at a time, as in float32. ``decoders=False`` with
+    the speech encoder's linear layers and plain convolutions (:class:`Int8Conv1d`) too. The
+    per-sequence maps (audio map, cross terms, motion map) and the final vertex output map stay
+    float32. Each row is quantised on its own, so a linear layer's result for a frame does not
+    depend on the other frames of its pass (attention's float rounding still can, which int8
+    rounding may turn into another code now and then). ``decoders=False`` with
     ``speech=True`` quantises the speech encoder alone (the decoders stay float32). Not exact:
     the effect on accuracy is measured by ``bench/fast_vs_naive.py --int8``.
     """
