@@ -7,7 +7,7 @@ export HF_HUB_OFFLINE := 1
 
 .PHONY: setup viewer demo test test-slow lint format bench assets clean
 
-VIEWER := src/talkmesh/web/static/viewer.js
+VIEWER := src/talkmesh/serve/static/viewer.js
 
 setup: $(STAMP) $(VIEWER)
 
@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml package.json package-lock.json scripts/setup_system.sh
 	npm ci --silent --no-audit --no-fund
 	touch $(STAMP)
 
-# The browser viewer of `talkmesh serve` (web/viewer -> talkmesh/web/static): three.js comes from
+# The browser viewer of `talkmesh serve` (web/viewer -> talkmesh/serve/static): three.js comes from
 # node_modules, bundled by esbuild, so the page needs no CDN. Built after `npm ci`.
 $(VIEWER): $(wildcard web/viewer/*) package-lock.json | $(STAMP)
 	npm run --silent build:viewer
@@ -59,4 +59,4 @@ assets: setup
 	$(PY) scripts/build_assets.py
 
 clean:
-	rm -rf $(VENV) node_modules out build src/talkmesh/web/static
+	rm -rf $(VENV) node_modules out build src/talkmesh/serve/static

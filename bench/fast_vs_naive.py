@@ -29,8 +29,8 @@ import numpy as np
 import torch
 from inference import count_passes  # bench/inference.py (the scripts run from bench/)
 
-from talkmesh.datasets import open_dataset
-from talkmesh.evaluate import evaluate_dataset
+from talkmesh.datasets.reader import open_dataset
+from talkmesh.evaluation.evaluate import evaluate_dataset
 from talkmesh.models.codetalker import quantize_int8
 from talkmesh.models.release import load_model
 

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from talkmesh.datasets import open_dataset
-from talkmesh.metrics import lip_max_error
+from talkmesh.datasets.reader import open_dataset
+from talkmesh.evaluation.metrics import lip_max_error
 
 
 def main() -> None:
@@ -37,12 +37,12 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(2)
 
-    from talkmesh.assets import load_head
-    from talkmesh.audio import SAMPLE_RATE
-    from talkmesh.lipsync import phones_to_weights
-    from talkmesh.models.meshtalk_tasks import load_system
+    from talkmesh.audio.loading import SAMPLE_RATE
+    from talkmesh.audio.phonemes import recognize_phones
+    from talkmesh.face.assets import load_head
+    from talkmesh.face.lipsync import phones_to_weights
     from talkmesh.models.release import load_model
-    from talkmesh.phonemes import recognize_phones
+    from talkmesh.training.meshtalk import load_system
 
     system = load_system(args.model)
     net = system.model

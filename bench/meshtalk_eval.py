@@ -36,19 +36,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from talkmesh.audio import SAMPLE_RATE
+from talkmesh.audio.loading import SAMPLE_RATE
 
 MM = 1000.0  # corpus units (m) -> mm
 
 
 def load(model: str):
-    from talkmesh.models.meshtalk_tasks import load_system
+    from talkmesh.training.meshtalk import load_system
 
     return load_system(model)
 
 
 def test_split(data: str):
-    from talkmesh.datasets import open_dataset
+    from talkmesh.datasets.reader import open_dataset
 
     return open_dataset("synth", data, "test")
 
@@ -154,8 +154,8 @@ def figure(change: dict[str, np.ndarray], out: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from talkmesh.assets import load_head
-    from talkmesh.benchmark import draw_on_mesh, save_png
+    from talkmesh.evaluation.benchmark import draw_on_mesh, save_png
+    from talkmesh.face.assets import load_head
 
     head = load_head()
     vmax = max(float(v.max()) for v in change.values())
@@ -173,7 +173,7 @@ def figure(change: dict[str, np.ndarray], out: str) -> None:
 def diversity(args) -> None:
     net = load(args.model)
     ds = test_split(args.data)
-    from talkmesh.assets import load_head
+    from talkmesh.face.assets import load_head
 
     eyelids = np.asarray(load_head().regions.eyelids)
     lips, upper = ds.regions.lve, ds.regions.fdd
@@ -251,8 +251,8 @@ def speed(args) -> None:
 def retarget_video(args) -> None:
     """The first test sentence, its truth and its codes decoded on another identity's face."""
     from talkmesh.animation import Animation
-    from talkmesh.assets import load_head
-    from talkmesh.render import render_side_by_side
+    from talkmesh.face.assets import load_head
+    from talkmesh.output.render import render_side_by_side
 
     net = load(args.model)
     ds = test_split(args.data)

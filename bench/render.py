@@ -2,7 +2,7 @@
 
     python bench/render.py [--frames 120] [--sizes 256 512 1024]
 
-Uses the bundled head (``talkmesh.assets.load_head``) with a jaw-opening motion, or a procedural
+Uses the bundled head (``talkmesh.face.assets.load_head``) with a jaw-opening motion, or a procedural
 ~5k-vertex head-sized ellipsoid if the bundled head cannot be loaded.
 """
 
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from talkmesh.animation import Animation
-from talkmesh.render import Renderer, render_video
+from talkmesh.output.render import Renderer, render_video
 
 FPS = 30.0
 WARMUP_FRAMES = 5
@@ -48,7 +48,7 @@ def bench_motion(num_frames: int) -> tuple[str, Animation]:
     """A named (T, V, 3) animation: the bundled head opening its jaw, or the fallback ellipsoid."""
     t = np.arange(num_frames, dtype=np.float32) / FPS
     try:
-        from talkmesh.assets import load_head
+        from talkmesh.face.assets import load_head
 
         head = load_head()
         weights = np.zeros((num_frames, len(head.blendshape_names)), dtype=np.float32)

@@ -39,10 +39,10 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from talkmesh.audio import SAMPLE_RATE  # noqa: E402
-from talkmesh.datasets import open_dataset  # noqa: E402
-from talkmesh.evaluate import evaluate_dataset, write_baseline, write_model_predictions  # noqa: E402
-from talkmesh.stream import open_stream  # noqa: E402
+from talkmesh.audio.loading import SAMPLE_RATE  # noqa: E402
+from talkmesh.datasets.reader import open_dataset  # noqa: E402
+from talkmesh.evaluation.evaluate import evaluate_dataset, write_baseline, write_model_predictions  # noqa: E402
+from talkmesh.serve.stream import open_stream  # noqa: E402
 
 
 def identities(data: Path) -> dict[str, str]:
@@ -51,7 +51,7 @@ def identities(data: Path) -> dict[str, str]:
 
 
 def head_for(sample, ids: dict[str, str]):
-    from talkmesh.assets import load_head
+    from talkmesh.face.assets import load_head
 
     return load_head(ids[sample.subject]).with_template(sample.template, sample.subject)
 

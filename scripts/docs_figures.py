@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 
-from talkmesh.assets import lip_opening, load_head  # noqa: E402
+from talkmesh.face.assets import lip_opening, load_head  # noqa: E402
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 LIBRIVOX = Path("/usr/share/pocketsphinx/test/data/librivox")
@@ -24,7 +24,7 @@ LIBRIVOX = Path("/usr/share/pocketsphinx/test/data/librivox")
 
 def save_small(fig, out: Path) -> None:
     """Save a figure as a palette PNG (docs images stay small)."""
-    from talkmesh.benchmark import save_png
+    from talkmesh.evaluation.benchmark import save_png
 
     save_png(fig, out)
     plt.close(fig)
@@ -79,14 +79,14 @@ def regions_figure(out: Path) -> None:
 def lipsync_figure(
     clip: Path, text: str | None, out_plot: Path, out_sheet: Path, model: str = "procedural"
 ) -> None:
+    from talkmesh.output.render import contact_sheet
     from talkmesh.pipeline import animate
-    from talkmesh.render import contact_sheet
 
     anim = animate(clip, text=text, model=model)
     head = load_head()
     opening = lip_opening(anim.vertices, head.regions) * 1000
-    from talkmesh.audio import load_audio
-    from talkmesh.phonemes import recognize_phones
+    from talkmesh.audio.loading import load_audio
+    from talkmesh.audio.phonemes import recognize_phones
 
     phones = recognize_phones(load_audio(clip), text=text)
     t = np.arange(anim.num_frames) / anim.fps
@@ -121,8 +121,8 @@ def lipsync_figure(
 
 def motion_figure(corpus: Path, preds: list[str], out: Path) -> None:
     """Per-vertex mean and std of inter-frame motion on the synthetic test split (CodeTalker Fig. 4)."""
-    from talkmesh.datasets import open_dataset
-    from talkmesh.metrics import motion_statistics
+    from talkmesh.datasets.reader import open_dataset
+    from talkmesh.evaluation.metrics import motion_statistics
 
     ds = open_dataset("synth", corpus, "test")
     head = load_head()

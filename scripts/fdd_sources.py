@@ -14,11 +14,11 @@ import argparse
 
 import numpy as np
 
-from talkmesh.arkit import ARKIT_NAMES
-from talkmesh.assets import load_head
-from talkmesh.datasets import open_dataset
-from talkmesh.lipsync import BLINK_GAZE, blink_gaze_weights
-from talkmesh.metrics import dynamics
+from talkmesh.datasets.reader import open_dataset
+from talkmesh.evaluation.metrics import dynamics
+from talkmesh.face.arkit import ARKIT_NAMES
+from talkmesh.face.assets import load_head
+from talkmesh.face.lipsync import BLINK_GAZE, blink_gaze_weights
 
 GROUPS = {
     "blinks": lambda n: n.startswith("eyeBlink"),

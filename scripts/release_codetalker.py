@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from talkmesh.datasets import open_dataset
-from talkmesh.evaluate import evaluate, write_baseline, write_model_predictions
+from talkmesh.datasets.reader import open_dataset
+from talkmesh.evaluation.evaluate import evaluate, write_baseline, write_model_predictions
 from talkmesh.models.release import MODELS_DIR, load_model, save_model
 
 

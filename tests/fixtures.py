@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import soundfile as sf
 
-from talkmesh.datasets import BIWI, VOCASET
+from talkmesh.datasets.reader import BIWI, VOCASET
 
 
 def write_wav(path: Path, seconds: float, sr: int) -> None:

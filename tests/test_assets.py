@@ -1,9 +1,15 @@
 import numpy as np
 import pytest
 
-from talkmesh.arkit import ARKIT_NAMES
-from talkmesh.assets import DATA_DIR, list_identities, load_head, load_template, read_mesh_vertices
 from talkmesh.errors import TalkmeshError
+from talkmesh.face.arkit import ARKIT_NAMES
+from talkmesh.face.assets import (
+    DATA_DIR,
+    list_identities,
+    load_head,
+    load_template,
+    read_mesh_vertices,
+)
 
 
 def test_head_topology_and_blendshapes():

@@ -7,8 +7,8 @@ import pytest
 import soundfile as sf
 from scipy.signal import resample_poly
 
-from talkmesh import audio as audio_module
-from talkmesh.audio import SAMPLE_RATE, audio_duration, load_audio, resample, save_wav
+from talkmesh.audio import loading as audio_module
+from talkmesh.audio.loading import SAMPLE_RATE, audio_duration, load_audio, resample, save_wav
 from talkmesh.errors import TalkmeshError
 
 ALSA_CLIP = Path("/usr/share/sounds/alsa/Front_Center.wav")  # alsa-utils, 48 kHz mono speech

@@ -10,16 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from talkmesh.benchmark import (
+from talkmesh.cli import main
+from talkmesh.datasets.synth import make_corpus
+from talkmesh.errors import TalkmeshError
+from talkmesh.evaluation.benchmark import (
     file_digest,
     load_benchmark,
     method_stages,
     predictions_done,
     run_benchmark,
 )
-from talkmesh.cli import main
-from talkmesh.errors import TalkmeshError
-from talkmesh.synth import make_corpus
 
 CODETALKER = """\
 model:
@@ -125,7 +125,7 @@ def test_the_default_benchmark_names_real_recipes_stages_and_keys():
 
 
 def test_claims_compare_means_against_seed_spread_and_count_seed_pairs():
-    from talkmesh.benchmark import aggregate, check_claims
+    from talkmesh.evaluation.benchmark import aggregate, check_claims
 
     def seeds(lves):
         return [{"physical": {"lve": v, "fdd": -v, "mve": v, "lip_sync": 0.5}} for v in lves]

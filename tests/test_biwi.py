@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from talkmesh.biwi import normalize_frames, prepare_biwi, surface_area
-from talkmesh.datasets import open_dataset
+from talkmesh.datasets.biwi import normalize_frames, prepare_biwi, surface_area
+from talkmesh.datasets.reader import open_dataset
 from talkmesh.errors import TalkmeshError
 
 

@@ -24,7 +24,7 @@ from scipy.signal import resample_poly
 
 CHROMIUM = Path("/usr/bin/chromium")
 ROOT = Path(__file__).resolve().parents[1]
-STATIC = ROOT / "src" / "talkmesh" / "web" / "static"
+STATIC = ROOT / "src" / "talkmesh" / "serve" / "static"
 SCREENSHOT = ROOT / "docs" / "streaming-viewer.png"
 SPEECH = "Bob bought a big blue map, and we all peeked at the moon above the bay."
 CAPTURE_RATE = 48000  # Chromium's fake capture device plays 16-bit wav; 48 kHz is its native rate
@@ -43,7 +43,7 @@ def server():
     """The real app under uvicorn in a thread; yields its base URL."""
     import uvicorn
 
-    from talkmesh.serve import create_app
+    from talkmesh.serve.server import create_app
 
     if not (STATIC / "viewer.js").is_file():
         pytest.fail(f"{STATIC}/viewer.js is missing: run `make viewer` (or `npm run build:viewer`)")

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from talkmesh.assets import load_head
 from talkmesh.cli import main
+from talkmesh.face.assets import load_head
 from talkmesh.pipeline import available_models
 
 LIBRIVOX = Path("/usr/share/pocketsphinx/test/data/librivox")

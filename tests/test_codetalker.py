@@ -221,8 +221,8 @@ def test_codebook_starts_at_encoder_outputs_and_motion_scale_is_per_coordinate()
 @pytest.mark.parametrize("name", ["codetalker_synth", "codetalker_vocaset", "codetalker_biwi"])
 def test_recipes_have_two_stages_and_the_paper_sizes(name):
     pytest.importorskip("yaml")
-    from talkmesh.models.codetalker_tasks import build_config
-    from talkmesh.train import DatasetInfo, load_recipes
+    from talkmesh.training.codetalker import build_config
+    from talkmesh.training.trainer import DatasetInfo, load_recipes
 
     stages = load_recipes(CONFIGS / f"{name}.yaml", ["train.seed=3", "stages.speech.train.lr=2e-4"])
     assert [r.task for _, r in stages] == ["codetalker-stage1", "codetalker-stage2"]
@@ -244,7 +244,7 @@ def test_recipes_have_two_stages_and_the_paper_sizes(name):
 
 def test_recipe_stage_errors(tmp_path):
     pytest.importorskip("yaml")
-    from talkmesh.train import load_recipes
+    from talkmesh.training.trainer import load_recipes
 
     bad = tmp_path / "r.yaml"
     bad.write_text("stages:\n  a: {task: nothing}\n")

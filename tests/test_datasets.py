@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from fixtures import make_biwi, make_dataset, make_vocaset, write_wav
 
-from talkmesh.datasets import (
+from talkmesh.datasets.reader import (
     BIWI,
     VOCASET,
     VOCASET_TEST,

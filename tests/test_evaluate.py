@@ -6,10 +6,10 @@ import shutil
 import numpy as np
 import pytest
 
+from talkmesh.audio.voices import available_voices
 from talkmesh.cli import main
-from talkmesh.evaluate import evaluate, find_predictions, write_baseline
-from talkmesh.synth import make_corpus
-from talkmesh.voices import available_voices
+from talkmesh.datasets.synth import make_corpus
+from talkmesh.evaluation.evaluate import evaluate, find_predictions, write_baseline
 
 pytestmark = pytest.mark.skipif(not shutil.which("mbrola"), reason="mbrola not installed")
 
@@ -107,9 +107,9 @@ def tiny_release(path, causal: bool | None = None):
     import torch
 
     from talkmesh.models.codetalker import CodeTalker
-    from talkmesh.models.codetalker_tasks import build_config
     from talkmesh.models.release import save_model
-    from talkmesh.train import DatasetInfo
+    from talkmesh.training.codetalker import build_config
+    from talkmesh.training.trainer import DatasetInfo
 
     tiny = {"preset": "small",
             "vq": {"hidden": 32, "layers": 1, "heads": 2, "ff": 64, "components": 4, "code_dim": 8, "codebook_size": 16},
@@ -165,7 +165,7 @@ def test_stage1_reconstructions_are_scored_like_predictions(corpus, tmp_path):
 
 
 def test_learned_models_get_procedural_blinks_only_around_the_eyes(tmp_path):
-    from talkmesh.assets import load_head
+    from talkmesh.face.assets import load_head
     from talkmesh.pipeline import animate
 
     release = tiny_release(tmp_path / "m.safetensors")

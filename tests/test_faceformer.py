@@ -224,8 +224,8 @@ def test_a_few_steps_lower_the_loss_and_self_feedback_acts_in_training_only():
 
 @pytest.mark.parametrize("name", ["faceformer_synth", "faceformer_vocaset"])
 def test_recipes_map_onto_the_config(name):
-    from talkmesh.models.faceformer_tasks import build_config
-    from talkmesh.train import DatasetInfo, load_recipe
+    from talkmesh.training.faceformer import build_config
+    from talkmesh.training.trainer import DatasetInfo, load_recipe
 
     recipe = load_recipe(CONFIGS / f"{name}.yaml", ["train.seed=3"])
     assert recipe.task == "faceformer" and recipe.train.seed == 3
@@ -246,8 +246,8 @@ def test_recipes_map_onto_the_config(name):
 
 
 def test_train_one_epoch_end_to_end_and_release(tmp_path):
-    from talkmesh.synth import make_corpus
-    from talkmesh.train import load_recipe, train
+    from talkmesh.datasets.synth import make_corpus
+    from talkmesh.training.trainer import load_recipe, train
 
     corpus = tmp_path / "corpus"
     make_corpus(corpus, subjects=3, sentences=2, seed=3, workers=1, progress=False)

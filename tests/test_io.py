@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from talkmesh import io as tio
 from talkmesh.animation import Animation
-from talkmesh.arkit import ARKIT_NAMES, LIVE_LINK_COLUMNS, LIVE_LINK_NAMES, to_arkit_order
 from talkmesh.errors import TalkmeshError
-from talkmesh.io import load_animation, load_arkit_weights, morph_rig, save_animation
+from talkmesh.face.arkit import ARKIT_NAMES, LIVE_LINK_COLUMNS, LIVE_LINK_NAMES, to_arkit_order
+from talkmesh.output import formats as tio
+from talkmesh.output.formats import load_animation, load_arkit_weights, morph_rig, save_animation
 
 ROOT = Path(__file__).resolve().parents[1]
 VALIDATE_SCRIPT = ROOT / "tests" / "gltf_validate.mjs"
@@ -115,7 +115,7 @@ def test_npy_without_faces_needs_matching_head(tmp_path):
 
 
 def test_npy_uses_bundled_head_faces(tmp_path):
-    from talkmesh.assets import load_head
+    from talkmesh.face.assets import load_head
 
     head = load_head()
     np.save(tmp_path / "pred.npy", np.repeat(head.template.reshape(1, -1), 3, axis=0))
@@ -338,7 +338,7 @@ def test_weight_formats_need_weights(tmp_path, suffix):
 
 
 def test_weight_file_plays_on_bundled_head(tmp_path):
-    from talkmesh.assets import load_head
+    from talkmesh.face.assets import load_head
 
     (out,) = save_animation(arkit_animation(), tmp_path / "weights.json")
     anim = load_animation(out)

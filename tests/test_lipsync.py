@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from talkmesh.arkit import ARKIT_NAMES
-from talkmesh.assets import lip_opening, load_head
+from talkmesh.audio.phonemes import Phone
 from talkmesh.errors import TalkmeshError
-from talkmesh.lipsync import SpeakingStyle, phones_to_weights, pitch_accents
-from talkmesh.phonemes import Phone
+from talkmesh.face.arkit import ARKIT_NAMES
+from talkmesh.face.assets import lip_opening, load_head
+from talkmesh.face.lipsync import SpeakingStyle, phones_to_weights, pitch_accents
 
 FPS = 60
 BLINK = ARKIT_NAMES.index("eyeBlinkLeft")
@@ -115,8 +115,8 @@ def test_long_input_is_fast_and_bounded():
 
 
 def test_arkit_weights_are_recovered_from_vertices():
-    from talkmesh.arkit import fit_weights
-    from talkmesh.assets import load_head
+    from talkmesh.face.arkit import fit_weights
+    from talkmesh.face.assets import load_head
 
     head = load_head()
     rng = np.random.default_rng(0)
@@ -131,7 +131,7 @@ def test_arkit_weights_are_recovered_from_vertices():
 
 
 def test_a_models_own_eye_motion_is_replaced_by_procedural_eyes_not_added_to():
-    from talkmesh.lipsync import BLINK_GAZE, INDEX, blink_gaze_weights, replace_eye_motion
+    from talkmesh.face.lipsync import BLINK_GAZE, INDEX, blink_gaze_weights, replace_eye_motion
 
     rng = np.random.default_rng(0)
     basis = rng.standard_normal((52, 30)).astype(np.float32)

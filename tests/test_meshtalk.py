@@ -542,8 +542,8 @@ def test_talkmesh_speech_encoder_and_a_prior_on_the_expression_spaces_audio(tmp_
 def test_recipes_have_both_stages_and_the_preset_sizes(name, heads, classes):
     from pathlib import Path
 
-    from talkmesh.models.meshtalk_tasks import _config
-    from talkmesh.train import load_recipes
+    from talkmesh.training.meshtalk import _config
+    from talkmesh.training.trainer import load_recipes
 
     path = Path(__file__).resolve().parents[1] / "configs" / f"{name}.yaml"
     stages = load_recipes(path, ["train.seed=4"])

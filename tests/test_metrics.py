@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from talkmesh.metrics import (
+from talkmesh.evaluation.metrics import (
     correlation,
     dynamics,
     lip_max_error,

@@ -6,11 +6,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from talkmesh import phonemes
-from talkmesh.audio import SAMPLE_RATE, load_audio, resample
+from talkmesh.audio import phonemes
+from talkmesh.audio.loading import SAMPLE_RATE, load_audio, resample
+from talkmesh.audio.phonemes import (
+    ARPABET_PHONES,
+    SILENCE,
+    Phone,
+    recognize_phones,
+    transcript_words,
+)
+from talkmesh.audio.tts import synthesize_speech
 from talkmesh.errors import TalkmeshError
-from talkmesh.phonemes import ARPABET_PHONES, SILENCE, Phone, recognize_phones, transcript_words
-from talkmesh.tts import synthesize_speech
 
 pytest.importorskip("pocketsphinx")
 

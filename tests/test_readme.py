@@ -44,7 +44,7 @@ def workdir(tmp_path, monkeypatch) -> Path:
     """The files the README's examples name, made from a real recording."""
     from imageio_ffmpeg import get_ffmpeg_exe
 
-    from talkmesh.assets import load_head
+    from talkmesh.face.assets import load_head
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "speech.wav").write_bytes(CLIP.read_bytes())

@@ -20,7 +20,7 @@ Image = pytest.importorskip("PIL.Image")
 
 from talkmesh.animation import Animation  # noqa: E402
 from talkmesh.errors import TalkmeshError  # noqa: E402
-from talkmesh.render import (  # noqa: E402
+from talkmesh.output.render import (  # noqa: E402
     Renderer,
     _ffmpeg_exe,
     contact_sheet,

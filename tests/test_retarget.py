@@ -7,8 +7,8 @@ import pytest
 import soundfile as sf
 import torch
 
-from talkmesh.assets import load_head
 from talkmesh.cli import main
+from talkmesh.face.assets import load_head
 from talkmesh.models.meshtalk import (
     MelConfig,
     MeshTalkConfig,

@@ -20,10 +20,10 @@ import pytest
 from starlette.testclient import TestClient
 from websockets.sync.client import connect
 
-from talkmesh.arkit import ARKIT_NAMES
-from talkmesh.assets import load_head
-from talkmesh.audio import SAMPLE_RATE, load_audio
-from talkmesh.serve import (
+from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+from talkmesh.face.arkit import ARKIT_NAMES
+from talkmesh.face.assets import load_head
+from talkmesh.serve.server import (
     CLOSE_BUSY,
     CLOSE_GOING_AWAY,
     CLOSE_NORMAL,
@@ -33,7 +33,7 @@ from talkmesh.serve import (
     decode_frame,
     encode_frame,
 )
-from talkmesh.stream import StreamFrame
+from talkmesh.serve.stream import StreamFrame
 
 CLIP = Path(
     "/usr/share/pocketsphinx/test/data/librivox/sense_and_sensibility_01_austen_64kb-0880.wav"

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 import torch
 
-from talkmesh.arkit import ARKIT_NAMES
-from talkmesh.assets import Head, load_head
-from talkmesh.audio import load_audio
+from talkmesh.audio.loading import load_audio
+from talkmesh.audio.phonemes import recognize_phones
 from talkmesh.errors import TalkmeshError
-from talkmesh.lipsync import phones_to_weights
+from talkmesh.face.arkit import ARKIT_NAMES
+from talkmesh.face.assets import Head, load_head
+from talkmesh.face.lipsync import phones_to_weights
 from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config, VQConfig
 from talkmesh.models.release import save_model
 from talkmesh.models.speech import SpeechEncoderConfig
-from talkmesh.phonemes import recognize_phones
-from talkmesh.stream import open_stream
+from talkmesh.serve.stream import open_stream
 
 SR = 16_000
 V = 20
@@ -91,8 +91,8 @@ def test_codetalker_stream_equals_offline_generation(tmp_path, lookahead):
 
 
 def test_codetalker_stream_replaces_the_models_eye_motion_with_procedural_eyes(tmp_path):
-    from talkmesh.lipsync import BLINK_GAZE, INDEX, SpeakingStyle
-    from talkmesh.stream import UpperFace
+    from talkmesh.face.lipsync import BLINK_GAZE, INDEX, SpeakingStyle
+    from talkmesh.serve.stream import UpperFace
 
     path, head = tiny_model(tmp_path), tiny_head()
     audio = np.random.default_rng(3).normal(0, 0.1, 4 * SR).astype(np.float32)

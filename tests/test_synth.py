@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from talkmesh.datasets import open_dataset, safe_load_pickle
+from talkmesh.audio.phonemes import ARPABET_PHONES, SILENCE
+from talkmesh.audio.voices import VOICES, available_voices, phone_coverage, synthesize
+from talkmesh.datasets.reader import open_dataset, safe_load_pickle
+from talkmesh.datasets.sentences import generate_sentences
+from talkmesh.datasets.synth import augment_audio, make_corpus, split_subjects
 from talkmesh.errors import TalkmeshError
-from talkmesh.phonemes import ARPABET_PHONES, SILENCE
-from talkmesh.sentences import generate_sentences
-from talkmesh.synth import augment_audio, make_corpus, split_subjects
-from talkmesh.voices import VOICES, available_voices, phone_coverage, synthesize
 
 needs_voices = pytest.mark.skipif(
     len(available_voices()) < 12 or not shutil.which("festival"),
@@ -99,7 +99,7 @@ def test_corpus_layout_and_reader(corpus):
     assert ds.names[0] == name and ds[0].vertices.shape[0] == (len(motion) + 1) // 2
     assert ds.regions.lve is not None and len(ds.regions.fdd) > 100
     # the lips close and open: ground truth is real lip sync
-    from talkmesh.assets import lip_opening, load_head
+    from talkmesh.face.assets import lip_opening, load_head
 
     opening = lip_opening(motion.reshape(len(motion), -1, 3), load_head().regions)
     assert opening.max() - opening.min() > 0.005

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
+from talkmesh.datasets.synth import make_corpus
 from talkmesh.errors import TalkmeshError
-from talkmesh.synth import make_corpus
-from talkmesh.train import crop_window, load_recipe
+from talkmesh.training.trainer import crop_window, load_recipe
 
 pytest.importorskip("lightning")
 pytestmark = pytest.mark.skipif(not shutil.which("mbrola"), reason="mbrola not installed")

@@ -11,7 +11,7 @@ import torch
 from fixtures import make_dataset
 
 from talkmesh.config import from_dict, to_dict
-from talkmesh.datasets import DatasetSpec
+from talkmesh.datasets.reader import DatasetSpec
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.release import load_model, save_model
 from talkmesh.models.speech import SpeechEncoderConfig
@@ -255,8 +255,8 @@ def test_wrong_vertex_count_is_a_clear_error():
 
 @pytest.mark.parametrize("name", ["voca_synth", "voca_vocaset"])
 def test_recipes(name):
-    from talkmesh.models.voca_tasks import build_config
-    from talkmesh.train import DatasetInfo, load_recipe
+    from talkmesh.training.trainer import DatasetInfo, load_recipe
+    from talkmesh.training.voca import build_config
 
     recipe = load_recipe(CONFIGS / f"{name}.yaml", ["train.seed=3"])
     assert recipe.task == "voca" and recipe.train.seed == 3
@@ -278,7 +278,7 @@ def test_recipes(name):
 
 
 def test_train_one_epoch_end_to_end_and_load_the_release(tmp_path):
-    from talkmesh.train import DataConfig, Recipe, TrainConfig, train
+    from talkmesh.training.trainer import DataConfig, Recipe, TrainConfig, train
 
     root = tmp_path / "corpus"
     spec = DatasetSpec(kind="folder", motion_fps=FPS, stride=1, num_vertices=V,

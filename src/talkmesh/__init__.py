@@ -12,8 +12,8 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from talkmesh.animation import Animation
-from talkmesh.assets import Head, list_identities, load_head, load_template
 from talkmesh.errors import TalkmeshError
+from talkmesh.face.assets import Head, list_identities, load_head, load_template
 
 __all__ = [
     "Animation",
@@ -40,11 +40,11 @@ def __getattr__(name: str):
 
         return animate
     if name in ("save_animation", "load_animation"):
-        from talkmesh import io
+        from talkmesh.output import formats as io
 
         return getattr(io, name)
     if name == "load_audio":
-        from talkmesh.audio import load_audio
+        from talkmesh.audio.loading import load_audio
 
         return load_audio
     if name == "load_model":
@@ -52,11 +52,11 @@ def __getattr__(name: str):
 
         return load_model
     if name == "open_stream":
-        from talkmesh.stream import open_stream
+        from talkmesh.serve.stream import open_stream
 
         return open_stream
     if name == "render_video":
-        from talkmesh.render import render_video
+        from talkmesh.output.render import render_video
 
         return render_video
     raise AttributeError(f"module 'talkmesh' has no attribute {name!r}")

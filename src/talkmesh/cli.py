@@ -9,8 +9,8 @@ from pathlib import Path
 
 from talkmesh import __version__
 from talkmesh.errors import TalkmeshError
+from talkmesh.output import VIDEO_SUFFIXES, write_animation
 
-VIDEO_SUFFIXES = (".mp4",)
 DEFAULT_OUTPUT = "{stem}.mp4"
 
 
@@ -36,7 +36,7 @@ def _parse_outputs(patterns: list[str], inputs: list[Path]) -> list[list[Path]]:
 
 
 def _check_outputs(outputs: list[list[Path]], inputs: list[Path], overwrite: bool) -> None:
-    from talkmesh.io import EXPORTERS
+    from talkmesh.output.formats import EXPORTERS
 
     known = set(EXPORTERS) | set(VIDEO_SUFFIXES)
     resolved_inputs = {p.resolve() for p in inputs}
@@ -58,25 +58,10 @@ def _check_outputs(outputs: list[list[Path]], inputs: list[Path], overwrite: boo
                 raise TalkmeshError(f"{p} already exists: choose another -o or pass --overwrite")
 
 
-def write_animation(anim, path: Path, *, overwrite: bool, size: int = 512) -> None:
-    """Write ``anim`` to ``path``: a video for .mp4, else the exporter for the extension."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix.lower() in VIDEO_SUFFIXES:
-        from talkmesh.render import render_video
-
-        if path.exists() and not overwrite:
-            raise TalkmeshError(f"{path} already exists: choose another -o or pass --overwrite")
-        render_video(anim, path, size=size)
-    else:
-        from talkmesh.io import save_animation
-
-        save_animation(anim, path, overwrite=overwrite)
-
-
 def cmd_animate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from talkmesh.assets import load_head, load_template
+    from talkmesh.face.assets import load_head, load_template
     from talkmesh.pipeline import animate, parse_style
 
     inputs = [Path(a) for a in args.audio]
@@ -115,14 +100,14 @@ def cmd_animate(args: argparse.Namespace) -> int:
 
 
 def _load(path: str, fps: float | None):
-    from talkmesh.io import load_animation
+    from talkmesh.output.formats import load_animation
 
     return load_animation(Path(path), fps=fps)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from talkmesh.audio import SAMPLE_RATE, load_audio
-    from talkmesh.render import render_side_by_side, render_video
+    from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+    from talkmesh.output.render import render_side_by_side, render_video
 
     out = Path(args.output)
     inputs = [Path(a) for a in args.anim] + ([Path(args.audio)] if args.audio else [])
@@ -158,7 +143,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     import importlib.util
     import shutil
 
-    from talkmesh.assets import default_identity, list_identities, load_head
+    from talkmesh.face.assets import default_identity, list_identities, load_head
     from talkmesh.pipeline import available_models
 
     head = load_head()
@@ -198,7 +183,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from talkmesh.synth import make_corpus
+    from talkmesh.datasets.synth import make_corpus
 
     info = make_corpus(
         Path(args.out),
@@ -217,7 +202,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    from talkmesh.evaluate import evaluate, format_table, scores_to_json
+    from talkmesh.evaluation.evaluate import evaluate, format_table, scores_to_json
 
     scores = evaluate(
         args.dataset,
@@ -238,7 +223,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_baseline(args: argparse.Namespace) -> int:
-    from talkmesh.evaluate import write_baseline
+    from talkmesh.evaluation.evaluate import write_baseline
 
     n = write_baseline(
         args.dataset,
@@ -254,7 +239,7 @@ def cmd_baseline(args: argparse.Namespace) -> int:
 
 
 def cmd_predict(args: argparse.Namespace) -> int:
-    from talkmesh.evaluate import write_model_predictions
+    from talkmesh.evaluation.evaluate import write_model_predictions
 
     n = write_model_predictions(
         args.dataset, args.data, args.out, args.model, split=args.split,
@@ -266,7 +251,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
 
 
 def cmd_prepare_biwi(args: argparse.Namespace) -> int:
-    from talkmesh.biwi import prepare_biwi
+    from talkmesh.datasets.biwi import prepare_biwi
 
     n = prepare_biwi(Path(args.raw), Path(args.out), progress=not args.quiet)
     if not args.quiet:
@@ -284,7 +269,7 @@ def cmd_convert_whisper(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from talkmesh.train import load_recipes, train
+    from talkmesh.training.trainer import load_recipes, train
 
     overrides = list(args.overrides)
     if args.devices is not None:
@@ -309,7 +294,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:
-    from talkmesh.benchmark import load_benchmark, plan_lines, run_benchmark
+    from talkmesh.evaluation.benchmark import load_benchmark, plan_lines, run_benchmark
 
     only = [m for m in args.only.split(",") if m] if args.only else None
     flags = dict(only=only, skip_video=args.skip_video, skip_ablation=args.skip_ablation)
@@ -343,7 +328,7 @@ def cmd_retarget(args: argparse.Namespace) -> int:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     try:
-        from talkmesh.serve import serve
+        from talkmesh.serve.server import serve
     except ImportError as e:
         if e.name not in ("starlette", "anyio"):
             raise

@@ -7,17 +7,17 @@ from pathlib import Path
 import numpy as np
 
 from talkmesh.animation import Animation
-from talkmesh.arkit import ARKIT_NAMES, fit_weights
-from talkmesh.assets import Head, load_head
-from talkmesh.audio import SAMPLE_RATE, load_audio
+from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+from talkmesh.audio.phonemes import Phone, recognize_phones
 from talkmesh.errors import TalkmeshError
-from talkmesh.lipsync import (
+from talkmesh.face.arkit import ARKIT_NAMES, fit_weights
+from talkmesh.face.assets import Head, load_head
+from talkmesh.face.lipsync import (
     SpeakingStyle,
     blink_gaze_weights,
     phones_to_weights,
     replace_eye_motion,
 )
-from talkmesh.phonemes import Phone, recognize_phones
 
 DEFAULT_FPS = 30.0
 MAX_FPS = 240.0

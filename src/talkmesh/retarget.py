@@ -13,18 +13,18 @@ from pathlib import Path
 import numpy as np
 
 from talkmesh.animation import Animation
-from talkmesh.audio import SAMPLE_RATE, load_audio
+from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 from talkmesh.errors import TalkmeshError
 
 
 def _inputs(model: str | Path, anim: str | Path, source_template: str | Path | None):
     import torch
 
-    from talkmesh.assets import load_head, read_mesh_vertices
-    from talkmesh.io import load_animation
-    from talkmesh.models.meshtalk_tasks import load_system
+    from talkmesh.face.assets import load_head, read_mesh_vertices
+    from talkmesh.models.release import load_model
+    from talkmesh.output.formats import load_animation
 
-    system = load_system(model)
+    system = load_model(model, family="meshtalk")
     net = system.model
     V = net.config.num_vertices
     source = load_animation(anim, fps=net.config.fps)
@@ -65,7 +65,7 @@ def retarget(
     source_template: str | Path | None = None,
 ) -> Animation:
     """The animation in ``anim`` (spoken in ``audio``) on the neutral mesh in ``template``."""
-    from talkmesh.assets import read_mesh_vertices
+    from talkmesh.face.assets import read_mesh_vertices
 
     torch, net, source, verts, src_template = _inputs(model, anim, source_template)
     target = read_mesh_vertices(template)

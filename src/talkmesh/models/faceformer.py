@@ -54,7 +54,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from talkmesh.audio import SAMPLE_RATE
+from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.codetalker import (
     Block,

@@ -42,7 +42,9 @@ from torch import Tensor, nn
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.speech import SpeechEncoderConfig
 
-SAMPLE_RATE = 16_000  # Hz; the paper's audio rate and talkmesh's (talkmesh.audio.SAMPLE_RATE)
+SAMPLE_RATE = (
+    16_000  # Hz; the paper's audio rate and talkmesh's (talkmesh.audio.loading.SAMPLE_RATE)
+)
 LEAKY_SLOPE = 0.2  # LeakyReLU slope used throughout, as in the official code
 LOG_FLOOR = 1e-5  # power floor before the log: silence maps to log(LOG_FLOOR)
 DEFAULT_MEL_MEAN = -4.0  # rough log-mel statistics of speech; replace with data via set_statistics
@@ -594,7 +596,7 @@ def _check_mesh(name: str, x: Tensor, num_vertices: int, ndim: int) -> None:
 class MeshTalk(nn.Module):
     """Categorical expression space: E(x, a) -> codes, D(h, codes) -> animated template.
 
-    Region maps (the dataset's, e.g. ``talkmesh.assets.load_head().regions``) are buffers saved with
+    Region maps (the dataset's, e.g. ``talkmesh.face.assets.load_head().regions``) are buffers saved with
     the weights: ``mouth_weight`` and ``upper_weight`` soft (V,) maps, ``eyelids`` vertex ids. Missing
     maps default to uniform weights and no eyelids. Normalisation statistics are buffers too.
     """

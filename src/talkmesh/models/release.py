@@ -85,8 +85,13 @@ def resolve(name_or_path: str | Path) -> Path:
     )
 
 
-def load_model(name_or_path: str | Path, *, dtype: torch.dtype = torch.float32) -> nn.Module:
-    """Rebuild a released model offline from its file alone (``strict=True``), in eval mode."""
+def load_model(
+    name_or_path: str | Path, *, dtype: torch.dtype = torch.float32, family: str | None = None
+) -> nn.Module:
+    """Rebuild a released model offline from its file alone (``strict=True``), in eval mode.
+
+    ``family`` (e.g. ``"meshtalk"``), when given, is required of the file.
+    """
     try:
         from safetensors import safe_open
         from safetensors.torch import load_file
@@ -111,6 +116,8 @@ def load_model(name_or_path: str | Path, *, dtype: torch.dtype = torch.float32) 
         raise TalkmeshError(
             f"{path}: unknown model family {meta.get('family')!r}: upgrade talkmesh"
         )
+    if family is not None and meta["family"] != family:
+        raise TalkmeshError(f"{path}: a {meta['family']} model, not {family}")
     cls, cfg_cls = family_classes(meta["family"])
     model = cls(from_dict(cfg_cls, json.loads(meta["config"])))
     model.load_state_dict(

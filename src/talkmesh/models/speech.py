@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from talkmesh.audio import SAMPLE_RATE
+from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
 KINDS = ("mel", "wav2vec2", "whisper")

@@ -53,7 +53,7 @@ from torch import Tensor, nn
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
 
-SAMPLE_RATE = 16_000  # Hz: talkmesh.audio.SAMPLE_RATE
+SAMPLE_RATE = 16_000  # Hz: talkmesh.audio.loading.SAMPLE_RATE
 GENERATE_CHUNK = 4096  # frames whose windows are encoded at once when generating (bounds memory)
 STD_FLOOR = 1e-5  # feature channels with less spread than this are only centred
 

@@ -22,7 +22,7 @@ from talkmesh.models.faceformer import (
     vocaset_config,
 )
 from talkmesh.models.release import load_model, save_model
-from talkmesh.train import DatasetInfo, StepOutput, Task, TorchBatch
+from talkmesh.training.trainer import DatasetInfo, StepOutput, Task, TorchBatch
 
 PRESETS = {"small": small_synth_config, "vocaset": vocaset_config, "biwi": biwi_config}
 STATISTICS_SAMPLES = 64  # training sequences read to fit the mel statistics and motion scale

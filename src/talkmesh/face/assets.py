@@ -14,7 +14,7 @@ import numpy as np
 
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
-DATA_DIR = Path(__file__).parent / "data"
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 HEAD_FILE = "head.npz"
 MAX_MESH_BYTES = 512 * 1024 * 1024  # refuse absurd template files before reading them
 

@@ -14,7 +14,7 @@ RAW holds the scans as sequences (users export BIWI's per-frame scans to this la
                                             of the subject's first sequence
     RAW/regions/                            optional lve.txt / fdd.txt, copied
 
-OUT is a dataset in the contract of :mod:`talkmesh.datasets` (kind ``biwi`` or ``folder``).
+OUT is a dataset in the contract of :mod:`talkmesh.datasets.reader` (kind ``biwi`` or ``folder``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from talkmesh.datasets import parse_name, write_templates
+from talkmesh.datasets.reader import parse_name, write_templates
 from talkmesh.errors import TalkmeshError
 
 

@@ -16,11 +16,11 @@ import torch
 
 from talkmesh.config import from_dict, merge, to_dict
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker_tasks import prepare_speech_statistics
 from talkmesh.models.release import save_model
 from talkmesh.models.voca import VOCA as VOCAModel
 from talkmesh.models.voca import VOCAConfig, paper_vocaset_config, small_config
-from talkmesh.train import DatasetInfo, StepOutput, Task, TorchBatch
+from talkmesh.training.codetalker import prepare_speech_statistics
+from talkmesh.training.trainer import DatasetInfo, StepOutput, Task, TorchBatch
 
 PCA_SEQUENCES = 64  # training sequences sampled for the PCA basis
 PCA_FRAMES = 2048  # frames kept from them (the PCA costs frames^2 x V*3)

@@ -350,7 +350,7 @@ class MotionDataset:
         return len(self.names)
 
     def __getitem__(self, index: int) -> Sample:
-        from talkmesh.audio import SAMPLE_RATE, load_audio
+        from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 
         name = self.names[index]
         subject, sentence = parse_name(name)

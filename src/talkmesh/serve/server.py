@@ -42,7 +42,7 @@ vertex offsets of every frame as well as its weights. Clients never name files o
 HTTP
 ====
 
-* ``GET /``: the browser viewer (``talkmesh/web/static``), or a 503 page where it is not installed.
+* ``GET /``: the browser viewer (``talkmesh/serve/static``), or a 503 page where it is not installed.
 * ``GET /health``: ``{"status": "ok", "sessions": n, "max_sessions": m, "models": [...]}``.
 * ``GET /head.glb``: the bundled head with its 52 ARKit morph targets (named in
   ``meshes[0].extras.targetNames``), a one-frame neutral animation.
@@ -76,15 +76,15 @@ from starlette.routing import Mount, Route, WebSocketRoute
 from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from talkmesh.arkit import ARKIT_NAMES
-from talkmesh.assets import load_head
-from talkmesh.audio import SAMPLE_RATE
+from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
-from talkmesh.stream import DEFAULT_LOOKAHEAD_MS, StreamFrame, open_stream
+from talkmesh.face.arkit import ARKIT_NAMES
+from talkmesh.face.assets import load_head
+from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, StreamFrame, open_stream
 
 log = logging.getLogger(__name__)
 
-STATIC_DIR = Path(__file__).parent / "web" / "static"
+STATIC_DIR = Path(__file__).parent / "static"
 PROCEDURAL = "procedural"
 
 FRAME_MAGIC = b"TMF1"
@@ -493,7 +493,7 @@ class RenderError(Exception):
 
 def animate_file(audio: Path, out: Path, model: str) -> None:
     """Animate ``audio`` with ``model`` into ``out`` (.glb or .mp4), as ``talkmesh animate``."""
-    from talkmesh.cli import write_animation
+    from talkmesh.output import write_animation
     from talkmesh.pipeline import animate
 
     anim = animate(audio, model=model)
@@ -506,7 +506,7 @@ def animate_file(audio: Path, out: Path, model: str) -> None:
 def neutral_head_glb() -> bytes:
     """The bundled head as .glb: its 52 ARKit blendshapes as morph targets, one neutral frame."""
     from talkmesh.animation import Animation
-    from talkmesh.io import save_animation
+    from talkmesh.output.formats import save_animation
 
     head = load_head()
     anim = Animation(

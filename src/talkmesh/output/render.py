@@ -284,7 +284,7 @@ def winding_sign(vertices: np.ndarray, faces: np.ndarray) -> int:
 def head_vertex_colors(num_vertices: int) -> np.ndarray | None:
     """(V, 3) sRGB colours of the bundled head's parts, or None if the mesh is not that head."""
     try:
-        from talkmesh.assets import load_head
+        from talkmesh.face.assets import load_head
 
         head = load_head()
     except Exception:  # no bundled head (or a broken one): the caller renders plain skin

@@ -47,7 +47,7 @@ except ImportError:  # pragma: no cover - torch is a hard requirement of trainin
 class DataConfig:
     """Which dataset to train on and how to cut it into batches."""
 
-    kind: str = "synth"  # a talkmesh.datasets reader: vocaset, biwi, synth, folder
+    kind: str = "synth"  # a talkmesh.datasets.reader reader: vocaset, biwi, synth, folder
     root: str = "corpus/synth"
     train_split: str = "train"
     val_split: str = "val"
@@ -201,12 +201,12 @@ class Task:
 # Task name -> "module:attribute" of a Task, imported on first use so that `talkmesh info` and the
 # CLI do not import every model.
 TASKS: dict[str, str] = {
-    "codetalker-stage1": "talkmesh.models.codetalker_tasks:STAGE1",
-    "codetalker-stage2": "talkmesh.models.codetalker_tasks:STAGE2",
-    "meshtalk": "talkmesh.models.meshtalk_tasks:EXPRESSION",
-    "meshtalk-prior": "talkmesh.models.meshtalk_tasks:PRIOR",
-    "faceformer": "talkmesh.models.faceformer_tasks:FACEFORMER",
-    "voca": "talkmesh.models.voca_tasks:VOCA",
+    "codetalker-stage1": "talkmesh.training.codetalker:STAGE1",
+    "codetalker-stage2": "talkmesh.training.codetalker:STAGE2",
+    "meshtalk": "talkmesh.training.meshtalk:EXPRESSION",
+    "meshtalk-prior": "talkmesh.training.meshtalk:PRIOR",
+    "faceformer": "talkmesh.training.faceformer:FACEFORMER",
+    "voca": "talkmesh.training.voca:VOCA",
 }
 
 
@@ -255,7 +255,7 @@ class CroppedMotion:
         return len(self.dataset)
 
     def __getitem__(self, index: int):
-        from talkmesh.audio import SAMPLE_RATE
+        from talkmesh.audio.loading import SAMPLE_RATE
 
         sample = self.dataset[index]
         start, stop = crop_window(
@@ -289,8 +289,8 @@ class EpochShuffle:
 
 
 def collate_torch(samples) -> TorchBatch:
-    """Samples -> a padded :class:`TorchBatch` (see ``talkmesh.datasets.collate``)."""
-    from talkmesh.datasets import collate
+    """Samples -> a padded :class:`TorchBatch` (see ``talkmesh.datasets.reader.collate``)."""
+    from talkmesh.datasets.reader import collate
 
     b = collate(samples)
     return TorchBatch(
@@ -415,7 +415,7 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
-    from talkmesh.datasets import open_dataset
+    from talkmesh.datasets.reader import open_dataset
 
     out = Path(recipe.train.out_dir)
     last = out / "last.ckpt"

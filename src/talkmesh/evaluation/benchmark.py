@@ -195,7 +195,7 @@ class StagePlan(NamedTuple):
     method: str
     seed: int
     stage: str
-    recipe: Any  # talkmesh.train.Recipe
+    recipe: Any  # talkmesh.training.trainer.Recipe
     init_stage: str | None  # the earlier stage whose release is this stage's init
 
     @property
@@ -270,7 +270,7 @@ def load_benchmark(path: str | Path, *, check_data: bool = True) -> BenchmarkCon
 
 
 def _open(cfg: BenchmarkConfig, split: str | None = None):
-    from talkmesh.datasets import open_dataset
+    from talkmesh.datasets.reader import open_dataset
 
     d = cfg.data
     try:
@@ -295,7 +295,7 @@ def _recipe_file(recipe: str) -> dict[str, Any]:
 
 
 def _load_stages(recipe: str, overrides: list[str]) -> list[tuple[str, Any]]:
-    from talkmesh.train import load_recipes
+    from talkmesh.training.trainer import load_recipes
 
     try:
         return load_recipes(recipe, overrides)
@@ -481,7 +481,7 @@ class Log:
 
 def _epoch_frames(recipe) -> tuple[int, int]:
     """(samples, motion frames) of one training epoch: each sample contributes its crop."""
-    from talkmesh.datasets import VERTICES_DIR, open_dataset
+    from talkmesh.datasets.reader import VERTICES_DIR, open_dataset
 
     d = recipe.data
     ds = open_dataset(d.kind, d.root, d.train_split, regions=d.regions)
@@ -504,7 +504,7 @@ def _checkpoint_epochs(last: Path) -> int:
 
 def train_stage(plan: StagePlan, *, keep_checkpoints: bool, progress: bool) -> dict[str, Any]:
     """Train (or resume) one stage; returns and writes its timing record (``timing.json``)."""
-    from talkmesh.train import train
+    from talkmesh.training.trainer import train
 
     state = stage_state(plan)
     if state == "waiting":
@@ -561,7 +561,7 @@ def predict(
     cfg: BenchmarkConfig, release: Path, pred_dir: Path, *, progress: bool, mode: str = "fast"
 ) -> dict[str, Any]:
     """The release's predictions for the evaluation split (regenerated if the release changed)."""
-    from talkmesh.evaluate import write_model_predictions
+    from talkmesh.evaluation.evaluate import write_model_predictions
 
     if pred_dir.exists():
         shutil.rmtree(pred_dir)
@@ -589,7 +589,7 @@ def predict(
 
 
 def baseline(cfg: BenchmarkConfig, name: str, pred_dir: Path, *, progress: bool) -> dict[str, Any]:
-    from talkmesh.evaluate import write_baseline
+    from talkmesh.evaluation.evaluate import write_baseline
 
     if pred_dir.exists():
         shutil.rmtree(pred_dir)
@@ -604,8 +604,8 @@ def baseline(cfg: BenchmarkConfig, name: str, pred_dir: Path, *, progress: bool)
 
 def score(dataset, pred_dir: Path) -> dict[str, dict[str, Any]]:
     """``scores_to_json`` of every protocol for a complete prediction directory."""
-    from talkmesh.evaluate import evaluate_dataset, scores_to_json
-    from talkmesh.metrics import PROTOCOLS
+    from talkmesh.evaluation.evaluate import evaluate_dataset, scores_to_json
+    from talkmesh.evaluation.metrics import PROTOCOLS
 
     out = {}
     for protocol in PROTOCOLS:
@@ -651,7 +651,7 @@ def codebook_usage(release: Path, dataset) -> dict[str, Any]:
 
 def _test_audio(dataset, seconds: float) -> np.ndarray:
     """``seconds`` of the split's speech, its sequences one after the other (repeated if short)."""
-    from talkmesh.audio import SAMPLE_RATE
+    from talkmesh.audio.loading import SAMPLE_RATE
 
     need = int(round(seconds * SAMPLE_RATE))
     parts, have, i = [], 0, 0
@@ -842,7 +842,7 @@ def _load_pred(pred_dir: Path, name: str, num_vertices: int) -> np.ndarray:
 
 
 def _lip_pairs(num_vertices: int) -> np.ndarray | None:
-    from talkmesh.assets import load_head
+    from talkmesh.face.assets import load_head
 
     head = load_head()
     if num_vertices != head.num_vertices:
@@ -859,7 +859,7 @@ def sample_indices(n: int, k: int) -> list[int]:
 
 def lip_figure(dataset, indices: list[int], preds: dict[str, Path], path: Path) -> Path | None:
     """Paper Figs. 5/8: upper-lower lip distance over time, every method vs ground truth."""
-    from talkmesh.metrics import lip_opening_pairs
+    from talkmesh.evaluation.metrics import lip_opening_pairs
 
     Figure, _ = _matplotlib()
     first = dataset[indices[0]]
@@ -937,7 +937,7 @@ def draw_on_mesh(
 
 def motion_figure(dataset, preds: dict[str, Path], path: Path) -> Path:
     """Paper Fig. 4: per-vertex mean and std over time of the inter-frame motion, on the mesh."""
-    from talkmesh.metrics import motion_statistics
+    from talkmesh.evaluation.metrics import motion_statistics
 
     Figure, poly = _matplotlib()
     samples = [dataset[i] for i in range(len(dataset))]
@@ -1009,8 +1009,8 @@ def side_by_side_video(
 ) -> Path | None:
     """Ground truth and every method (seed 0) on one test sentence, with its audio."""
     from talkmesh.animation import Animation
-    from talkmesh.audio import SAMPLE_RATE
-    from talkmesh.render import render_side_by_side
+    from talkmesh.audio.loading import SAMPLE_RATE
+    from talkmesh.output.render import render_side_by_side
 
     faces = dataset.faces
     if faces is None:

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from talkmesh.audio.phonemes import ARPABET_PHONES, SILENCE, Phone
 from talkmesh.errors import TalkmeshError
-from talkmesh.phonemes import ARPABET_PHONES, SILENCE, Phone
 
 MBROLA_DIR = Path("/usr/share/mbrola")
 MBROLA_RATE = 16_000  # Hz of the us1/us2/us3/en1 databases

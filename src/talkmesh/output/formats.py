@@ -43,14 +43,14 @@ from typing import NamedTuple
 import numpy as np
 
 from talkmesh.animation import Animation
-from talkmesh.arkit import (
+from talkmesh.errors import TalkmeshError
+from talkmesh.face.arkit import (
     ARKIT_NAMES,
     LIVE_LINK_BLENDSHAPES,
     LIVE_LINK_COLUMNS,
     arkit_index,
     to_arkit_order,
 )
-from talkmesh.errors import TalkmeshError
 
 NPY_DEFAULT_FPS = 30.0  # FaceFormer / CodeTalker write VOCASET predictions at 30 fps
 GLB_MAX_ERROR = 1e-4  # metres: PCA morph targets reproduce every vertex to 0.1 mm ...
@@ -258,9 +258,9 @@ def _finite(values: np.ndarray, what: str) -> np.ndarray:
 
 
 def _bundled_head():
-    """The bundled head (``talkmesh.assets.load_head()``), or None where it is unavailable."""
+    """The bundled head (``talkmesh.face.assets.load_head()``), or None where it is unavailable."""
     try:
-        from talkmesh.assets import load_head
+        from talkmesh.face.assets import load_head
     except ImportError:
         return None
     try:
@@ -471,7 +471,7 @@ def _import_weights_on_head(path: Path, faces: np.ndarray | None, fps: float | N
     head = _bundled_head()
     if head is None:
         raise TalkmeshError(
-            f"{path}: playing ARKit weights needs the bundled head (talkmesh.assets)"
+            f"{path}: playing ARKit weights needs the bundled head (talkmesh.face.assets)"
         )
     order = [arkit_index(n) for n in head.blendshape_names]
     head_weights = weights[:, order]

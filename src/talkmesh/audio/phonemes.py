@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from talkmesh.audio import SAMPLE_RATE, resample
+from talkmesh.audio.loading import SAMPLE_RATE, resample
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
 if TYPE_CHECKING:

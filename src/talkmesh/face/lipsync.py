@@ -21,9 +21,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from talkmesh.arkit import ARKIT_NAMES
+from talkmesh.audio.phonemes import Phone
 from talkmesh.errors import TalkmeshError
-from talkmesh.phonemes import Phone
+from talkmesh.face.arkit import ARKIT_NAMES
 
 ARKIT = ARKIT_NAMES
 INDEX = {name: i for i, name in enumerate(ARKIT)}

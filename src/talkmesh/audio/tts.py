@@ -1,7 +1,7 @@
 """Synthetic speech with timed phones, for demos and tests: espeak-ng (a Debian package).
 
 The phone timings come from forcing the text onto the synthesised audio with PocketSphinx
-(:func:`talkmesh.phonemes.recognize_phones`), which works for any espeak-ng voice. Reading the
+(:func:`talkmesh.audio.phonemes.recognize_phones`), which works for any espeak-ng voice. Reading the
 synthesiser's own phone timings (``espeak-ng --pho`` with an MBROLA voice) would be exact; that
 is not done yet.
 """
@@ -12,9 +12,9 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from talkmesh.audio import SAMPLE_RATE, load_audio
+from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+from talkmesh.audio.phonemes import Phone, recognize_phones
 from talkmesh.errors import TalkmeshError
-from talkmesh.phonemes import Phone, recognize_phones
 
 ESPEAK = "espeak-ng"
 DEFAULT_VOICE = "en-us"

@@ -23,7 +23,7 @@ from talkmesh.models.meshtalk import (
     prior_config,
 )
 from talkmesh.models.release import load_model, save_model
-from talkmesh.train import DatasetInfo, StepOutput, Task, TorchBatch
+from talkmesh.training.trainer import DatasetInfo, StepOutput, Task, TorchBatch
 
 
 def _config(cls, preset_fn, model: dict[str, Any], *args):
@@ -42,7 +42,7 @@ def region_maps(
     The bundled head ships soft maps; other topologies fall back to uniform maps (the
     cross-modality loss then weighs every vertex alike).
     """
-    from talkmesh.assets import load_head
+    from talkmesh.face.assets import load_head
 
     head = load_head()
     if info.num_vertices != head.num_vertices:

@@ -26,11 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
-from talkmesh.arkit import ARKIT_NAMES, WeightFitter
-from talkmesh.assets import Head, load_head
-from talkmesh.audio import SAMPLE_RATE
+from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.audio.phonemes import FRAME_RATE, SILENCE_RMS, Phone
 from talkmesh.errors import TalkmeshError
-from talkmesh.lipsync import (
+from talkmesh.face.arkit import ARKIT_NAMES, WeightFitter
+from talkmesh.face.assets import Head, load_head
+from talkmesh.face.lipsync import (
     BLINK_GAZE,
     INDEX,
     SpeakingStyle,
@@ -39,7 +40,6 @@ from talkmesh.lipsync import (
     replace_eye_motion,
     upper_face_curves,
 )
-from talkmesh.phonemes import FRAME_RATE, SILENCE_RMS, Phone
 
 DEFAULT_LOOKAHEAD_MS = 100.0
 MAX_LOOKAHEAD_MS = 300.0
@@ -177,7 +177,7 @@ class ProceduralStreamer(Streamer):
         style: SpeakingStyle | None = None,
     ) -> None:
         super().__init__(fps, lookahead_ms, head, offsets)
-        from talkmesh import phonemes
+        from talkmesh.audio import phonemes
 
         self._ps = phonemes
         self.decoder = phonemes._decoder(align=False)

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from talkmesh.datasets import MotionDataset, open_dataset
+from talkmesh.datasets.reader import MotionDataset, open_dataset
 from talkmesh.errors import TalkmeshError
-from talkmesh.metrics import PROTOCOLS, Scores, pool, score_sequence
+from talkmesh.evaluation.metrics import PROTOCOLS, Scores, pool, score_sequence
 
 CONDITION = re.compile(r"^(?P<name>.+?)_condition_(?P<style>.+)$")
 
@@ -54,7 +54,7 @@ def _load_prediction(path: Path, num_vertices: int) -> np.ndarray:
 
 
 def _lip_pairs(dataset: MotionDataset, num_vertices: int) -> np.ndarray | None:
-    from talkmesh.assets import load_head
+    from talkmesh.face.assets import load_head
 
     head = load_head()
     if num_vertices == head.num_vertices:
@@ -206,10 +206,10 @@ def write_baseline(
         if method == "static":
             pred = np.repeat(sample.template[None], len(sample.vertices), axis=0)
         else:
-            from talkmesh.assets import load_head
-            from talkmesh.audio import SAMPLE_RATE
-            from talkmesh.lipsync import phones_to_weights
-            from talkmesh.phonemes import recognize_phones
+            from talkmesh.audio.loading import SAMPLE_RATE
+            from talkmesh.audio.phonemes import recognize_phones
+            from talkmesh.face.assets import load_head
+            from talkmesh.face.lipsync import phones_to_weights
 
             head = load_head(identities[sample.subject]).with_template(
                 sample.template, sample.subject
@@ -274,9 +274,9 @@ def write_model_predictions(
             file=sys.stderr,
         )
     if blinks:
-        from talkmesh.arkit import fit_weights
-        from talkmesh.assets import load_head
-        from talkmesh.lipsync import blink_gaze_weights, replace_eye_motion
+        from talkmesh.face.arkit import fit_weights
+        from talkmesh.face.assets import load_head
+        from talkmesh.face.lipsync import blink_gaze_weights, replace_eye_motion
 
         head = load_head()
         if head.num_vertices != net.num_vertices:

@@ -23,7 +23,7 @@ from talkmesh.models.codetalker import (
     small_synth_config,
 )
 from talkmesh.models.release import load_model, save_model
-from talkmesh.train import DatasetInfo, StepOutput, Task, TorchBatch
+from talkmesh.training.trainer import DatasetInfo, StepOutput, Task, TorchBatch
 
 STATISTICS_SAMPLES = 64
 

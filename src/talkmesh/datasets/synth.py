@@ -1,11 +1,11 @@
 """``talkmesh synth``: a multi-speaker synthetic talking-face corpus in the VOCASET layout.
 
-Each subject pairs a bundled identity with its own synthetic voice (:mod:`talkmesh.voices`) and
-speaking style. Ground truth is the procedural lip sync (:mod:`talkmesh.lipsync`) driven by the
+Each subject pairs a bundled identity with its own synthetic voice (:mod:`talkmesh.audio.voices`) and
+speaking style. Ground truth is the procedural lip sync (:mod:`talkmesh.face.lipsync`) driven by the
 synthesiser's exact phone timings, in the subject's style; blinks, brow drift and gaze come from a
 per-sequence seed, so part of the upper face is independent of the audio, as in real capture.
 
-Layout (see :mod:`talkmesh.datasets`)::
+Layout (see :mod:`talkmesh.datasets.reader`)::
 
     OUT/wav/Synth_01_ada_sentence01.wav           the synthesiser's native rate
     OUT/vertices_npy/Synth_01_ada_sentence01.npy  [T, V*3] float32 at 60 fps (like VOCASET)
@@ -76,10 +76,10 @@ def _subject_job(job: dict) -> list[dict]:
     """Synthesise, animate and write every sentence of one subject (runs in a worker)."""
     import soundfile as sf
 
-    from talkmesh.assets import load_head
-    from talkmesh.audio import SAMPLE_RATE, resample
-    from talkmesh.lipsync import SpeakingStyle, phones_to_weights
-    from talkmesh.voices import get_voice, synthesize
+    from talkmesh.audio.loading import SAMPLE_RATE, resample
+    from talkmesh.audio.voices import get_voice, synthesize
+    from talkmesh.face.assets import load_head
+    from talkmesh.face.lipsync import SpeakingStyle, phones_to_weights
 
     root = Path(job["root"])
     head = load_head(job["identity"])
@@ -136,11 +136,11 @@ def make_corpus(
     """Write a synthetic corpus to ``out`` (see the module docstring); returns a summary."""
     from tqdm import tqdm
 
-    from talkmesh.assets import list_identities, load_head
-    from talkmesh.datasets import write_templates
-    from talkmesh.lipsync import SpeakingStyle
-    from talkmesh.sentences import generate_sentences
-    from talkmesh.voices import available_voices
+    from talkmesh.audio.voices import available_voices
+    from talkmesh.datasets.reader import write_templates
+    from talkmesh.datasets.sentences import generate_sentences
+    from talkmesh.face.assets import list_identities, load_head
+    from talkmesh.face.lipsync import SpeakingStyle
 
     if subjects < 1 or sentences < 1:
         raise TalkmeshError("--subjects and --sentences must be at least 1")
