@@ -31,7 +31,7 @@ from inference import count_passes  # bench/inference.py (the scripts run from b
 
 from talkmesh.datasets.reader import open_dataset
 from talkmesh.evaluation.evaluate import evaluate_dataset
-from talkmesh.models.codetalker import quantize_int8
+from talkmesh.models.int8 import quantize_int8
 from talkmesh.models.release import load_model
 
 

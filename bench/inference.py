@@ -41,13 +41,9 @@ import time
 
 import torch
 
-from talkmesh.models.codetalker import (
-    CodeTalker,
-    FrameGenerator,
-    paper_vocaset_config,
-    quantize_int8,
-    small_synth_config,
-)
+from talkmesh.models.codetalker import CodeTalker, paper_vocaset_config, small_synth_config
+from talkmesh.models.codetalker_generate import FrameGenerator
+from talkmesh.models.int8 import quantize_int8
 
 SR = 16_000
 MODES = ("fast", "fast-steps", "naive", "exact", "fast-int8-speech", "fast-int8", "fast-int8-all")

@@ -18,7 +18,8 @@ from functools import partial
 
 import torch
 
-from talkmesh.models.meshtalk import SAMPLE_RATE, AutoregressivePrior, prior_config
+from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.models.meshtalk_prior import AutoregressivePrior, prior_config
 
 FPS = 30.0
 

@@ -8,17 +8,11 @@ import pytest
 import torch
 
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker import (
-    CodeTalker,
-    CodeTalkerConfig,
-    DecoderStep,
-    Int8Linear,
-    Quantizer,
-    Stage2Config,
-    VQConfig,
-    quantize_int8,
-    temporal_bias,
-)
+from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
+from talkmesh.models.codetalker_generate import FrameGenerator, generate_fast
+from talkmesh.models.codetalker_vq import DecoderStep, Quantizer, VQConfig
+from talkmesh.models.int8 import Int8Conv1d, Int8Linear, int8_layers, quantize_int8
+from talkmesh.models.layers import KVCache, temporal_bias
 from talkmesh.models.release import load_model, save_model
 from talkmesh.models.speech import SpeechEncoderConfig
 
@@ -149,8 +143,8 @@ def test_fast_generation_is_causal_in_its_codes():
     # ... and the decoder sees nothing later: change every later token and the codes up to t stay
     tok_c = tok_a.clone()
     tok_c[:, t + 1 :] = torch.randn_like(tok_c[:, t + 1 :]) * 10
-    a, _ = model._generate_fast(model.style_vector(style), model._cross(tok_a), 20)
-    c, _ = model._generate_fast(model.style_vector(style), model._cross(tok_c), 20)
+    a, _ = generate_fast(model, model.style_vector(style), model.cross_terms(tok_a), 20)
+    c, _ = generate_fast(model, model.style_vector(style), model.cross_terms(tok_c), 20)
     assert torch.equal(a[:, : t + 1], c[:, : t + 1])
     assert not torch.equal(a, c)
 
@@ -291,7 +285,6 @@ def test_long_audio_goes_through_wav2vec2_in_windows(monkeypatch):
 
 
 def test_kv_cache_keeps_the_last_window_in_place():
-    from talkmesh.models.codetalker import KVCache
 
     cache, ks = KVCache(window=5), []
     for step in range(23):
@@ -305,7 +298,6 @@ def test_kv_cache_keeps_the_last_window_in_place():
 
 
 def test_kv_cache_takes_several_rows_and_gives_the_last_ones_back():
-    from talkmesh.models.codetalker import KVCache
 
     cache, kept = KVCache(window=5), []  # ``kept``: the rows the cache should hold, in order
     g = torch.Generator().manual_seed(0)
@@ -324,7 +316,6 @@ def test_kv_cache_takes_several_rows_and_gives_the_last_ones_back():
 
 def _count_passes(monkeypatch) -> list[tuple[int, int, int]]:
     """Record (frames, guesses, frames kept) of every FrameGenerator.block pass."""
-    from talkmesh.models.codetalker import FrameGenerator
 
     passes, block = [], FrameGenerator.block
 
@@ -347,12 +338,12 @@ def test_fast_generation_in_passes_equals_frame_by_frame(causal, monkeypatch):
         model.motion_map.weight.mul_(100.0)
     audio = torch.cat([clip(40, seed=1)[0], clip(40, seed=2)[0]])  # a batch of two
     style = model.style_vector(torch.tensor([0, 1]))
-    cross = model._cross(model.audio_tokens(audio, None, 40))
+    cross = model.cross_terms(model.audio_tokens(audio, None, 40))
     passes = _count_passes(monkeypatch)
-    one, one_motion = model._generate_fast(style, cross, 40, block=1)
+    one, one_motion = generate_fast(model, style, cross, 40, block=1)
     assert all(p == (1, 0, 1) for p in passes) and len(passes) == 40
     passes.clear()
-    many, motion = model._generate_fast(style, cross, 40, block=16)
+    many, motion = generate_fast(model, style, cross, 40, block=16)
     assert torch.equal(many, one)  # the same codes, past both attention windows
     if causal:
         torch.testing.assert_close(motion, one_motion, atol=1e-5, rtol=1e-4)
@@ -370,22 +361,21 @@ def test_a_pass_without_guesses_guesses_that_the_codes_hold_still(monkeypatch):
     model = tiny(vq_layers=2)
     torch.nn.init.zeros_(model.feat_map.weight)  # every frame gets the same codes
     style = model.style_vector(torch.tensor([0]))
-    cross = model._cross(model.audio_tokens(clip(12)[0], None, 12))
-    steps, _ = model._generate_fast(style, cross, 12, block=1)
+    cross = model.cross_terms(model.audio_tokens(clip(12)[0], None, 12))
+    steps, _ = generate_fast(model, style, cross, 12, block=1)
     assert (steps == steps[:, :1]).all()
     passes = _count_passes(monkeypatch)
-    codes, _ = model._generate_fast(style, cross, 12, block=16)
+    codes, _ = generate_fast(model, style, cross, 12, block=16)
     assert torch.equal(codes, steps)
     assert passes == [(1, 0, 1), (11, 0, 11)]  # frame 0 alone, then the guesses all held
 
 
 def test_when_guesses_keep_failing_fast_mode_runs_frames_one_at_a_time(monkeypatch):
-    from talkmesh.models.codetalker import FrameGenerator
 
     model = tiny(vq_layers=2)
     style = model.style_vector(torch.tensor([0]))
-    cross = model._cross(model.audio_tokens(clip(80)[0], None, 80))
-    steps, _ = model._generate_fast(style, cross, 80, block=1)
+    cross = model.cross_terms(model.audio_tokens(clip(80)[0], None, 80))
+    steps, _ = generate_fast(model, style, cross, 80, block=1)
     block, passes = FrameGenerator.block, []
 
     def wrong_guesses(self, cross, drafts):  # every guess fails: each pass keeps one frame
@@ -394,7 +384,7 @@ def test_when_guesses_keep_failing_fast_mode_runs_frames_one_at_a_time(monkeypat
         return out
 
     monkeypatch.setattr(FrameGenerator, "block", wrong_guesses)
-    codes, _ = model._generate_fast(style, cross, 80)
+    codes, _ = generate_fast(model, style, cross, 80)
     assert torch.equal(codes, steps)  # kept frames are exact whatever the guesses
     assert all(kept == 1 for _, kept in passes[2:])
     long = [K for K, _ in passes if K > 1]
@@ -402,11 +392,10 @@ def test_when_guesses_keep_failing_fast_mode_runs_frames_one_at_a_time(monkeypat
 
 
 def test_a_pass_takes_fewer_guesses_than_frames():
-    from talkmesh.models.codetalker import FrameGenerator
 
     model = tiny()
     gen = FrameGenerator(model, model.style_vector(torch.tensor([0])))
-    cross = model._cross(model.audio_tokens(clip(3)[0], None, 3))
+    cross = model.cross_terms(model.audio_tokens(clip(3)[0], None, 3))
     with pytest.raises(ValueError, match="at most K - 1"):
         gen.block(cross, torch.zeros(1, 3, 4, dtype=torch.long))
 
@@ -453,7 +442,6 @@ def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(t
         again.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([1])), a
     )
     # int8 speech: Whisper's stem convolutions as Int8Conv1d (Whisper reads their strides)
-    from talkmesh.models.codetalker import Int8Conv1d
 
     small = quantize_int8(model, speech=True, decoders=False)
     assert sum(isinstance(m, Int8Conv1d) for m in small.speech.modules()) == 2
@@ -603,8 +591,6 @@ def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causa
     def quantized(module):
         return any(isinstance(m, Int8Linear) for m in module.modules())
 
-    from talkmesh.models.codetalker import FrameGenerator
-
     fold = FrameGenerator(small, small.style_vector(style)).fold
     for part in (small.blocks, small.feat_map, small.vqvae.decoder.blocks, small.vqvae.decoder.inp,
                  small.vqvae.decoder.mid, small.vqvae.decoder.conv.linear, fold):  # fmt: skip
@@ -637,11 +623,10 @@ def test_int8_linear_rows_do_not_depend_on_each_other():
 
 @pytest.mark.parametrize("stride,padding", [(1, 0), (2, 1), (5, 0)])
 def test_int8_conv1d_is_the_convolution_in_int8(stride, padding):
-    from talkmesh.models.codetalker import Int8Conv1d, _int8
 
     torch.manual_seed(0)
     conv = torch.nn.Conv1d(6, 10, 3, stride=stride, padding=padding)
-    q = _int8(torch.nn.Sequential(conv))[0]
+    q = int8_layers(torch.nn.Sequential(conv))[0]
     assert isinstance(q, Int8Conv1d)
     x = torch.randn(2, 6, 23)
     ref, out = conv(x), q(x)
@@ -653,12 +638,11 @@ def test_int8_conv1d_is_the_convolution_in_int8(stride, padding):
     first = (ref.shape[-1] - 1) * stride - padding  # the first input the last window reads
     assert torch.equal(q(y)[..., : first // stride], out[..., : first // stride])
     grouped = torch.nn.Conv1d(6, 6, 3, groups=2)  # not a plain convolution: left as it is
-    assert _int8(torch.nn.Sequential(grouped))[0] is grouped
+    assert int8_layers(torch.nn.Sequential(grouped))[0] is grouped
 
 
 @pytest.mark.parametrize("causal", [False, True])
 def test_int8_passes_give_the_codes_of_one_frame_at_a_time(causal):
-    from talkmesh.models.codetalker import FrameGenerator
 
     model = quantize_int8(tiny(vq_layers=2, causal=causal))
     audio, _ = clip(30)
@@ -682,7 +666,6 @@ def test_int8_passes_give_the_codes_of_one_frame_at_a_time(causal):
 
 
 def test_the_folded_feedback_map_is_kept_until_its_weights_change():
-    from talkmesh.models.codetalker import FrameGenerator
 
     model = tiny(vq_layers=2, causal=True)
     audio, _ = clip(10)

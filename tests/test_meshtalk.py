@@ -9,19 +9,16 @@ import torch
 
 from talkmesh.config import from_dict, to_dict
 from talkmesh.errors import TalkmeshError
+from talkmesh.models.mel import MelAudioEncoder, MelConfig
 from talkmesh.models.meshtalk import (
-    AutoregressivePrior,
-    MelAudioEncoder,
-    MelConfig,
     MeshTalk,
     MeshTalkConfig,
     MeshTalkForward,
-    PriorConfig,
     gumbel_one_hot,
     meshtalk_config,
     meshtalk_loss,
-    prior_config,
 )
+from talkmesh.models.meshtalk_prior import AutoregressivePrior, PriorConfig, prior_config
 
 V, H, C = 30, 4, 8
 FPS = 30.0

@@ -15,7 +15,8 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import Head, load_head
 from talkmesh.face.lipsync import phones_to_weights
-from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config, VQConfig
+from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
+from talkmesh.models.codetalker_vq import VQConfig
 from talkmesh.models.release import save_model
 from talkmesh.models.speech import SpeechEncoderConfig
 from talkmesh.serve.stream import open_stream

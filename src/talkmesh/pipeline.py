@@ -165,7 +165,7 @@ def animate_learned(
     seed: int = 0,
     int8: str | None = None,
 ) -> Animation:
-    """Animate with a released learned model (any family of talkmesh.models.release) on
+    """Animate with a released learned model (any family of talkmesh.models.registry) on
     ``head``'s neutral face; ``int8`` (CodeTalker: speech, decoders or all) as in :func:`animate`."""
     try:
         import torch
@@ -179,11 +179,7 @@ def animate_learned(
             f"model {model} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
         )
     if int8 is not None:
-        from talkmesh.models.codetalker import CodeTalker, quantize_int8
-
-        if not isinstance(net, CodeTalker):
-            raise TalkmeshError(f"--int8 applies to CodeTalker models; {model} is not one")
-        net = quantize_int8(net, speech=int8 != "decoders", decoders=int8 != "speech")
+        net = net.int8_copy(int8)
     styles = list(net.styles)
     weights = None
     if styles:

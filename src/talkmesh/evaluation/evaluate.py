@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -228,7 +229,24 @@ def write_baseline(
     return written
 
 
-PREDICTION_MODES = ("fast", "naive", "exact", "reconstruct")  # write_model_predictions(mode=)
+RECONSTRUCT = "reconstruct"  # write_model_predictions(mode=): the model's motion autoencoder alone
+
+
+def _prediction_jobs(sample, styles: list[str], conditions: bool) -> list[tuple[str, Any]]:
+    """(file name, (K,) style weights or None) of each prediction of ``sample`` (see
+    :func:`write_model_predictions`)."""
+    import torch
+
+    def one_hot(k: int):
+        return torch.nn.functional.one_hot(torch.tensor(k), len(styles)).float()
+
+    if not styles:  # no speaker conditioning
+        return [(f"{sample.name}.npy", None)]
+    if sample.subject in styles:
+        return [(f"{sample.name}.npy", one_hot(styles.index(sample.subject)))]
+    if conditions:
+        return [(f"{sample.name}_condition_{s}.npy", one_hot(k)) for k, s in enumerate(styles)]
+    return [(f"{sample.name}.npy", torch.full((len(styles),), 1.0 / len(styles)))]
 
 
 def write_model_predictions(
@@ -263,16 +281,11 @@ def write_model_predictions(
     dataset = open_dataset(kind, data, split)
     if net.num_vertices != len(dataset.templates[next(iter(dataset.templates))]):
         raise TalkmeshError(f"model {model} and the {kind} data at {data} differ in vertex count")
-    if mode not in PREDICTION_MODES:
-        raise TalkmeshError(f"unknown prediction mode '{mode}': use {', '.join(PREDICTION_MODES)}")
-    if mode != "fast" and net.family != "codetalker":
-        raise TalkmeshError(f"mode {mode} is a CodeTalker mode; {net.family} models use fast")
-    if progress and mode == "fast" and net.family == "codetalker" and not net.cfg.vq.causal:
-        print(
-            "talkmesh: note: this model's VQ decoder is bidirectional (the paper's), so fast mode "
-            "approximates the paper's loop (docs/codetalker.md); --mode exact gives its output",
-            file=sys.stderr,
-        )
+    if mode != RECONSTRUCT:
+        net.check_mode(mode)
+    note = net.mode_note(mode)
+    if progress and note:
+        print(f"talkmesh: note: {note}", file=sys.stderr)
     if blinks:
         from talkmesh.face.arkit import fit_weights
         from talkmesh.face.assets import load_head
@@ -286,38 +299,25 @@ def write_model_predictions(
     out.mkdir(parents=True, exist_ok=True)
     written = 0
 
-    def one_hot(k: int):
-        return torch.nn.functional.one_hot(torch.tensor(k), len(styles)).float()
-
     for index in tqdm(range(len(dataset)), desc="predict", unit="seq", disable=not progress):
         sample = dataset[index]
-        if not styles:  # no speaker conditioning
-            jobs = [(f"{sample.name}.npy", None)]
-        elif sample.subject in styles:
-            jobs = [(f"{sample.name}.npy", one_hot(styles.index(sample.subject)))]
-        elif conditions:
-            jobs = [(f"{sample.name}_condition_{s}.npy", one_hot(k)) for k, s in enumerate(styles)]
-        else:
-            jobs = [(f"{sample.name}.npy", torch.full((len(styles),), 1.0 / len(styles)))]
-        for filename, weights in jobs:
+        for filename, weights in _prediction_jobs(sample, styles, conditions):
             path = out / filename
             if path.exists():
                 raise TalkmeshError(f"{path} already exists: choose an empty output directory")
             with torch.inference_mode():
-                if mode == "reconstruct":  # stage 1 alone: what the codebook keeps
-                    template = torch.from_numpy(sample.template)
-                    motion = (torch.tensor(sample.vertices) - template).flatten(1)[None]
-                    recon = net.vqvae(motion).motion[0]
-                    verts = (recon.reshape(len(recon), -1, 3) + template).numpy()
+                template = torch.from_numpy(sample.template)[None]
+                if mode == RECONSTRUCT:  # the motion autoencoder alone: what its codes keep
+                    vertices = torch.tensor(sample.vertices)[None]
+                    verts = net.reconstruct(vertices, template)[0].numpy()
                 else:
-                    kwargs = {"mode": mode} if net.family == "codetalker" else {}
                     verts = net.generate(
                         torch.from_numpy(sample.audio)[None],
-                        torch.from_numpy(sample.template)[None],
+                        template,
                         style_weights=None if weights is None else weights[None],
                         num_frames=len(sample.vertices),
                         seed=index,
-                        **kwargs,
+                        mode=mode,
                     )[0].numpy()
             if blinks:  # as animate: the model's own eye motion becomes procedural eyes
                 eyes = blink_gaze_weights(len(verts), dataset.spec.motion_fps, seed=index)

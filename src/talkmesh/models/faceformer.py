@@ -54,9 +54,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker import (
+from talkmesh.models.base import MotionModel, frames_for_audio
+from talkmesh.models.layers import (
     Block,
     KVCache,
     folded_linear,
@@ -184,11 +184,13 @@ class FaceFormerOutput(NamedTuple):
     loss: Tensor  # () masked MSE of the offsets, in units of the motion scale
 
 
-class FaceFormer(nn.Module):
+class FaceFormer(MotionModel):
     """Speech encoder -> biased causal transformer decoder -> motion decoder (the module doc);
     ``forward`` is the teacher-forced training graph, ``generate`` the autoregressive loop."""
 
     family = "faceformer"
+    config_class = FaceFormerConfig
+    generation_modes = MODES
 
     def __init__(self, cfg: FaceFormerConfig) -> None:
         super().__init__()
@@ -224,6 +226,14 @@ class FaceFormer(nn.Module):
     @property
     def styles(self) -> tuple[str, ...]:
         return tuple(self.cfg.styles)
+
+    @classmethod
+    def tiny_config(
+        cls, num_vertices: int = 30, styles: tuple[str, ...] = ("a", "b")
+    ) -> FaceFormerConfig:
+        return FaceFormerConfig(num_vertices=num_vertices, styles=styles, d_model=32, heads=2,
+                                ff=64, layers=2, period=5,
+                                speech=SpeechEncoderConfig(kind="mel", dim=16))  # fmt: skip
 
     @torch.no_grad()
     def set_motion_scale(self, motion: Tensor) -> None:
@@ -277,7 +287,7 @@ class FaceFormer(nn.Module):
             feats = feats.view(feats.shape[0], num_frames, k, -1).mean(2)
         return feats
 
-    def _cross(self, audio_tokens: Tensor) -> list[Tensor]:
+    def cross_terms(self, audio_tokens: Tensor) -> list[Tensor]:
         """Per decoder layer, the (B, T, d) cross-attention output of every frame at once."""
         return [layer(audio_tokens) for layer in self.cross]
 
@@ -291,7 +301,7 @@ class FaceFormer(nn.Module):
         x = self.motion_map(previous) + style[:, None]
         return x + periodic_encoding(x.shape[1], self.cfg.d_model, self.cfg.period, x.device)
 
-    def _hidden(
+    def hidden_states(
         self, x: Tensor, cross: list[Tensor], bias: Tensor, caches: list[KVCache] | None = None
     ) -> Tensor:
         """x (B, T, d) inputs -> (B, T, d) decoder states, before the motion decoder."""
@@ -323,14 +333,14 @@ class FaceFormer(nn.Module):
         motion = (vertices - templates[:, None]).flatten(2) / self.scale
         seen = self.style(styles.clamp(min=0))
         style = torch.where((styles >= 0)[:, None], seen, self.style.weight.mean(0)[None])
-        cross = self._cross(self.audio_tokens(audio, audio_lengths, T))
+        cross = self.cross_terms(self.audio_tokens(audio, audio_lengths, T))
         # causal: a valid frame never sees the padded frames after it, so no padding bias
         bias = self._bias(T, motion.device)[None]
 
         def run(fed_back: Tensor) -> Tensor:
             previous = F.pad(fed_back[:, :-1], (0, 0, 1, 0))  # frame 0 reads the neutral face
             x = self.dropout(self._inputs(previous, style))
-            return self.out(self._hidden(x, cross, bias))
+            return self.out(self.hidden_states(x, cross, bias))
 
         fed_back = motion
         if self.training and self.cfg.self_feedback > 0:
@@ -375,7 +385,7 @@ class FaceFormer(nn.Module):
         B, V = audio.shape[0], self.cfg.num_vertices
         if num_frames is None:
             samples = int(audio_lengths.max()) if audio_lengths is not None else audio.shape[1]
-            num_frames = max(1, round(samples / SAMPLE_RATE * self.cfg.motion_fps))
+            num_frames = frames_for_audio(samples, self.cfg.motion_fps)
         if num_frames < 1:
             raise TalkmeshError(f"num_frames must be at least 1, got {num_frames}")
         style = self.style_vector(styles, style_weights)
@@ -385,7 +395,7 @@ class FaceFormer(nn.Module):
         if mode == "naive":
             offsets = self._generate_naive(style, tokens, num_frames)
             return offsets.view(B, num_frames, V, 3) + template[:, None]
-        cross = self._cross(tokens)
+        cross = self.cross_terms(tokens)
         gen = FrameGenerator(self, style)
         states = style.new_empty(B, num_frames, self.cfg.d_model)
         for t in range(num_frames):
@@ -405,7 +415,9 @@ class FaceFormer(nn.Module):
         for t in range(num_frames):
             x = torch.cat(previous, dim=1)
             x = x + periodic_encoding(t + 1, self.cfg.d_model, self.cfg.period, x.device)
-            h = self._hidden(x, self._cross(tokens[:, : t + 1]), self._bias(t + 1, x.device)[None])
+            h = self.hidden_states(
+                x, self.cross_terms(tokens[:, : t + 1]), self._bias(t + 1, x.device)[None]
+            )
             motion = self.out(h)
             previous.append((self.motion_map(motion[:, -1]) + style)[:, None])
         return motion * self.scale
@@ -438,7 +450,7 @@ class FrameGenerator:
         """cross: per decoder layer the (B, 1, d) audio term of this frame -> (B, d) state."""
         x = (self.x_in + self.ppe[self.t % self.period])[:, None]
         bias = self.bias[..., self.window - min(self.t + 1, self.window) :]
-        h = self.model._hidden(x, cross, bias, self.caches)[:, 0]
+        h = self.model.hidden_states(x, cross, bias, self.caches)[:, 0]
         self.x_in = self.fold(h) + self.style
         self.t += 1
         return h

@@ -3,16 +3,9 @@ version in the metadata), loaded with ``strict=True`` and no pickle.
 
     model = talkmesh.load_model("runs/ct2/model.safetensors")   # or a bundled name
 
-Every learned family (CodeTalker, FaceFormer, VOCA, MeshTalk) is an ``nn.Module`` with the same
-surface, so ``animate``, ``predict``, ``evaluate`` and ``benchmark`` treat them alike:
-
-* ``family`` (class attribute, a key of :data:`FAMILIES`) and ``cfg`` (a frozen dataclass that
-  rebuilds the model: ``cls(cfg)``);
-* ``num_vertices``, ``motion_fps`` and ``styles`` (the training speakers' names, ``()`` when the
-  model has no speaker conditioning) properties;
-* ``generate(audio (B, S) 16 kHz, template (B, V, 3), *, style_weights=None (B, len(styles)),
-  audio_lengths=None, num_frames=None, seed=0) -> (B, T, V, 3)``; ``seed`` matters only to
-  sampling models.
+Every learned family implements :class:`talkmesh.models.base.MotionModel` and is listed in
+:data:`talkmesh.models.registry.FAMILIES`; a release stores the family's name and its ``cfg``, so
+``load_model`` rebuilds it as ``cls(cfg)`` from the file alone.
 """
 
 from __future__ import annotations
@@ -21,41 +14,24 @@ import json
 from pathlib import Path
 
 import torch
-from torch import nn
 
 from talkmesh.config import from_dict, to_dict
 from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.models.base import MotionModel
+from talkmesh.models.registry import FAMILIES
 
 FORMAT_VERSION = 1
 MODELS_DIR = Path(__file__).resolve().parents[1] / "data" / "models"
 
 
-# family -> "module:ModelClass:ConfigClass", imported on first use
-FAMILIES: dict[str, str] = {
-    "codetalker": "talkmesh.models.codetalker:CodeTalker:CodeTalkerConfig",
-    "faceformer": "talkmesh.models.faceformer:FaceFormer:FaceFormerConfig",
-    "voca": "talkmesh.models.voca:VOCA:VOCAConfig",
-    "meshtalk": "talkmesh.models.meshtalk:MeshTalkModel:MeshTalkModelConfig",
-}
-
-
-def family_classes(name: str) -> tuple[type, type]:
-    """(model class, config class) of a family."""
-    import importlib
-
-    module, model_cls, cfg_cls = FAMILIES[name].split(":")
-    mod = importlib.import_module(module)
-    return getattr(mod, model_cls), getattr(mod, cfg_cls)
-
-
-def save_model(model: nn.Module, path: str | Path, *, dtype: torch.dtype | None = None) -> Path:
+def save_model(model: MotionModel, path: str | Path, *, dtype: torch.dtype | None = None) -> Path:
     """Write ``model`` (its ``cfg`` travels in the metadata); ``dtype`` e.g. torch.float16 to ship."""
     try:
         from safetensors.torch import save_file
     except ImportError:
         raise MissingDependencyError("safetensors", "models", "saving models") from None
     family = getattr(model, "family", None)
-    if family not in FAMILIES:
+    if family not in FAMILIES or not isinstance(model, FAMILIES[family]):
         raise TalkmeshError(f"cannot release a {type(model).__name__}")
     state = {}
     for k, v in model.state_dict().items():
@@ -87,7 +63,7 @@ def resolve(name_or_path: str | Path) -> Path:
 
 def load_model(
     name_or_path: str | Path, *, dtype: torch.dtype = torch.float32, family: str | None = None
-) -> nn.Module:
+) -> MotionModel:
     """Rebuild a released model offline from its file alone (``strict=True``), in eval mode.
 
     ``family`` (e.g. ``"meshtalk"``), when given, is required of the file.
@@ -118,8 +94,8 @@ def load_model(
         )
     if family is not None and meta["family"] != family:
         raise TalkmeshError(f"{path}: a {meta['family']} model, not {family}")
-    cls, cfg_cls = family_classes(meta["family"])
-    model = cls(from_dict(cfg_cls, json.loads(meta["config"])))
+    cls = FAMILIES[meta["family"]]
+    model = cls(from_dict(cls.config_class, json.loads(meta["config"])))
     model.load_state_dict(
         {k: v.to(dtype) if v.is_floating_point() else v for k, v in state.items()}, strict=True
     )

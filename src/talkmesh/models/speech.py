@@ -1,7 +1,7 @@
 """Speech encoders behind one interface: ``forward(audio (B, S), audio_lengths (B,) | None,
 num_frames) -> (B, T, D)`` at the motion frame rate, resampled generally (no dataset branches).
 
-* ``mel``: MeshTalk's log-mel convolutional encoder, trained from scratch (fast, no weights needed).
+* ``mel``: MeshTalk's log-mel convolutional encoder (:mod:`talkmesh.models.mel`), trained from scratch (fast, no weights needed).
 * ``wav2vec2``: transformers' ``Wav2Vec2Model`` (CodeTalker's choice) from a local path or hub id
   (``source``), or a random model from ``hf_config`` (tests); its CNN feature extractor is frozen;
   features (50 Hz) are linearly interpolated to the motion frames.
@@ -15,15 +15,19 @@ A model built from ``source`` records the encoder's full config in ``hf_config``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.models.frames import fit_sample_frames, interpolate_frames
+from talkmesh.models.mel import LOG_FLOOR, MelAudioEncoder, MelConfig
+from talkmesh.models.whisper import WhisperFeatures, load_whisper_encoder, whisper_classes
 
 KINDS = ("mel", "wav2vec2", "whisper")
 
@@ -54,32 +58,6 @@ class SpeechEncoderConfig:
             self.kind != "mel" or self.lookahead_max_ms < self.lookahead_ms
         ):
             raise ValueError("speech.lookahead_max_ms needs kind mel and >= speech.lookahead_ms")
-
-
-def interpolate_frames(features: Tensor, num_frames: int) -> Tensor:
-    """(B, N, D) features at any rate -> (B, T, D), linear interpolation over time."""
-    return F.interpolate(
-        features.transpose(1, 2), size=num_frames, mode="linear", align_corners=True
-    ).transpose(1, 2)
-
-
-def fit_sample_frames(
-    features: Tensor, valid_samples: int, total_samples: int, num_frames: int
-) -> Tensor:
-    """One padded-batch sample's features (N, D) over its own audio -> (num_frames, D).
-
-    The batch's ``num_frames`` motion frames span ``total_samples`` audio samples; this sample
-    has ``valid_samples`` of them, so its features are interpolated over its share of the frames
-    and the rest repeat its last frame (padding, masked by the caller). Stretching them over all
-    ``num_frames`` instead would misalign every sample shorter than the batch's longest.
-    """
-    n = num_frames
-    if valid_samples < total_samples:
-        n = min(num_frames, max(1, int(round(num_frames * valid_samples / total_samples))))
-    out = interpolate_frames(features[None], n)[0]
-    if n < num_frames:
-        out = torch.cat([out, out[-1:].expand(num_frames - n, -1)])
-    return out
 
 
 class Wav2Vec2Encoder(nn.Module):
@@ -168,8 +146,6 @@ class Wav2Vec2Encoder(nn.Module):
 class MelEncoder(nn.Module):
     def __init__(self, cfg: SpeechEncoderConfig) -> None:
         super().__init__()
-        from talkmesh.models.meshtalk import MelAudioEncoder, MelConfig
-
         self.encoder = MelAudioEncoder(
             MelConfig(out_dim=cfg.dim, lookahead_ms=cfg.lookahead_ms), cfg.frame_rate
         )
@@ -223,12 +199,80 @@ class MelEncoder(nn.Module):
         return feats + self.shift_embedding.weight[shift]
 
 
+class MelFeatureStream:
+    """A :class:`MelEncoder`'s features one motion frame at a time from a stream's audio, each
+    exactly what the offline encoder computes; the log-mel frames of the receptive field are
+    kept, so each frame computes only the new ones. The caller holds the audio: ``buffer``
+    (float32 samples) whose first sample is stream sample ``buffer_start``."""
+
+    def __init__(self, speech: MelEncoder, fps: float, lookahead_ms: float | None) -> None:
+        self.speech, self.encoder, self.fps = speech, speech.encoder, fps
+        self.mel = speech.encoder.cfg
+        # the shared model is not changed: the stream keeps its own shift
+        self.shift = (
+            speech.max_shift if lookahead_ms is None else speech.check_lookahead(lookahead_ms)
+        )
+        self.lookahead_ms = speech.lookahead_for(self.shift)
+        self.silence = math.log(LOG_FLOOR)  # log-mel of frames before the stream (as offline)
+        self.cache: Tensor | None = None  # log-mel frames first.. of the current receptive field
+        self.first = 0
+
+    def last_mel(self, frame: int) -> int:
+        """The last mel frame that ``frame``'s feature reads."""
+        centre = int(round(frame * self.mel.mel_rate / self.fps))  # as MelAudioEncoder
+        return centre + self.shift + self.mel.lookahead_frames
+
+    def first_sample(self, frame: int) -> int:
+        """The first stream sample ``frame``'s feature reads."""
+        first = self.last_mel(frame) - self.mel.receptive_field + 1
+        return first * self.mel.hop_length - self.mel.n_fft // 2
+
+    def audio_needed(self, frame: int) -> float:
+        """Samples that must have arrived before ``frame``'s feature can be computed."""
+        # the last mel frame's window ends win_length / 2 after its centre
+        return self.last_mel(frame) * self.mel.hop_length + self.mel.win_length // 2
+
+    def _columns(self, buffer: np.ndarray, buffer_start: int, first: int, last: int) -> Tensor:
+        """Log-mel frames ``first..last`` (n_mels, n) from the buffered audio, computed as the
+        offline encoder does (frames before the stream are silence)."""
+        mel = self.mel
+        start = first * mel.hop_length - mel.n_fft // 2
+        length = (last - first) * mel.hop_length + mel.n_fft
+        segment = np.zeros(length, np.float32)
+        a = max(start, buffer_start)
+        b = min(start + length, buffer_start + len(buffer))
+        if b > a:
+            segment[a - start : b - start] = buffer[a - buffer_start : b - buffer_start]
+        logmel = self.encoder.log_mel(torch.from_numpy(segment)[None], center=False)[0]
+        if first < 0:  # before the stream: silence, as the offline encoder pads
+            logmel[:, :-first] = self.silence
+        return logmel
+
+    def feature(self, buffer: np.ndarray, buffer_start: int, frame: int) -> Tensor:
+        """The speech feature (1, dim) of ``frame``; frames are asked for in order."""
+        mel = self.mel
+        last = self.last_mel(frame)
+        first = last - mel.receptive_field + 1
+        if self.cache is None or self.first + self.cache.shape[1] <= first:
+            self.cache, self.first = self._columns(buffer, buffer_start, first, last), first
+        else:
+            have = self.first + self.cache.shape[1] - 1  # the last frame cached
+            if last > have:
+                new = self._columns(buffer, buffer_start, have + 1, last)
+                self.cache = torch.cat([self.cache, new], dim=1)
+            self.cache = self.cache[:, first - self.first :]
+            self.first = first
+        x = self.encoder.convolve(self.cache[None, :, : mel.receptive_field])[:, :, -1]
+        feats = self.encoder.norm(self.encoder.output(x))
+        if self.speech.max_shift:
+            feats = feats + self.speech.shift_embedding.weight[self.shift]
+        return feats
+
+
 class WhisperEncoder(nn.Module):
     def __init__(self, cfg: SpeechEncoderConfig) -> None:
         super().__init__()
-        from talkmesh.models.whisper import WhisperFeatures, _transformers, load_whisper_encoder
-
-        config_cls, encoder_cls = _transformers()
+        config_cls, encoder_cls = whisper_classes()
 
         if cfg.source:
             encoder = load_whisper_encoder(cfg.source)

@@ -50,10 +50,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
+from talkmesh.models.base import MotionModel, frames_for_audio
 from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
 
-SAMPLE_RATE = 16_000  # Hz: talkmesh.audio.loading.SAMPLE_RATE
 GENERATE_CHUNK = 4096  # frames whose windows are encoded at once when generating (bounds memory)
 STD_FLOOR = 1e-5  # feature channels with less spread than this are only centred
 
@@ -246,10 +247,11 @@ class SpeechWindowEncoder(nn.Module):
         return self.out(torch.tanh(self.fc(x)))
 
 
-class VOCA(nn.Module):
+class VOCA(MotionModel):
     """Speech window + speaker -> per-frame vertex offsets (module docstring)."""
 
     family = "voca"
+    config_class = VOCAConfig
 
     def __init__(self, cfg: VOCAConfig) -> None:
         super().__init__()
@@ -281,6 +283,14 @@ class VOCA(nn.Module):
     @property
     def styles(self) -> tuple[str, ...]:
         return tuple(self.cfg.styles)
+
+    @classmethod
+    def tiny_config(
+        cls, num_vertices: int = 30, styles: tuple[str, ...] = ("a", "b")
+    ) -> VOCAConfig:
+        return VOCAConfig(num_vertices=num_vertices, styles=styles,
+                          speech=SpeechEncoderConfig(kind="mel", dim=16),
+                          conv_channels=(8, 8, 16, 16), hidden=16, latent=6)  # fmt: skip
 
     # -- preparation from training data ---------------------------------------------------------
 
@@ -454,14 +464,16 @@ class VOCA(nn.Module):
         audio_lengths: Tensor | None = None,
         num_frames: int | None = None,
         seed: int = 0,
+        mode: str = "fast",
     ) -> Tensor:
         """audio (B, S) at 16 kHz, template (B, V, 3) -> vertices (B, T, V, 3).
 
-        Deterministic and non-autoregressive (``seed`` is accepted for the common model surface
+        Deterministic and non-autoregressive (one mode, ``fast``) (``seed`` is accepted for the common model surface
         and unused). T = ``num_frames`` or the audio's duration at ``motion_fps``; with
         ``audio_lengths`` each sample has round(length * fps / 16000) frames (at most T) and rests
         at its template after them.
         """
+        self.check_mode(mode)
         if audio.dim() != 2:
             raise TalkmeshError(f"audio must be (B, S), got {tuple(audio.shape)}")
         self._check_template(template)
@@ -469,7 +481,7 @@ class VOCA(nn.Module):
         if template.shape[0] != B:
             raise TalkmeshError(f"{B} audio clips but {template.shape[0]} templates")
         fps = self.cfg.motion_fps
-        T = num_frames if num_frames is not None else max(1, round(S / SAMPLE_RATE * fps))
+        T = num_frames if num_frames is not None else frames_for_audio(S, fps)
         if T < 1:
             raise TalkmeshError("num_frames must be at least 1")
         if audio_lengths is None:

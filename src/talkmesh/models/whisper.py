@@ -44,13 +44,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.models.frames import fit_sample_frames
 
 if TYPE_CHECKING:
     from transformers import WhisperConfig
     from transformers.models.whisper.modeling_whisper import WhisperEncoder
 
-SAMPLE_RATE = 16000
 N_FFT = 400
 HOP_LENGTH = 160  # 10 ms mel frames
 ENCODER_HOP = 2 * HOP_LENGTH  # conv2 has stride 2: one feature per 20 ms (50 Hz)
@@ -227,7 +228,7 @@ def _read_source(source: str | Path | None) -> tuple[bytes, str]:
 # --------------------------------------------------------------------------- conversion
 
 
-def _transformers() -> tuple[type[WhisperConfig], type[WhisperEncoder]]:
+def whisper_classes() -> tuple[type[WhisperConfig], type[WhisperEncoder]]:
     """(WhisperConfig, WhisperEncoder), or a one-line error saying how to install transformers."""
     try:
         from transformers import WhisperConfig
@@ -273,6 +274,48 @@ def _scalar(variables: dict[str, np.ndarray], name: str, what: str) -> int:
     if name not in variables or variables[name].size != 1:
         raise TalkmeshError(f"{what} is not a Whisper model: missing {name}")
     return int(variables[name].reshape(()))
+
+
+def _hf_config(
+    variables: dict[str, np.ndarray],
+    d_model: int,
+    n_mels: int,
+    layers: int,
+    heads: int,
+    ffn: np.ndarray,
+    positions: np.ndarray,
+    what: str,
+) -> dict[str, Any]:
+    """WhisperConfig kwargs of the encoder :func:`_whisper_encoder_weights` converts."""
+    config: dict[str, Any] = dict(
+        d_model=int(d_model),
+        num_mel_bins=int(n_mels),
+        encoder_layers=layers,
+        encoder_attention_heads=heads,
+        encoder_ffn_dim=int(ffn.shape[0]),
+        max_source_positions=int(positions.shape[0]),
+    )
+    # the decoder is not converted, but describing it keeps config.json a faithful Whisper config
+    dec_layers = _layer_count(variables, "decoder")
+    if dec_layers and "decoder/embeddings/weight" in variables:
+        config.update(
+            decoder_layers=dec_layers,
+            decoder_attention_heads=_scalar(variables, "decoder/num_heads", what),
+            vocab_size=int(variables["decoder/embeddings/weight"].shape[0]),
+        )
+        if "decoder/layer_0/ffn/linear_0/weight" in variables:
+            config["decoder_ffn_dim"] = int(
+                variables["decoder/layer_0/ffn/linear_0/weight"].shape[0]
+            )
+        if "decoder/position_encodings/encodings" in variables:
+            config["max_target_positions"] = int(
+                variables["decoder/position_encodings/encodings"].shape[0]
+            )
+    else:
+        config.update(
+            decoder_layers=1, decoder_attention_heads=heads, decoder_ffn_dim=int(ffn.shape[0])
+        )
+    return config
 
 
 def _whisper_encoder_weights(
@@ -346,40 +389,13 @@ def _whisper_encoder_weights(
         put(f"{dst}.final_layer_norm.weight", f"{src}/ffn/layer_norm/gamma")
         put(f"{dst}.final_layer_norm.bias", f"{src}/ffn/layer_norm/beta")
 
-    config: dict[str, Any] = dict(
-        d_model=int(d_model),
-        num_mel_bins=int(n_mels),
-        encoder_layers=layers,
-        encoder_attention_heads=heads,
-        encoder_ffn_dim=int(ffn.shape[0]),
-        max_source_positions=int(positions.shape[0]),
-    )
-    # the decoder is not converted, but describing it keeps config.json a faithful Whisper config
-    dec_layers = _layer_count(variables, "decoder")
-    if dec_layers and "decoder/embeddings/weight" in variables:
-        config.update(
-            decoder_layers=dec_layers,
-            decoder_attention_heads=_scalar(variables, "decoder/num_heads", what),
-            vocab_size=int(variables["decoder/embeddings/weight"].shape[0]),
-        )
-        if "decoder/layer_0/ffn/linear_0/weight" in variables:
-            config["decoder_ffn_dim"] = int(
-                variables["decoder/layer_0/ffn/linear_0/weight"].shape[0]
-            )
-        if "decoder/position_encodings/encodings" in variables:
-            config["max_target_positions"] = int(
-                variables["decoder/position_encodings/encodings"].shape[0]
-            )
-    else:
-        config.update(
-            decoder_layers=1, decoder_attention_heads=heads, decoder_ffn_dim=int(ffn.shape[0])
-        )
+    config = _hf_config(variables, int(d_model), int(n_mels), layers, heads, ffn, positions, what)
     return config, state
 
 
 def _build_encoder(config: WhisperConfig, state: dict[str, Tensor], what: str) -> WhisperEncoder:
     """A WhisperEncoder with exactly ``state`` loaded (every weight present, every shape right)."""
-    encoder = _transformers()[1](config)
+    encoder = whisper_classes()[1](config)
     try:
         encoder.load_state_dict(state, strict=True)
     except RuntimeError as e:
@@ -408,7 +424,7 @@ def convert_whisper(
         from safetensors.torch import save_file
     except ImportError:
         raise MissingDependencyError("safetensors", "models", "converting Whisper") from None
-    whisper_config = _transformers()[0]
+    whisper_config = whisper_classes()[0]
 
     data, what = _read_source(source)
     spec, revision, variables = _parse_ct2(data, what)
@@ -453,7 +469,7 @@ def convert_whisper(
 
 def load_whisper_encoder(path: str | Path) -> WhisperEncoder:
     """The ``transformers.WhisperEncoder`` saved by :func:`convert_whisper`, in eval mode."""
-    whisper_config = _transformers()[0]
+    whisper_config = whisper_classes()[0]
     try:
         from safetensors import SafetensorError
         from safetensors.torch import load_file
@@ -655,8 +671,6 @@ class WhisperFeatures(nn.Module):
 
     def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
         """(B, S) 16 kHz audio -> (B, num_frames, dim) features, each sample over its own length."""
-        from talkmesh.models.speech import fit_sample_frames
-
         features = self.features(audio, audio_lengths)  # checks the shapes
         lengths = [audio.shape[1]] * len(audio) if audio_lengths is None else audio_lengths.tolist()
         out = [

@@ -171,7 +171,7 @@ def resolve_models(models: Sequence[str]) -> dict[str, str]:
                     path = MODELS_DIR / f"{value}.safetensors"
             if path.suffix.lower() != ".safetensors":
                 raise TalkmeshError(
-                    f"--model {value}: use procedural or a streaming CodeTalker .safetensors file"
+                    f"--model {value}: use procedural or a streaming model's .safetensors file"
                 )
             if not path.is_file():
                 raise TalkmeshError(f"--model {value}: no such file")

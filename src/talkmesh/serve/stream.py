@@ -13,14 +13,14 @@ Two animators stream:
   ``MAX_UTTERANCE_S``) and the dominance-function lip sync on the phones heard so far. Blinks, gaze
   and brow drift come from a seeded schedule; brow raises on pitch accents need the audio after
   the accent and are left out.
-* a streaming CodeTalker release (``configs/codetalker_stream.yaml``): causal VQ decoder, mel
-  speech encoder with a runtime look-ahead; one frame per step with the key/value caches of
-  :class:`talkmesh.models.codetalker.FrameGenerator`, exactly what ``generate`` computes offline.
+* a learned model's release that streams (:meth:`talkmesh.models.base.MotionModel.open_frame_stream`;
+  today a streaming CodeTalker, ``configs/codetalker_stream.yaml``: causal VQ decoder, mel speech
+  encoder with a runtime look-ahead): one frame per step with key/value caches, exactly what
+  ``generate`` computes offline.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -254,8 +254,9 @@ class ProceduralStreamer(Streamer):
         return weights, self._weights_to_offsets(weights) if self.offsets else None
 
 
-class CodeTalkerStreamer(Streamer):
-    """A streaming CodeTalker release, one frame per step (module docstring)."""
+class ModelStreamer(Streamer):
+    """A learned model's release that streams (:meth:`talkmesh.models.base.MotionModel.open_frame_stream`),
+    one frame per step; its eye motion becomes procedural blinks and gaze (module docstring)."""
 
     def __init__(
         self,
@@ -267,39 +268,16 @@ class CodeTalkerStreamer(Streamer):
         style_weights: np.ndarray | None = None,
         blinks: bool = True,
     ) -> None:
-        import torch
-
-        from talkmesh.models.codetalker import FrameGenerator
-        from talkmesh.models.meshtalk import LOG_FLOOR
-        from talkmesh.models.speech import MelEncoder
-
         net = _load_streaming_model(path)
-        cfg = net.cfg
-        if not cfg.vq.causal or not isinstance(net.speech, MelEncoder):
+        try:
+            self.stream = net.open_frame_stream(style_weights, lookahead_ms)
+        except TalkmeshError as e:
+            raise TalkmeshError(f"{path}: {e}") from None
+        if net.num_vertices != head.num_vertices:
             raise TalkmeshError(
-                f"{path} cannot stream: it needs a causal VQ decoder and the mel speech encoder "
-                "(train one with configs/codetalker_stream.yaml)"
+                f"{path} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
             )
-        if cfg.vq.num_vertices != head.num_vertices:
-            raise TalkmeshError(
-                f"{path} animates {cfg.vq.num_vertices}-vertex meshes but the face has {head.num_vertices}"
-            )
-        self.shift = net.speech.check_lookahead(lookahead_ms)  # the shared model is not changed
-        super().__init__(cfg.motion_fps, net.speech.lookahead_for(self.shift), head, offsets)
-        self.torch, self.net = torch, net
-        self.silence = math.log(LOG_FLOOR)  # log-mel of frames before the stream (as offline)
-        enc = net.speech.encoder
-        self.mel = enc.cfg
-        self.encoder = enc
-        styles = len(cfg.stage2.styles)
-        weights = (
-            np.full(styles, 1.0 / styles, np.float32)
-            if style_weights is None
-            else np.asarray(style_weights, np.float32)
-        )
-        with torch.inference_mode():
-            style = net.style_vector(None, torch.from_numpy(weights)[None])
-            self.generator = FrameGenerator(net, style)
+        super().__init__(self.stream.fps, self.stream.lookahead_ms, head, offsets)
         self.fitter = WeightFitter(head.blendshapes, iterations=50)
         self.blinks = (
             UpperFace(self.fps, seed, SpeakingStyle(), [INDEX[n] for n in BLINK_GAZE])
@@ -308,73 +286,18 @@ class CodeTalkerStreamer(Streamer):
         )
         self.buffer = np.zeros(0, np.float32)
         self.buffer_start = 0  # stream sample of buffer[0]
-        self.mel_cache = None  # log-mel frames mel_first.. of the current receptive field
-        self.mel_first = 0
 
     def _receive(self, audio: np.ndarray) -> None:
         self.buffer = np.concatenate([self.buffer, audio])
 
-    def _first_sample(self, frame: int) -> int:
-        """The first stream sample ``frame``'s speech feature reads."""
-        first = self._last_mel(frame) - self.mel.receptive_field + 1
-        return first * self.mel.hop_length - self.mel.n_fft // 2
-
-    def _last_mel(self, frame: int) -> int:
-        centre = int(round(frame * self.mel.mel_rate / self.fps))  # as MelAudioEncoder
-        return centre + self.shift + self.mel.lookahead_frames
-
     def _audio_needed(self, frame: int) -> float:
-        # the last mel frame's window ends win_length / 2 after its centre
-        return self._last_mel(frame) * self.mel.hop_length + self.mel.win_length // 2
-
-    def _mel_columns(self, first: int, last: int):
-        """Log-mel frames ``first..last`` (n_mels, n) from the buffered audio, computed as the
-        offline encoder does (frames before the stream are silence)."""
-        torch, mel = self.torch, self.mel
-        start = first * mel.hop_length - mel.n_fft // 2
-        length = (last - first) * mel.hop_length + mel.n_fft
-        segment = np.zeros(length, np.float32)
-        a = max(start, self.buffer_start)
-        b = min(start + length, self.buffer_start + len(self.buffer))
-        if b > a:
-            segment[a - start : b - start] = self.buffer[
-                a - self.buffer_start : b - self.buffer_start
-            ]
-        logmel = self.encoder.log_mel(torch.from_numpy(segment)[None], center=False)[0]
-        if first < 0:  # before the stream: silence, as the offline encoder pads
-            logmel[:, :-first] = self.silence
-        return logmel
-
-    def _feature(self, frame: int):
-        """The speech feature of one frame (as the offline encoder computes it); the log-mel
-        frames of the receptive field are kept, so each step computes only the new ones."""
-        torch, mel = self.torch, self.mel
-        last = self._last_mel(frame)
-        first = last - mel.receptive_field + 1
-        if self.mel_cache is None or self.mel_first + self.mel_cache.shape[1] <= first:
-            self.mel_cache, self.mel_first = self._mel_columns(first, last), first
-        else:
-            have = self.mel_first + self.mel_cache.shape[1] - 1  # the last frame cached
-            if last > have:
-                new = self._mel_columns(have + 1, last)
-                self.mel_cache = torch.cat([self.mel_cache, new], dim=1)
-            self.mel_cache = self.mel_cache[:, first - self.mel_first :]
-            self.mel_first = first
-        x = self.encoder.convolve(self.mel_cache[None, :, : mel.receptive_field])[:, :, -1]
-        feats = self.encoder.norm(self.encoder.output(x))
-        if self.net.speech.max_shift:
-            feats = feats + self.net.speech.shift_embedding.weight[self.shift]
-        return self.net.audio_map(feats)[:, None]  # (1, 1, d)
+        return self.stream.audio_needed(frame)
 
     def _frames(self, start: int, end: int, final: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        torch = self.torch
         motion = np.empty((end - start, self.head.num_vertices * 3), np.float32)
-        with torch.inference_mode():
-            for k, t in enumerate(range(start, end)):
-                token = self._feature(t)
-                _, frame = self.generator.step(self.net._cross(token))
-                motion[k] = frame[0].numpy()
-        drop = self._first_sample(end) - self.buffer_start  # audio no later frame reads
+        for k, t in enumerate(range(start, end)):
+            motion[k] = self.stream.frame(self.buffer, self.buffer_start, t)
+        drop = self.stream.first_sample(end) - self.buffer_start  # audio no later frame reads
         if drop > 0:
             self.buffer = self.buffer[drop:]
             self.buffer_start += drop
@@ -412,10 +335,11 @@ def open_stream(
     style_weights: np.ndarray | None = None,
     blinks: bool = True,
 ) -> Streamer:
-    """A streamer for ``model``: ``procedural`` or the path of a streaming CodeTalker release.
+    """A streamer for ``model``: ``procedural`` or the path of a release that streams (today a
+    streaming CodeTalker, ``configs/codetalker_stream.yaml``).
 
     ``lookahead_ms`` (default 100): audio after a frame's time that it waits for, 0-300 ms (a
-    CodeTalker release accepts the range it was trained for). ``offsets``: also return vertex
+    model accepts the range it was trained for). ``offsets``: also return vertex
     offsets per frame. ``fps`` applies to the procedural animator (a model has its own).
     """
     lookahead = DEFAULT_LOOKAHEAD_MS if lookahead_ms is None else float(lookahead_ms)
@@ -434,9 +358,9 @@ def open_stream(
     path = Path(name)
     if path.suffix != ".safetensors" or not path.is_file():
         raise TalkmeshError(
-            f"unknown streaming model '{name}': use procedural or a streaming CodeTalker "
+            f"unknown streaming model '{name}': use procedural or a streaming model's "
             ".safetensors file"
         )
-    return CodeTalkerStreamer(
+    return ModelStreamer(
         path, lookahead, head, offsets, seed=seed, style_weights=style_weights, blinks=blinks
     )

@@ -18,10 +18,9 @@ from talkmesh.models.meshtalk import (
     MeshTalkConfig,
     MeshTalkModel,
     MeshTalkModelConfig,
-    PriorConfig,
     meshtalk_config,
-    prior_config,
 )
+from talkmesh.models.meshtalk_prior import PriorConfig, prior_config
 from talkmesh.models.release import load_model, save_model
 from talkmesh.training.trainer import DatasetInfo, StepOutput, Task, TorchBatch
 

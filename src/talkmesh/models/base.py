@@ -1,0 +1,145 @@
+"""The one interface every learned model family implements, so that ``animate``, ``predict``,
+``evaluate``, ``benchmark``, streaming and the server treat all families alike.
+
+A family is an ``nn.Module`` subclass of :class:`MotionModel` in one file of this package, listed
+in :data:`talkmesh.models.registry.FAMILIES`; releases (:mod:`talkmesh.models.release`) rebuild it
+from its ``cfg`` alone: ``cls(cfg)``, then ``load_state_dict(strict=True)``.
+
+Axis letters: B batch, S audio samples (16 kHz), T motion frames, V vertices, K training speakers.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+from torch import Tensor, nn
+
+from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.errors import TalkmeshError
+
+INT8_LAYERS = ("speech", "decoders", "all")  # MotionModel.int8_copy(layers=...)
+
+
+def frames_for_audio(samples: int, fps: float) -> int:
+    """Motion frames of ``samples`` audio samples at ``fps`` (at least one)."""
+    return max(1, round(samples / SAMPLE_RATE * fps))
+
+
+class FrameStream(ABC):
+    """One stream's incremental generator (:meth:`MotionModel.open_frame_stream`): frames one at a
+    time from the audio received so far, each exactly what ``generate`` computes offline.
+
+    The caller keeps the stream's audio in a buffer whose first sample is stream sample
+    ``buffer_start``; it may drop the samples before :meth:`first_sample` of the next frame.
+    """
+
+    fps: float  # motion frames per second
+    lookahead_ms: float  # audio after a frame's time that the frame reads
+
+    @abstractmethod
+    def audio_needed(self, frame: int) -> float:
+        """Stream samples that must have arrived before ``frame`` can be computed."""
+
+    @abstractmethod
+    def first_sample(self, frame: int) -> int:
+        """The first stream sample that ``frame`` reads (no later frame reads earlier ones)."""
+
+    @abstractmethod
+    def frame(self, buffer: np.ndarray, buffer_start: int, frame: int) -> np.ndarray:
+        """The next frame's motion, (V * 3,) float32 offsets from the template; frames are asked
+        for in order, each once, when :meth:`audio_needed` samples have arrived."""
+
+
+class MotionModel(nn.Module, ABC):
+    """A learned speech-driven face model: audio (B, S) + template (B, V, 3) -> vertices (B, T, V, 3).
+
+    Subclasses set the class attributes, take their config as the only ``__init__`` argument and
+    implement the abstract members; the optional verbs below raise a one-line TalkmeshError when a
+    family does not have them.
+    """
+
+    family: ClassVar[str]  # the registry key, stored in releases
+    config_class: ClassVar[type]  # the frozen dataclass of ``cfg``
+    generation_modes: ClassVar[tuple[str, ...]] = ("fast",)  # generate(mode=...); first: default
+    cfg: Any  # the config that rebuilds the model: ``type(model)(model.cfg)``
+
+    @classmethod
+    @abstractmethod
+    def tiny_config(cls, num_vertices: int = 30, styles: tuple[str, ...] = ("a", "b")) -> Any:
+        """The smallest config that runs, for tests and examples (``styles`` is ignored by
+        families without speaker conditioning)."""
+
+    @property
+    @abstractmethod
+    def num_vertices(self) -> int:
+        """V: the vertices of the meshes the model animates."""
+
+    @property
+    @abstractmethod
+    def motion_fps(self) -> float:
+        """Motion frames per second of ``generate``'s output."""
+
+    @property
+    @abstractmethod
+    def styles(self) -> tuple[str, ...]:
+        """The training speakers' names, ``()`` when the model has no speaker conditioning."""
+
+    @abstractmethod
+    def generate(
+        self,
+        audio: Tensor,
+        template: Tensor,
+        *,
+        style_weights: Tensor | None = None,
+        audio_lengths: Tensor | None = None,
+        num_frames: int | None = None,
+        seed: int = 0,
+        mode: str = "fast",
+    ) -> Tensor:
+        """audio (B, S) at 16 kHz, template (B, V, 3) -> vertices (B, T, V, 3).
+
+        ``style_weights`` (B, K) over :attr:`styles` (None: a family's default; must be None
+        without styles); ``num_frames`` T (default: the audio's duration at :attr:`motion_fps`);
+        ``seed`` matters only to sampling models; ``mode`` one of :attr:`generation_modes`.
+        """
+
+    # -- optional verbs -----------------------------------------------------------------------
+
+    def check_mode(self, mode: str) -> None:
+        """A one-line error unless ``mode`` is one of :attr:`generation_modes`."""
+        if mode not in self.generation_modes:
+            raise TalkmeshError(
+                f"mode {mode} is not a {self.family} generation mode: use "
+                f"{', '.join(self.generation_modes)}"
+            )
+
+    def mode_note(self, mode: str) -> str | None:
+        """A note for the user about what ``mode`` computes on this model (None: nothing to say)."""
+        return None
+
+    def int8_copy(self, layers: str) -> MotionModel:
+        """A copy whose ``layers`` (one of :data:`INT8_LAYERS`) run in int8 on the CPU."""
+        raise TalkmeshError(f"--int8 applies to CodeTalker models; this is a {self.family} model")
+
+    def reconstruct(self, vertices: Tensor, template: Tensor) -> Tensor:
+        """vertices (B, T, V, 3), template (B, V, 3) -> (B, T, V, 3) through the model's motion
+        autoencoder alone (what its codes keep)."""
+        raise TalkmeshError(f"{self.family} models have no motion autoencoder to reconstruct with")
+
+    @property
+    def codebook_size(self) -> int:
+        """The number of codes :meth:`motion_codes` draws from."""
+        raise TalkmeshError(f"{self.family} models have no motion codebook")
+
+    def motion_codes(self, vertices: Tensor, template: Tensor) -> Tensor:
+        """vertices (B, T, V, 3), template (B, V, 3) -> int codes (B, T', H) of the motion."""
+        raise TalkmeshError(f"{self.family} models have no motion codebook")
+
+    def open_frame_stream(
+        self, style_weights: np.ndarray | None, lookahead_ms: float | None
+    ) -> FrameStream:
+        """A new :class:`FrameStream`; ``style_weights`` (K,) (None: the mean style);
+        ``lookahead_ms`` None: the largest the model was trained for."""
+        raise TalkmeshError(f"this {self.family} model cannot stream")

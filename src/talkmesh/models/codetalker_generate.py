@@ -1,0 +1,315 @@
+"""CodeTalker's generation engine (:meth:`talkmesh.models.codetalker.CodeTalker.generate`).
+
+:class:`FrameGenerator` runs stage 2 and the VQ decoder over the next frames with key/value
+caches, one frame (:meth:`FrameGenerator.step`) or a pass of guessed frames
+(:meth:`FrameGenerator.block`, Jacobi decoding) at a time; streaming uses the same steps.
+:func:`generate_fast` schedules the passes (:class:`PassSchedule`); :func:`generate_exact` is the
+paper's loop with stage-2 caches.
+
+Axis letters: B batch, T frames, K frames of one pass, H face components, V vertices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from talkmesh.models.base import FrameStream
+from talkmesh.models.codetalker_vq import DecoderStep, Quantized
+from talkmesh.models.layers import KVCache, folded_linear, periodic_encoding, sinusoid, window_bias
+from talkmesh.models.speech import MelFeatureStream
+
+# Fast mode's pass schedule. Each pass runs K frames from guesses of their codes and keeps those up
+# to the first wrong guess; a pass costs little more than one step, so long passes pay while the
+# guesses hold and are a waste while they fail early.
+PASS_PER_KEPT = 4  # a pass runs this many times the frames passes kept lately (running mean) ...
+MIN_PASS = 2  # ... and at least this many (one frame is a step)
+ONE_FRAME_RUN = 1.5  # passes keep fewer frames than this on average: they keep one frame only, and
+STEPS_BEFORE_RETRY = 8  # ... frames then run one at a time (this many at first, doubling each
+MAX_STEPS_BEFORE_RETRY = 16 * STEPS_BEFORE_RETRY  # time up to this) before a short pass is tried
+RETRY_RUN = 2.0  # the running mean a retry starts from
+
+
+class PassSchedule:
+    """How many frames the next pass of :func:`generate_fast` runs (the constants above)."""
+
+    def __init__(self, most: int) -> None:
+        self.most = most  # the longest pass
+        self.run: float = float(most)  # frames passes keep when a guess fails (running mean)
+        self.alone = 0  # frames to run one at a time before passes are tried again ...
+        self.wait = STEPS_BEFORE_RETRY  # ... the next time passes keep one frame only
+
+    def length(self, done: int, remaining: int) -> int:
+        """The next pass's length once ``done`` frames are final and ``remaining`` are left."""
+        K = min(self.most, max(MIN_PASS, round(PASS_PER_KEPT * self.run)), remaining)
+        if done == 0 or self.alone:  # frame 0 needs no guess: its input has no motion
+            K, self.alone = 1, max(0, self.alone - 1)
+        return K
+
+    def update(self, kept: int, guessed: int) -> None:
+        """After a pass of more than one frame that kept ``kept`` frames from ``guessed`` guesses."""
+        # guesses that fail early again and again make long passes a waste: shorten them
+        self.run = self.most if kept > guessed else (self.run + kept) / 2
+        if self.run < ONE_FRAME_RUN:  # passes keep one frame, and each costs more than a step:
+            self.alone = self.wait  # steps for a while (longer each time), then a short pass
+            self.wait = min(2 * self.wait, MAX_STEPS_BEFORE_RETRY)
+            self.run = RETRY_RUN
+        elif kept > 1:
+            self.wait = STEPS_BEFORE_RETRY
+
+
+def generate_fast(
+    model: nn.Module, style: Tensor, cross: list[Tensor], num_frames: int, block: int | None = None
+) -> tuple[Tensor, Tensor | None]:
+    """A CodeTalker's codes (B, T, H), and with a causal VQ decoder the motion (B, T, V*3) too;
+    ``style`` (B, d), ``cross`` per decoder layer the (B, T, d) audio terms.
+
+    Frames go through :meth:`FrameGenerator.block` up to ``block`` at a time (default
+    ``model.generate_block``), each pass guessing its codes from the previous one; ``block=1`` is
+    the plain frame-by-frame loop. Either way the codes are those of the frame-by-frame loop.
+    """
+    gen = FrameGenerator(model, style)
+    vq = model.cfg.vq
+    B = style.shape[0]
+    schedule = PassSchedule(max(1, block or model.generate_block))
+    codes = torch.empty(B, num_frames, vq.components, dtype=torch.long, device=style.device)
+    motion = None
+    if gen.causal:
+        motion = style.new_empty(B, num_frames, vq.num_vertices * 3)
+    done = moved = 0  # frames whose codes are final; frames whose motion is written
+    guesses = codes[:, :0]  # the latest codes passes gave for the frames after ``done``
+    while done < num_frames:
+        K = schedule.length(done, num_frames - done)
+        drafts = guesses[:, : K - 1]
+        kept, after, frames = gen.block([c[:, done : done + K] for c in cross], drafts)
+        guesses = torch.cat([after, guesses[:, K:]], dim=1)  # older ones past this pass stay
+        codes[:, done : done + kept.shape[1]] = kept
+        done += kept.shape[1]
+        if frames is not None:
+            motion[:, moved : moved + frames.shape[1]] = frames
+            moved += frames.shape[1]
+        if K > 1:
+            schedule.update(kept.shape[1], drafts.shape[1])
+    if gen.causal:  # the last frame's motion; a bidirectional decoder's feedback is not needed
+        motion[:, moved:] = gen.flush()
+    return codes, motion
+
+
+def generate_exact(model: nn.Module, style: Tensor, cross: list[Tensor], num_frames: int) -> Tensor:
+    """A CodeTalker's codes (B, T, H) of the naive loop, one frame at a time: the stage-2 decoder
+    with its caches (the same computation: it is causal), the fed-back frame from the
+    bidirectional VQ decoder over the prefix, re-run at every step as in the paper's loop (only
+    its hidden states: the output and motion maps are folded into one)."""
+    gen = FrameGenerator(model, style)
+    vq = model.cfg.vq
+    B, window = style.shape[0], max(1, model.cfg.stage2.attention_window // vq.temporal_unit)
+    codes = torch.empty(B, num_frames, vq.components, dtype=torch.long, device=style.device)
+    for t in range(num_frames):
+        codes[:, t] = gen.codes_step([c[:, t : t + 1] for c in cross])
+        if t + 1 < num_frames:
+            start = max(0, t + 1 - window)
+            z_q = model.vqvae.quantizer.lookup(codes[:, start : t + 1])
+            gen.feed(model.vqvae.decoder.hidden(z_q, offset=start * vq.temporal_unit)[:, -1:])
+    return codes
+
+
+class FrameGenerator:
+    """Stage 2 and the VQ decoder over the next frames with key/value caches (``generate``'s fast
+    mode, and streaming): every frame costs the same, whatever the length.
+
+    :meth:`step` runs one frame. :meth:`block` runs K frames in one pass from guesses of their
+    codes and keeps those it got right (Jacobi decoding of the autoregressive loop): generating a
+    frame reads all the weights for one small matrix-vector product per layer, so a pass over K
+    frames costs little more than one, and a frame's codes depend mostly on its audio, so most
+    guesses taken from the previous pass hold.
+
+    With a causal VQ decoder (``vq.causal``) the motion of each frame is returned as well, exactly
+    what a full pass would give. Otherwise the fed-back frame comes from a causal, cached pass
+    through the bidirectional decoder (see :meth:`CodeTalker.generate`) and no motion is returned.
+    """
+
+    def __init__(self, model: nn.Module, style: Tensor) -> None:
+        """``model``: a CodeTalker; ``style`` (B, d) its style vector."""
+        s2, vq = model.cfg.stage2, model.cfg.vq
+        self.model, self.style = model, style
+        self.window = s2.attention_window
+        self.caches = [KVCache(self.window) for _ in model.blocks]
+        dec = model.vqvae.decoder
+        self.causal = vq.causal
+        self.vq_step = DecoderStep(dec) if vq.causal else None
+        # the bidirectional decoder's cached causal pass (unused with a causal decoder)
+        self.vq_caches = [] if vq.causal else [KVCache(self.window) for _ in dec.blocks]
+        self.conv_inputs: Tensor | None = None  # (B, 2 + K, hidden) its conv's recent inputs
+        # the VQ decoder's output map followed by the motion map is one linear map: fold them
+        # (normalised motion in, so the decoder's scale cancels)
+        self.fold = folded_linear(
+            model, dec.out, model.motion_map, int8=getattr(model, "int8", False)
+        )
+        device = style.device
+        self.ppe = periodic_encoding(s2.period, s2.d_model, s2.period, device)
+        self.step_bias = window_bias(s2.heads, 1, self.window, self.window, s2.period, device)[None]
+        self.x_in: Tensor | None = style[:, None]  # (B, 1, d) the next frame's input ...
+        self.pending: Tensor | None = None  # ... or (B, H) codes of the last frame, not yet
+        # through the VQ decoder (after ``block``)
+        self.t = 0  # frames whose codes are final
+        self.vq_t = 0  # frames through the VQ decoder
+
+    def _stage2(self, x: Tensor, cross: list[Tensor]) -> Quantized:
+        """x (B, K, d) fed-back inputs of frames t..t+K-1 -> their codes; the rows join the cache."""
+        model, t = self.model, self.t
+        s2, vq = model.cfg.stage2, model.cfg.vq
+        B, K = x.shape[:2]
+        x = x + self.ppe[torch.arange(t, t + K, device=x.device) % len(self.ppe)]
+        if K == 1:
+            bias = self.step_bias[..., self.window - min(t + 1, self.window) :]
+        else:
+            keys = min(t + K, self.window + K - 1)
+            bias = window_bias(s2.heads, K, keys, self.window, s2.period, x.device)[None]
+        feats = model.decode_features(x, cross, bias, self.caches)
+        return model.vqvae.quantizer(feats.view(B, K, vq.components, vq.code_dim))
+
+    def _vq_hidden(self, codes: Tensor) -> Tensor:
+        """codes (B, K, H) of the next K frames -> (B, K, hidden), the VQ decoder's normalised
+        hidden states before its output map; the rows join the caches."""
+        dec, K = self.model.vqvae.decoder, codes.shape[1]
+        z_q = self.model.vqvae.quantizer.lookup(codes)
+        if self.vq_step is not None:
+            h = self.vq_step.hidden(z_q)
+        else:
+            x = dec.inp(z_q.flatten(2))
+            past = x[:, :1].expand(-1, 2, -1) if self.conv_inputs is None else self.conv_inputs
+            seq = self.conv_inputs = torch.cat([past[:, -2:], x], dim=1)
+            # the kernel sees t-2..t+2; t+1 and t+2 are not decoded yet, so they repeat t
+            now = seq[:, 2:]
+            windows = torch.stack([seq[:, :K], seq[:, 1 : K + 1], now, now, now], dim=-1)
+            pos = torch.arange(self.vq_t, self.vq_t + K, device=x.device)
+            h = dec.mid(dec.conv.step(windows)) + sinusoid(pos, dec.cfg.hidden)
+            bias = None
+            if K > 1:
+                keys = min(self.vq_t + K, self.window + K - 1)
+                bias = window_bias(dec.cfg.heads, K, keys, self.window, None, x.device)[None]
+            for block, cache in zip(dec.blocks, self.vq_caches):
+                h = block(h, bias, cache)
+            h = dec.norm(h)
+        self.vq_t += K
+        return h
+
+    def _vq_drop(self, frames: int) -> None:
+        if not frames:
+            return
+        if self.vq_step is not None:
+            self.vq_step.drop(frames)
+        else:
+            for cache in self.vq_caches:
+                cache.drop(frames)
+            self.conv_inputs = self.conv_inputs[:, :-frames]
+        self.vq_t -= frames
+        if not self.vq_t:  # the conv's left padding repeats frame 0: gone with it
+            self.conv_inputs = None
+
+    def _motion(self, h: Tensor) -> Tensor | None:
+        dec = self.model.vqvae.decoder
+        return dec.out(h) * dec.scale if self.causal else None
+
+    def step(self, cross: list[Tensor]) -> tuple[Tensor, Tensor | None]:
+        """cross: per decoder layer the (B, 1, d) audio term of this frame -> codes (B, H) and,
+        with a causal VQ decoder, motion (B, V*3)."""
+        self.flush()
+        codes = self.codes_step(cross)
+        h = self._vq_hidden(codes[:, None])
+        self.feed(h)
+        motion = self._motion(h)
+        return codes, None if motion is None else motion[:, 0]
+
+    def codes_step(self, cross: list[Tensor]) -> Tensor:
+        """Stage 2 alone over the next frame, from the input :meth:`feed` (or the start) left:
+        cross as in :meth:`step` -> its codes (B, H). The VQ decoder is not run: the caller feeds
+        the frame back with :meth:`feed`."""
+        q = self._stage2(self.x_in, cross)
+        self.t += 1
+        return q.codes[:, 0]
+
+    def feed(self, hidden: Tensor) -> None:
+        """Make (B, 1, hidden) VQ decoder states (before its output map) the next frame's input."""
+        self.x_in = self.fold(hidden) + self.style[:, None]
+
+    def block(self, cross: list[Tensor], drafts: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """The next K frames in one pass; cross: per decoder layer their (B, K, d) audio terms;
+        ``drafts`` (B, G, H), G < K, guess the codes of the first G of them.
+
+        Each frame is computed from the guessed codes before it, so the frames up to the first
+        wrong guess, and that one (its inputs were right), are exactly what K steps would give:
+        they are kept, the rest are taken back out of the caches. A pass without any guesses
+        guesses that the codes of the last kept frame hold still, so that every frame is fed
+        motion that the VQ decoder made from real codes, as in the next pass (on random
+        weights, codes computed from such motion hold there; from a repeated input they do
+        not). Frames after the G + 1 that follow guesses are only drafts: they repeat the last
+        input that a guess gave, so they cost no VQ decoder step, and their codes serve as
+        guesses for the next pass. The last kept frame's codes wait for the next pass (or
+        :meth:`flush`) to go through the VQ decoder.
+        -> codes (B, A, H) of the A >= 1 frames kept; this pass's codes (B, K - A, H) for the
+        frames after them (guesses for the next pass); with a causal VQ decoder the motion
+        (B, M, V*3) of the frames that went through it for good, else None.
+        """
+        K = cross[0].shape[1]
+        if drafts.shape[1] >= K:
+            raise ValueError(f"{drafts.shape[1]} guesses for a pass of {K} frames: at most K - 1")
+        if not drafts.shape[1] and self.pending is not None:
+            drafts = self.pending[:, None].expand(-1, K - 1, -1)
+        G = drafts.shape[1]
+        rows = drafts if self.pending is None else torch.cat([self.pending[:, None], drafts], 1)
+        x, h = self.x_in, None
+        if rows.shape[1]:
+            h = self._vq_hidden(rows)
+            fed = self.fold(h) + self.style[:, None]
+            x = fed if self.pending is not None else torch.cat([self.x_in, fed], dim=1)
+        if K > G + 1:
+            x = torch.cat([x, x[:, -1:].expand(-1, K - G - 1, -1)], dim=1)
+        codes = self._stage2(x, cross).codes
+        right = (codes[:, :G] == drafts).all(-1).all(0)
+        A = 1 + int(right.long().cumprod(0).sum())
+        for cache in self.caches:
+            cache.drop(K - A)
+        wrong = G + 1 - A  # VQ decoder rows from guesses that did not hold
+        self._vq_drop(wrong)
+        self.t += A
+        self.pending, self.x_in = codes[:, A - 1], None
+        exact = rows.shape[1] - wrong
+        motion = self._motion(h[:, :exact]) if exact else None
+        return codes[:, :A], codes[:, A:], motion
+
+    def flush(self) -> Tensor | None:
+        """Run the last frame's codes through the VQ decoder if :meth:`block` left them waiting
+        -> with a causal VQ decoder their motion (B, 1, V*3), else None."""
+        if self.pending is None:
+            return None
+        h = self._vq_hidden(self.pending[:, None])
+        self.pending = None
+        self.feed(h)
+        return self._motion(h)
+
+
+class CodeTalkerStream(FrameStream):
+    """A streaming CodeTalker (causal VQ decoder, mel speech encoder) one frame per step: the
+    frame's speech feature from the stream's audio (:class:`MelFeatureStream`), then
+    :meth:`FrameGenerator.step` with its key/value caches, exactly what ``generate`` computes."""
+
+    def __init__(self, model: nn.Module, style: Tensor, features: MelFeatureStream) -> None:
+        """``model``: a CodeTalker; ``style`` (1, d) its style vector."""
+        self.model, self.features = model, features
+        self.fps, self.lookahead_ms = model.motion_fps, features.lookahead_ms
+        with torch.inference_mode():
+            self.generator = FrameGenerator(model, style)
+
+    def audio_needed(self, frame: int) -> float:
+        return self.features.audio_needed(frame)
+
+    def first_sample(self, frame: int) -> int:
+        return self.features.first_sample(frame)
+
+    def frame(self, buffer: np.ndarray, buffer_start: int, frame: int) -> np.ndarray:
+        with torch.inference_mode():
+            token = self.model.audio_map(self.features.feature(buffer, buffer_start, frame))
+            _, motion = self.generator.step(self.model.cross_terms(token[:, None]))
+        return motion[0].numpy()
