@@ -187,6 +187,8 @@ def load_benchmark(path: str | Path, *, check_data: bool = True) -> BenchmarkCon
 
 
 def open_split(cfg: BenchmarkConfig, split: str | None = None):
+    """The benchmark's dataset at ``split`` (default: its evaluation split); an empty split is an
+    error."""
     from talkmesh.datasets.reader import open_dataset
 
     d = cfg.data
@@ -290,6 +292,7 @@ def method_stages(
 
 
 def fmt_value(v: Any) -> str:
+    """A grid value as written in a cell's label and directory name (strings unquoted)."""
     return json.dumps(v) if not isinstance(v, str) else v
 
 

@@ -29,6 +29,7 @@ def file_digest(path: str | Path) -> str:
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
+    """A JSON record, or None when it is missing or half-written."""
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError):
@@ -36,6 +37,7 @@ def read_json(path: Path) -> dict[str, Any] | None:
 
 
 def write_json(path: Path, data: Any) -> None:
+    """Write a JSON record atomically (a killed run never leaves half a record)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")

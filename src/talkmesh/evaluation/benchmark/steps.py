@@ -183,6 +183,7 @@ def score(dataset, pred_dir: Path) -> dict[str, dict[str, Any]]:
 
 
 def summary(scores: dict[str, dict[str, Any]]) -> dict[str, dict[str, float | None]]:
+    """Per protocol, the metrics and counts of ``score``'s output (per-sequence rows dropped)."""
     return {p: {m: s[m] for m in (*METRICS, "n_sequences", "n_frames")} for p, s in scores.items()}
 
 
@@ -289,4 +290,5 @@ def machine_info() -> dict[str, Any]:
 
 
 def now() -> str:
+    """UTC time of day, to the second, for the records."""
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
