@@ -82,3 +82,22 @@ def make_biwi(root: Path, frames: int = 2) -> list[str]:
     (root / "regions" / "lve.txt").write_text(",".join(map(str, range(0, 4996))))
     (root / "regions" / "fdd.txt").write_text(", ".join(map(str, range(5000, 12784))) + "\n")
     return names
+
+
+def procedural_head(rings: int = 32, segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """A head-sized ellipsoid with a nose -> (V, 3) float32 vertices, (F, 3) outward faces."""
+    theta = np.linspace(0, np.pi, rings + 1)[1:-1]
+    phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    ring = np.stack([np.sin(t) * np.sin(p), np.cos(t), np.sin(t) * np.cos(p)], -1).reshape(-1, 3)
+    v = np.concatenate([[[0, 1, 0]], ring, [[0, -1, 0]]]) * [0.08, 0.12, 0.10]
+    nose = 0.03 * np.exp(-((v[:, 0] / 0.018) ** 2) - ((v[:, 1] + 0.01) / 0.03) ** 2)
+    v[:, 2] += nose * (v[:, 2] > 0)
+    idx = 1 + np.arange((rings - 1) * segments).reshape(rings - 1, segments)
+    nxt = np.roll(idx, -1, axis=1)
+    faces = [np.stack([np.zeros(segments, int), idx[0], nxt[0]], 1)]
+    for r in range(rings - 2):
+        faces += [np.stack([idx[r], idx[r + 1], nxt[r]], 1)]
+        faces += [np.stack([nxt[r], idx[r + 1], nxt[r + 1]], 1)]
+    faces += [np.stack([np.full(segments, len(v) - 1), nxt[-1], idx[-1]], 1)]
+    return v.astype(np.float32), np.concatenate(faces).astype(np.int32)

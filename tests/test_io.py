@@ -15,8 +15,9 @@ import pytest
 from talkmesh.animation import Animation
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, LIVE_LINK_COLUMNS, LIVE_LINK_NAMES, to_arkit_order
-from talkmesh.output import formats as tio
+from talkmesh.output import arkit_files, formats, morph, npy
 from talkmesh.output.formats import load_animation, load_arkit_weights, morph_rig, save_animation
+from talkmesh.output.gltf import GLB_JSON, glb_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 VALIDATE_SCRIPT = ROOT / "tests" / "gltf_validate.mjs"
@@ -75,7 +76,7 @@ def max_error(a: Animation, b: Animation) -> float:
 def glb_json(path: Path) -> dict:
     data = path.read_bytes()
     size, kind = struct.unpack_from("<II", data, 12)
-    assert kind == tio.GLB_JSON
+    assert kind == GLB_JSON
     return json.loads(data[20 : 20 + size])
 
 
@@ -103,7 +104,7 @@ def test_npy_is_vocaset_layout_and_round_trips(tmp_path):
     assert raw.shape == (T, anim.num_vertices * 3) and raw.dtype == np.float32
     back = load_animation(out, faces=anim.faces)
     assert max_error(anim, back) == 0.0
-    assert back.fps == tio.NPY_DEFAULT_FPS
+    assert back.fps == npy.NPY_DEFAULT_FPS
     np.testing.assert_array_equal(back.faces, anim.faces)
     assert load_animation(out, faces=anim.faces, fps=60).fps == 60
 
@@ -169,7 +170,7 @@ def test_glb_round_trip_with_pca_targets(tmp_path):
     assert max_error(anim, back) < 1e-4
     assert back.fps == 25.0 and back.weights is None and back.basis is None
     names = glb_json(out)["meshes"][0]["extras"]["targetNames"]
-    assert 1 <= len(names) <= min(T, tio.MAX_PCA_TARGETS)
+    assert 1 <= len(names) <= min(T, morph.MAX_PCA_TARGETS)
     assert all(re.fullmatch(r"pca_\d{3}", n) for n in names)
 
 
@@ -196,14 +197,14 @@ def test_pca_caps_targets_on_full_rank_motion():
     template, faces = grid_mesh()
     noise = rng.normal(0, 0.01, (100, len(template), 3)).astype(np.float32)
     rig = morph_rig(Animation(template + noise, faces, 30.0))
-    assert len(rig.names) == tio.MAX_PCA_TARGETS
+    assert len(rig.names) == morph.MAX_PCA_TARGETS
 
 
 def test_randomised_pca_on_long_animation():
     anim = vertex_animation(frames=700, rank=8)  # 700 frames x 600 coords > EXACT_SVD_LIMIT
-    assert min(anim.num_frames, anim.num_vertices * 3) > tio.EXACT_SVD_LIMIT
+    assert min(anim.num_frames, anim.num_vertices * 3) > morph.EXACT_SVD_LIMIT
     rig = morph_rig(anim)
-    assert len(rig.names) < tio.MAX_PCA_TARGETS
+    assert len(rig.names) < morph.MAX_PCA_TARGETS
     assert np.abs(rig.vertices() - anim.vertices).max() < 1e-4
 
 
@@ -297,10 +298,10 @@ def test_live_link_csv_round_trip(tmp_path):
 
 
 def test_timecodes():
-    assert tio._timecode(0, 30) == "00:00:00:00.000"
-    assert tio._timecode(31, 30) == "00:00:01:01.000"
-    assert tio._timecode(30 * 3661 + 29, 30) == "01:01:01:29.000"
-    assert tio._timecode(30, 29.97) == "00:00:01:00.030"
+    assert arkit_files.timecode(0, 30) == "00:00:00:00.000"
+    assert arkit_files.timecode(31, 30) == "00:00:01:01.000"
+    assert arkit_files.timecode(30 * 3661 + 29, 30) == "01:01:01:29.000"
+    assert arkit_files.timecode(30, 29.97) == "00:00:01:00.030"
 
 
 def test_json_round_trip(tmp_path):
@@ -394,7 +395,7 @@ def test_failed_export_leaves_nothing(tmp_path, monkeypatch):
         path.write_bytes(b"half a file")
         raise RuntimeError("disk on fire")
 
-    monkeypatch.setitem(tio.EXPORTERS, ".npy", broken)
+    monkeypatch.setitem(formats.EXPORTERS, ".npy", broken)
     with pytest.raises(RuntimeError):
         save_animation(arkit_animation(), tmp_path / "talk.npy")
     assert not list(tmp_path.iterdir())
@@ -420,7 +421,7 @@ def _glb_with_short_bin(tmp: Path) -> Path:
     (out,) = save_animation(arkit_animation(), tmp / "full.glb")
     gltf = glb_json(out)
     bad = tmp / "bad.glb"
-    bad.write_bytes(tio._glb_bytes(gltf, b"\0" * 64))
+    bad.write_bytes(glb_bytes(gltf, b"\0" * 64))
     return bad
 
 

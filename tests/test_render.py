@@ -18,17 +18,17 @@ pytest.importorskip("moderngl")
 pytest.importorskip("imageio_ffmpeg")
 Image = pytest.importorskip("PIL.Image")
 
+from fixtures import procedural_head  # noqa: E402
+
 from talkmesh.animation import Animation  # noqa: E402
 from talkmesh.errors import TalkmeshError  # noqa: E402
 from talkmesh.output.render import (  # noqa: E402
     Renderer,
-    _ffmpeg_exe,
     contact_sheet,
     render_side_by_side,
     render_video,
-    vertex_normals,
-    winding_sign,
 )
+from talkmesh.output.video import ffmpeg_exe  # noqa: E402
 
 GOLDEN = Path(__file__).parent / "golden" / "render_head_128.png"
 SIZE = 128
@@ -37,25 +37,6 @@ SAMPLE_RATE = 16_000
 MAX_MEAN_ABS_DIFF = 2.0  # of 255, over all pixels and channels
 STRONG_DIFF = 48  # a pixel differs strongly when a channel is off by more than this ...
 MAX_STRONG_FRACTION = 0.01  # ... and at most this fraction of pixels may
-
-
-def procedural_head(rings: int = 32, segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
-    """A head-sized ellipsoid with a nose -> (V, 3) float32 vertices, (F, 3) outward faces."""
-    theta = np.linspace(0, np.pi, rings + 1)[1:-1]
-    phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
-    t, p = np.meshgrid(theta, phi, indexing="ij")
-    ring = np.stack([np.sin(t) * np.sin(p), np.cos(t), np.sin(t) * np.cos(p)], -1).reshape(-1, 3)
-    v = np.concatenate([[[0, 1, 0]], ring, [[0, -1, 0]]]) * [0.08, 0.12, 0.10]
-    nose = 0.03 * np.exp(-((v[:, 0] / 0.018) ** 2) - ((v[:, 1] + 0.01) / 0.03) ** 2)
-    v[:, 2] += nose * (v[:, 2] > 0)
-    idx = 1 + np.arange((rings - 1) * segments).reshape(rings - 1, segments)
-    nxt = np.roll(idx, -1, axis=1)
-    faces = [np.stack([np.zeros(segments, int), idx[0], nxt[0]], 1)]
-    for r in range(rings - 2):
-        faces += [np.stack([idx[r], idx[r + 1], nxt[r]], 1)]
-        faces += [np.stack([nxt[r], idx[r + 1], nxt[r + 1]], 1)]
-    faces += [np.stack([np.full(segments, len(v) - 1), nxt[-1], idx[-1]], 1)]
-    return v.astype(np.float32), np.concatenate(faces).astype(np.int32)
 
 
 def talking(num_frames: int, audio_seconds: float | None = None) -> Animation:
@@ -74,7 +55,7 @@ def talking(num_frames: int, audio_seconds: float | None = None) -> Animation:
 
 def probe(path: Path) -> dict[str, float | str]:
     """Streams of a video: codec names, video frame count and size, decoded audio seconds."""
-    exe = _ffmpeg_exe()
+    exe = ffmpeg_exe()
     info = subprocess.run([exe, "-hide_banner", "-i", str(path)], capture_output=True, text=True)
     video = re.search(r"Video: (\w+).*?, (\d+)x(\d+)", info.stderr)
     audio = re.search(r"Audio: (\w+)", info.stderr)
@@ -178,25 +159,6 @@ def test_renderer_rejects_bad_input(head):
             renderer.render(np.full_like(vertices, np.nan))
     with pytest.raises(TalkmeshError, match="closed"):
         renderer.render(vertices)
-
-
-def test_normals_and_winding(head):
-    vertices, faces = head
-    sphere = vertices / np.linalg.norm(vertices, axis=1, keepdims=True)
-    normals = vertex_normals(sphere, faces)
-    assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-5)
-    assert (np.einsum("ij,ij->i", normals, sphere) > 0.99).all()
-    assert winding_sign(vertices, faces) == 1
-    assert winding_sign(vertices, faces[:, ::-1]) == -1
-    mixed = faces.copy()
-    mixed[0] = mixed[0, ::-1]
-    assert winding_sign(vertices, mixed) == 0
-    # A second part wound inside out (or a flat one) turns culling off too.
-    pair = np.concatenate([vertices, vertices + np.float32([0.3, 0, 0])])
-    assert winding_sign(pair, np.concatenate([faces, faces + len(vertices)])) == 1
-    assert winding_sign(pair, np.concatenate([faces, faces[:, ::-1] + len(vertices)])) == 0
-    flat = np.concatenate([vertices, [[0, 0, -0.2], [1, 0, -0.2], [0, 1, -0.2]]])
-    assert winding_sign(flat, np.concatenate([faces, len(vertices) + np.arange(3)[None]])) == 0
 
 
 @pytest.mark.parametrize("audio_seconds", [1.37, 0.3])

@@ -1,0 +1,108 @@
+"""Safe file handling shared by the exporters and importers in :mod:`talkmesh.output`.
+
+Writes go to a private directory next to the target and are renamed into place (see
+:func:`talkmesh.output.formats.save_animation`); reads turn any parse failure into a one-line
+:class:`TalkmeshError` that names the file.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import struct
+import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from talkmesh.errors import TalkmeshError
+
+
+def file_extension(path: Path, format: str | None) -> str:
+    if format:
+        return "." + format.lower().lstrip(".")
+    return path.suffix.lower()
+
+
+def move_file(src: Path, dst: Path, overwrite: bool) -> None:
+    """Rename ``src`` to ``dst`` atomically; without ``overwrite``, never replace ``dst``."""
+    if overwrite:
+        os.replace(src, dst)
+        return
+    try:
+        os.link(src, dst)  # fails if dst exists, unlike rename, so a racing writer is not clobbered
+    except FileExistsError:
+        raise exists_error(dst) from None
+    except OSError:  # no hard links on this filesystem
+        if dst.exists():
+            raise exists_error(dst) from None
+        os.replace(src, dst)
+    else:
+        src.unlink()
+
+
+def exists_error(path: Path) -> TalkmeshError:
+    return TalkmeshError(f"{path} already exists: pass overwrite=True (--overwrite) to replace it")
+
+
+def check_readable(path: Path) -> None:
+    if not path.is_file():
+        raise TalkmeshError(f"{path}: no such file")
+    if path.stat().st_size == 0:
+        raise TalkmeshError(f"{path}: the file is empty")
+
+
+PARSE_ERRORS = (
+    OSError,
+    ValueError,
+    KeyError,
+    IndexError,
+    TypeError,
+    EOFError,
+    struct.error,
+    zipfile.BadZipFile,
+    csv.Error,
+)
+
+
+@contextmanager
+def reading(path: Path) -> Iterator[None]:
+    """Turn any failure to parse ``path`` into a one-line TalkmeshError that names it."""
+    try:
+        yield
+    except TalkmeshError as e:
+        msg = one_line(e)
+        raise TalkmeshError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+    except PARSE_ERRORS as e:
+        raise TalkmeshError(f"{path}: cannot read it ({type(e).__name__}: {one_line(e)})") from None
+
+
+def one_line(e: BaseException) -> str:
+    lines = str(e).strip().splitlines()
+    return lines[0] if lines else type(e).__name__
+
+
+def check_magic(path: Path, magic: bytes, kind: str) -> None:
+    with open(path, "rb") as f:
+        if f.read(len(magic)) != magic:
+            raise TalkmeshError(f"{path}: not a {kind}")
+
+
+def finite(values: np.ndarray, what: str) -> np.ndarray:
+    if not np.isfinite(values).all():
+        raise TalkmeshError(f"the {what} contain NaN or infinite values")
+    return values
+
+
+def bundled_head():
+    """The bundled head (``talkmesh.face.assets.load_head()``), or None where it is unavailable."""
+    try:
+        from talkmesh.face.assets import load_head
+    except ImportError:
+        return None
+    try:
+        return load_head()
+    except (TalkmeshError, OSError):
+        return None

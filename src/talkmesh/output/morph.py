@@ -1,0 +1,195 @@
+"""Morph-target rigs: the named blendshapes (plus residual targets) or a PCA basis that plays an
+animation within ``GLB_MAX_ERROR``; the .glb exporter writes them as glTF morph targets."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from talkmesh.animation import Animation
+
+GLB_MAX_ERROR = 1e-4  # metres: PCA morph targets reproduce every vertex to 0.1 mm ...
+MAX_PCA_TARGETS = 64  # ... using at most this many targets
+PCA_TOLERANCE = GLB_MAX_ERROR / 2  # headroom for rounding the targets to float32
+EXACT_SVD_LIMIT = 512  # above this many frames and coordinates, use a randomised SVD
+
+
+@dataclass
+class MorphRig:
+    """A mesh whose vertices are ``base + weights @ targets``, i.e. glTF morph targets.
+
+    Attributes:
+        base: (V, 3) float32 positions of the glTF mesh.
+        targets: (K, V, 3) float32 morph target offsets.
+        weights: (T, K) float32 animated target weights.
+        rest_weights: (K,) the mesh's default weights: ``base + rest_weights @ targets`` is the
+            neutral face.
+        names: the K target names.
+    """
+
+    base: np.ndarray
+    targets: np.ndarray
+    weights: np.ndarray
+    rest_weights: np.ndarray
+    names: list[str]
+
+    def vertices(self) -> np.ndarray:
+        """(T, V, 3) float32 vertices the rig plays."""
+        k, v = len(self.targets), len(self.base)
+        offsets = self.weights.astype(np.float64) @ self.targets.reshape(k, -1).astype(np.float64)
+        return (self.base[None].astype(np.float64) + offsets.reshape(-1, v, 3)).astype(np.float32)
+
+    def neutral(self) -> np.ndarray:
+        """(V, 3) float32 neutral face."""
+        offset = np.tensordot(self.rest_weights.astype(np.float64), self.targets, axes=1)
+        return (self.base + offset).astype(np.float32)
+
+
+BLOCK_FRAMES = 1024  # frames processed at a time when checking long animations
+
+
+def _blend(weights: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """(T, K) weights and (K, V, 3) basis -> (T, V, 3) offsets in float64."""
+    return np.tensordot(weights.astype(np.float64), basis, axes=1)
+
+
+def _max_over_blocks(fn, num_frames: int) -> float:
+    return max(
+        float(np.abs(fn(slice(s, s + BLOCK_FRAMES))).max())
+        for s in range(0, num_frames, BLOCK_FRAMES)
+    )
+
+
+def _mean_over_blocks(fn, num_frames: int) -> np.ndarray:
+    total = sum(
+        fn(slice(s, s + BLOCK_FRAMES)).sum(axis=0) for s in range(0, num_frames, BLOCK_FRAMES)
+    )
+    return total / num_frames
+
+
+def morph_rig(anim: Animation) -> MorphRig:
+    """Morph targets that play ``anim``.
+
+    With ``anim.basis`` and ``anim.weights`` the targets are the named blendshapes (plus up to
+    ``MAX_PCA_TARGETS`` ``residual_NNN`` targets when ``template + weights @ basis`` misses the
+    vertices by ``GLB_MAX_ERROR`` or more). Otherwise they are ``pca_NNN`` principal components of
+    the offsets from the template (or the first frame): the fewest that reproduce every vertex
+    within ``GLB_MAX_ERROR``, at most ``MAX_PCA_TARGETS``.
+    """
+    num_v = anim.num_vertices
+    template = anim.template
+    if template is not None and template.shape != (num_v, 3):
+        template = None
+    has_basis = (
+        anim.basis is not None
+        and anim.weights is not None
+        and anim.basis.shape == (anim.weights.shape[1], num_v, 3)
+    )
+    if has_basis:
+        basis = anim.basis.astype(np.float64)
+        if template is None:
+            template = _mean_over_blocks(
+                lambda b: anim.vertices[b] - _blend(anim.weights[b], basis), anim.num_frames
+            )
+        reference = template.astype(np.float64)
+
+        def residual_block(b: slice) -> np.ndarray:
+            return anim.vertices[b] - reference - _blend(anim.weights[b], basis)
+
+        names, targets = list(anim.weight_names), [basis]
+        weights, rest = [anim.weights.astype(np.float64)], [np.zeros(len(basis))]
+        prefix = "residual"
+    else:
+        reference = (template if template is not None else anim.vertices[0]).astype(np.float64)
+
+        def residual_block(b: slice) -> np.ndarray:
+            return anim.vertices[b] - reference
+
+        names, targets, weights, rest = [], [], [], []
+        prefix = "pca"
+    # Long animations (10 min is 1 GB of float32 vertices) are checked in blocks of frames; the
+    # full residual is only built when principal components are really needed.
+    needs_pca = not has_basis or _max_over_blocks(residual_block, anim.num_frames) >= PCA_TOLERANCE
+    if needs_pca:
+        residual = np.empty((anim.num_frames, num_v, 3), np.float32)  # float32: 10 min is 1 GB
+        for s in range(0, anim.num_frames, BLOCK_FRAMES):
+            residual[s : s + BLOCK_FRAMES] = residual_block(slice(s, s + BLOCK_FRAMES))
+        components, coeffs = principal_components(residual, MAX_PCA_TARGETS, PCA_TOLERANCE)
+        # Blender clamps shape-key values to [slider_min, slider_max] (0..1 by default) and its
+        # glTF importer widens that range from the first keyframe only, so keep weights in [0, 1]:
+        # w = (c - lo) / span, target = span * component, and lo @ components moves into the base.
+        lo = np.minimum(coeffs.min(axis=0), 0.0)
+        span = np.maximum(coeffs.max(axis=0), 0.0) - lo
+        span[span <= 1e-12] = 1.0
+        reference = reference + np.tensordot(lo, components, axes=1)
+        names += [f"{prefix}_{k:03d}" for k in range(len(components))]
+        targets.append(components * span[:, None, None])
+        weights.append((coeffs - lo) / span)
+        rest.append(-lo / span)
+    return MorphRig(
+        base=reference.astype(np.float32),
+        targets=np.concatenate(targets).astype(np.float32),
+        weights=np.concatenate(weights, axis=1).astype(np.float32),
+        rest_weights=np.concatenate(rest).astype(np.float32),
+        names=names,
+    )
+
+
+def principal_components(
+    offsets: np.ndarray, max_components: int, tolerance: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T, V, 3) offsets -> (K, V, 3) orthonormal components and (T, K) coefficients.
+
+    K is the fewest components (at least 1, at most ``max_components``) whose reconstruction
+    ``coeffs @ components`` is within ``tolerance`` of every coordinate, or ``max_components``
+    when none is.
+    """
+    num_t, num_v = offsets.shape[:2]
+    data = offsets.reshape(num_t, -1)  # float32 stays float32 (no 2 GB copy for 10 minutes)
+    if data.dtype not in (np.float32, np.float64):
+        data = data.astype(np.float64)
+    basis = _row_space(data, max_components)  # (3V, R), most important first
+    coeffs = data @ basis.astype(data.dtype, copy=False)
+
+    def max_error(k: int) -> float:
+        err = 0.0
+        for start in range(0, num_t, 256):  # in blocks of frames to bound memory
+            block = slice(start, start + 256)
+            approx = coeffs[block, :k] @ basis[:, :k].T
+            err = max(err, float(np.abs(data[block] - approx).max()))
+        return err
+
+    lo, hi = 1, basis.shape[1]
+    if max_error(hi) < tolerance:
+        while lo < hi:  # smallest k within tolerance
+            mid = (lo + hi) // 2
+            if max_error(mid) < tolerance:
+                hi = mid
+            else:
+                lo = mid + 1
+    k = hi
+    return basis[:, :k].T.reshape(k, num_v, 3), coeffs[:, :k]
+
+
+def _row_space(data: np.ndarray, max_components: int) -> np.ndarray:
+    """(T, D) -> (D, R) orthonormal basis of the top R <= max_components right singular vectors."""
+    if min(data.shape) <= EXACT_SVD_LIMIT:
+        _, _, vt = np.linalg.svd(data, full_matrices=False)
+        return vt[:max_components].T
+    # Randomised SVD with power iterations (Halko et al. 2011, Alg. 4.4); the caller measures the
+    # reconstruction error itself, so an approximate subspace only costs extra components.
+    # Small factors take the data's dtype: mixing float32 data with float64 factors would make
+    # numpy upcast a float64 copy of the whole data (2 GB at 10 minutes) in every product.
+    rank = min(max_components + 16, *data.shape)
+    rng = np.random.default_rng(0)
+    dt = data.dtype
+
+    def orth(x: np.ndarray) -> np.ndarray:
+        return np.linalg.qr(x)[0].astype(dt, copy=False)
+
+    q = orth(data.T @ rng.standard_normal((data.shape[0], rank)).astype(dt))
+    for _ in range(4):
+        q = orth(data.T @ orth(data @ q))
+    _, _, vt = np.linalg.svd(data @ q, full_matrices=False)
+    return (q @ vt.T.astype(dt))[:, :max_components]
