@@ -19,7 +19,7 @@ def _matplotlib():
         from matplotlib.collections import PolyCollection
         from matplotlib.figure import Figure
     except ImportError:
-        raise MissingDependencyError("matplotlib", "dev", "benchmark figures") from None
+        raise MissingDependencyError("matplotlib", "benchmark", "benchmark figures") from None
     return Figure, PolyCollection
 
 
