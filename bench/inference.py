@@ -20,7 +20,7 @@ and convolution layers in int8 (decoders float32: the passes are exact for its f
 any of them runs it one frame per pass. The time of ``fast-steps`` and ``naive`` does not depend on the
 weights; the time of ``fast`` does: it depends on how often a frame's codes survive a change of
 the motion fed back, so the ``frames/pass`` column is printed with it (about 1 means no gain over
-steps; a trained model keeps fewer frames per pass than random weights, see docs/codetalker.md).
+steps; a trained model keeps fewer frames per pass than random weights, see docs/results/codetalker.md).
 The paper config uses a wav2vec2-base-sized random speech encoder (windows of 20 s with 2 s of
 context for long audio). Each row runs in its own process, so its peak memory (maximum resident
 set size, model weights included) is its own; the time covers speech encoding, generation and

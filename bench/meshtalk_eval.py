@@ -2,10 +2,10 @@
 
     python bench/meshtalk_eval.py table1 xMod=runs/meshtalk_synth/prior/model.safetensors \\
         l2=runs/meshtalk_synth_l2/prior/model.safetensors expr=runs/meshtalk_synth_expr/prior/...
-    python bench/meshtalk_eval.py disentangle --model M [--figure docs/meshtalk_disentangle.png]
+    python bench/meshtalk_eval.py disentangle --model M [--figure docs/images/meshtalk_disentangle.png]
     python bench/meshtalk_eval.py diversity --model M [--seeds 5]
     python bench/meshtalk_eval.py speed --model M [--seconds 4 30]
-    python bench/meshtalk_eval.py retarget-video --model M --target bo -o docs/meshtalk_retarget.mp4
+    python bench/meshtalk_eval.py retarget-video --model M --target bo -o docs/images/meshtalk_retarget.mp4
 
 All on the unseen-speaker test split of ``--data`` (default corpus/synth); every section prints a
 markdown table. Distances are Euclidean vertex distances in mm (the corpus is in metres).

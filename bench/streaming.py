@@ -2,7 +2,7 @@
 
     python bench/streaming.py --model runs/codetalker_stream/stage2/model.safetensors \
         [--data corpus/synth] [--minutes 10] [--chunk-ms 20] [--lookaheads 0,50,100,200] \
-        [--json out.json] [--plot docs/streaming-quality.png]
+        [--json out.json] [--plot docs/images/streaming-quality.png]
 
 Latency (per animator, default look-ahead 100 ms unless --latency-lookaheads): ``--minutes`` of
 test-split speech (the sentences back to back, repeated) is pushed in ``--chunk-ms`` chunks. Each

@@ -1,7 +1,7 @@
-"""Make the figures in docs/: regions on the mesh, lip opening on a real clip, a contact sheet.
+"""Make the figures in docs/images/: regions on the mesh, lip opening on a real clip, a contact sheet.
 
-python scripts/docs_figures.py regions          # docs/regions.png
-python scripts/docs_figures.py lipsync [CLIP]   # docs/lipsync_<clip>.png and docs/contact_<clip>.png
+python scripts/docs_figures.py regions          # docs/images/regions.png
+python scripts/docs_figures.py lipsync [CLIP]   # docs/images/lipsync_<clip>.png and contact_<clip>.png
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from matplotlib.collections import PolyCollection  # noqa: E402
 
 from talkmesh.face.assets import lip_opening, load_head  # noqa: E402
 
-DOCS = Path(__file__).resolve().parents[1] / "docs"
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "images"
 LIBRIVOX = Path("/usr/share/pocketsphinx/test/data/librivox")
 
 
@@ -203,7 +203,7 @@ def main() -> None:
     )
     p.add_argument("--text", help="transcript of the clip")
     args = p.parse_args()
-    DOCS.mkdir(exist_ok=True)
+    DOCS.mkdir(parents=True, exist_ok=True)
     if args.figure == "regions":
         regions_figure(DOCS / "regions.png")
     elif args.figure == "motion":

@@ -143,7 +143,7 @@ def main() -> None:
         f"{results[args.name]['physical']['n_sequences']} sequences, "
         f"{results[args.name]['physical']['n_frames']} frames; unseen speakers get the mean of "
         "the training styles. LVE: max lip-vertex error per frame; FDD: upper-face dynamics "
-        "deviation; lower is better for both (docs/data.md defines them).",
+        "deviation; lower is better for both (docs/guide/datasets.md defines them).",
         "",
         "| method | LVE (mm) | FDD (mm, abs.) | MVE (mm) | lip-sync r | LVE (x1e-4, anchor) | FDD (x1e-5, anchor, signed) |",
         "|---|---|---|---|---|---|---|",

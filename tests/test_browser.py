@@ -25,7 +25,7 @@ from scipy.signal import resample_poly
 CHROMIUM = Path("/usr/bin/chromium")
 ROOT = Path(__file__).resolve().parents[1]
 STATIC = ROOT / "src" / "talkmesh" / "serve" / "static"
-SCREENSHOT = ROOT / "docs" / "streaming-viewer.png"
+SCREENSHOT = ROOT / "docs" / "images" / "streaming-viewer.png"
 SPEECH = "Bob bought a big blue map, and we all peeked at the moon above the bay."
 CAPTURE_RATE = 48000  # Chromium's fake capture device plays 16-bit wav; 48 kHz is its native rate
 VIEWPORT = {"width": 640, "height": 400}

@@ -29,9 +29,12 @@ def code_blocks(section: str) -> list[str]:
 
 
 def test_readme_opens_with_the_two_setup_commands():
-    first = re.match(r"```\n(.*?)```", README.read_text(), re.S)
-    assert first, "README must start with a code block"
-    commands = [ln.split("#")[0].strip() for ln in first.group(1).splitlines() if ln.strip()]
+    """Title, one sentence, then the two set-up commands, before anything else."""
+    opening = re.match(r"# talkmesh\n\n([^`#\n][^\n]*)\n\n```\n(.*?)```", README.read_text(), re.S)
+    assert opening, "README must open with its title, one sentence, then the set-up code block"
+    sentence = opening.group(1)
+    assert sentence.endswith(".") and ". " not in sentence, sentence
+    commands = [ln.split("#")[0].strip() for ln in opening.group(2).splitlines() if ln.strip()]
     assert commands == ["make demo", "make test"]
     makefile = (ROOT / "Makefile").read_text()
     for target in ("demo", "test", "setup"):
@@ -64,7 +67,7 @@ def workdir(tmp_path, monkeypatch) -> Path:
 def test_every_cli_example_in_the_readme_runs(workdir):
     block = code_blocks("Use")[
         0
-    ]  # the data commands below it write gigabytes: docs/data.md has them
+    ]  # the data commands below it write gigabytes: docs/guide/datasets.md has them
     lines = [ln.split("  #")[0].strip() for ln in block.splitlines() if ln.strip()]
     assert len(lines) >= 8
     for line in lines:

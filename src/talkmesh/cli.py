@@ -388,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     a.add_argument("--int8", choices=("speech", "decoders", "all"),
                    help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
-                   "(faster on CPUs, not exact: see docs/codetalker.md)")  # fmt: skip
+                   "(faster on CPUs, not exact: see docs/results/codetalker.md)")  # fmt: skip
     common(a)
     a.set_defaults(func=cmd_animate)
 

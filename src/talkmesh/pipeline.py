@@ -87,7 +87,7 @@ def animate(
             ``seed``), which speech cannot predict.
         int8: CodeTalker models: run these layers in int8 on the CPU (``speech``: the speech
             encoder, ``decoders``: the per-frame decoder layers, ``all``: both); faster, not
-            exact (its effect on accuracy: docs/codetalker.md).
+            exact (its effect on accuracy: docs/results/codetalker.md).
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).

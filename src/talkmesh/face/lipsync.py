@@ -358,7 +358,7 @@ def replace_eye_motion(
     channels are taken out of the motion and the procedural ones put in (and into ``weights``), so
     the fit's residual is unchanged. A speech-driven model cannot time blinks; what it makes of
     them is a faint average, and procedural blinks added on top of it overshoot the upper face's
-    dynamics (FDD; docs/codetalker.md). Blocks of ``block`` frames keep memory bounded.
+    dynamics (FDD; docs/results/codetalker.md). Blocks of ``block`` frames keep memory bounded.
     """
     keep = np.array([INDEX[n] for n in BLINK_GAZE])
     delta = eyes[:, keep] - weights[:, keep]

@@ -63,7 +63,7 @@ class Stage2Config:
     attention_window: int = 600  # frames of self-attention kept in the cache when generating
     history_dropout: float = 0.0  # training: probability that a frame's fed-back motion is
     # withheld (only the style remains), so the decoder cannot lean on the true past alone;
-    # 0 is the paper's plain teacher forcing (docs/codetalker.md measures the exposure bias)
+    # 0 is the paper's plain teacher forcing (docs/results/codetalker.md measures the exposure bias)
     self_feedback: float = 0.0  # training: probability that a frame's fed-back motion is the
     # model's own prediction from a first, teacher-forced pass (no gradient) instead of the truth
     # (parallel scheduled sampling, Duckworth et al. 2019), so it learns from its own feedback
@@ -206,7 +206,7 @@ class CodeTalker(MotionModel):
         if mode == "fast" and not self.cfg.vq.causal:
             return (
                 "this model's VQ decoder is bidirectional (the paper's), so fast mode "
-                "approximates the paper's loop (docs/codetalker.md); --mode exact gives its output"
+                "approximates the paper's loop (docs/results/codetalker.md); --mode exact gives its output"
             )
         return None
 

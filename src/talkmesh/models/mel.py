@@ -49,7 +49,7 @@ class MelConfig:
     out_dim: int = 128
     # LayerNorm on the output (not in the paper; on in MeshTalk's configs): without it the audio
     # activations grew to ~700x the expression features in training, the fusion logits saturated
-    # the softmax and the Gumbel gradients to the expression path vanished (docs/meshtalk.md)
+    # the softmax and the Gumbel gradients to the expression path vanished (docs/results/meshtalk.md)
     layer_norm: bool = False
 
     def __post_init__(self) -> None:
