@@ -82,7 +82,7 @@ class BenchmarkConfig:
     data: DataSpec = DataSpec()
     seeds: tuple[int, ...] = (0, 1, 2)
     work_dir: str = "runs/benchmark"
-    docs_dir: str = "docs/benchmarks"
+    docs_dir: str = "docs/results/benchmarks"
     baselines: tuple[str, ...] = BASELINES
     ablation: AblationSpec | None = None
     speed: SpeedSpec = SpeedSpec()
