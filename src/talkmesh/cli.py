@@ -35,15 +35,23 @@ def _parse_outputs(patterns: list[str], inputs: list[Path]) -> list[list[Path]]:
     return out
 
 
-def _check_outputs(outputs: list[list[Path]], inputs: list[Path], overwrite: bool) -> None:
+def _check_outputs(
+    outputs: list[list[Path]], inputs: list[Path], overwrite: bool, avatar: bool = False
+) -> None:
+    from talkmesh.output.avatar import AVATAR_SUFFIXES
     from talkmesh.output.formats import EXPORTERS
 
     known = set(EXPORTERS) | set(VIDEO_SUFFIXES)
+    if avatar:
+        known |= set(AVATAR_SUFFIXES)
     resolved_inputs = {p.resolve() for p in inputs}
     seen: set[Path] = set()
     for paths in outputs:
         for p in paths:
             suffix = p.suffix.lower()
+            if avatar and suffix in VIDEO_SUFFIXES:
+                raise TalkmeshError(f"{p}: a video would show the bundled head, not the avatar: "
+                                    "write .glb/.vrm (and .csv/.json) with --avatar")  # fmt: skip
             if suffix not in known:
                 raise TalkmeshError(
                     f"{p}: unknown output format '{suffix or '(none)'}': use one of {', '.join(sorted(known))}"
@@ -65,8 +73,16 @@ def cmd_animate(args: argparse.Namespace) -> int:
     from talkmesh.pipeline import animate, parse_style
 
     inputs = [Path(a) for a in args.audio]
-    outputs = _parse_outputs(args.output or [DEFAULT_OUTPUT], inputs)
-    _check_outputs(outputs, inputs, args.overwrite)
+    avatar = Path(args.avatar) if args.avatar else None
+    default = DEFAULT_OUTPUT if avatar is None else "{stem}" + avatar.suffix.lower()
+    outputs = _parse_outputs(args.output or [default], inputs)
+    _check_outputs(outputs, inputs + ([avatar] if avatar else []), args.overwrite, bool(avatar))
+    if avatar is not None:
+        from talkmesh.output.avatar import bind_avatar, read_glb
+
+        binding = bind_avatar(read_glb(avatar)[0], str(avatar))  # fails before the model runs
+        if not args.quiet:
+            print(f"avatar {avatar}: {binding.summary()}")
     head = load_template(args.template) if args.template else load_head(args.identity)
     failures: list[str] = []
     bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
@@ -85,7 +101,10 @@ def cmd_animate(args: argparse.Namespace) -> int:
                 int8=args.int8,
             )
             for p in paths:
-                write_animation(anim, p, overwrite=args.overwrite, size=args.size)
+                if avatar is not None and p.suffix.lower() in (".glb", ".vrm"):
+                    _write_avatar(anim, avatar, p, args.overwrite)
+                else:
+                    write_animation(anim, p, overwrite=args.overwrite, size=args.size)
                 if not args.quiet:
                     tqdm.write(f"wrote {p} ({anim.num_frames} frames, {anim.duration:.2f} s)")
         except TalkmeshError as e:
@@ -97,6 +116,14 @@ def cmd_animate(args: argparse.Namespace) -> int:
     if failures:
         print(f"talkmesh: {len(failures)} of {len(inputs)} files failed", file=sys.stderr)
     return 1 if failures else 0
+
+
+def _write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
+    from talkmesh.face.arkit import to_arkit_order
+    from talkmesh.output.avatar import animate_avatar
+
+    weights = to_arkit_order(anim.weights, anim.weight_names)
+    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite)
 
 
 def _load(path: str, fps: float | None):
@@ -369,6 +396,9 @@ def build_parser() -> argparse.ArgumentParser:
     who.add_argument(
         "--template", help="your own neutral mesh with the bundled topology (.obj .ply .npy)"
     )
+    a.add_argument("--avatar",
+                   help="your rigged character (.glb .vrm with ARKit-named morph targets): .glb/.vrm "
+                   "outputs are copies of it with the speech as one animation clip")  # fmt: skip
     a.add_argument(
         "--text", help="transcript of the speech (forced alignment instead of recognition)"
     )

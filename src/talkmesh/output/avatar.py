@@ -1,0 +1,305 @@
+"""Your own character: ARKit weights written as an animation clip into a copy of an avatar.
+
+``animate_avatar("my.glb", weights, fps, "talking.glb")`` finds every mesh whose morph targets
+carry ARKit names (in any of the spellings :mod:`talkmesh.face.arkit_names` knows: head, teeth,
+tongue and beard meshes that share names move together), and appends ONE animation, ``talk``,
+with a ``weights`` channel per node of those meshes. Avatars without ARKit mouth shapes but with
+Oculus visemes (``viseme_aa``...) get their visemes driven through the documented ARKit -> viseme
+map instead; their ARKit-named shapes (blinks) are still driven.
+
+Nothing else changes: the JSON of every node, mesh, skin, material, texture, image, extension
+(VRM included) and existing animation is kept as it was, and the binary chunk is kept byte for
+byte, with the clip's keyframes appended after it. Units and up-axis are the avatar's, since no
+geometry is touched. Input and output are binary glTF (``.glb``, or ``.vrm``, which is a .glb with
+the VRM extension); morph target names are read from ``mesh.extras.targetNames`` (three.js,
+Blender) or, where that is absent, from the first primitive's ``extras.targetNames`` (UniVRM).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from talkmesh.errors import TalkmeshError
+from talkmesh.face.arkit import ARKIT_NAMES, NUM_ARKIT
+from talkmesh.face.arkit_names import (
+    MOUTH_CHANNELS,
+    VISEME_FROM_ARKIT,
+    VISEMES,
+    arkit_channel,
+    viseme_channel,
+    visemes_from_arkit,
+)
+
+AVATAR_SUFFIXES = (".glb", ".vrm")
+CLIP_NAME = "talk"
+GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942  # glTF 2.0 spec, 4.4
+FLOAT, SCALAR = 5126, "SCALAR"
+_MAPPED_VISEMES = [VISEMES.index(v) for v in VISEME_FROM_ARKIT]
+
+
+@dataclass(frozen=True)
+class MeshBinding:
+    """How one mesh's morph targets follow the stream.
+
+    Attributes:
+        mesh: index into the glTF ``meshes``.
+        name: the mesh's name (or ``mesh N``).
+        nodes: the nodes that instance the mesh (each gets a channel).
+        num_targets: its number of morph targets (K).
+        arkit: (K,) index into ``ARKIT_NAMES`` per target, -1 where none.
+        visemes: (K,) index into ``VISEMES`` per target, -1 where none or not used.
+        rest: (K,) the mesh's default weights (kept by targets that follow nothing).
+    """
+
+    mesh: int
+    name: str
+    nodes: tuple[int, ...]
+    num_targets: int
+    arkit: np.ndarray
+    visemes: np.ndarray
+    rest: np.ndarray
+
+    def weights(self, arkit: np.ndarray, visemes: np.ndarray | None) -> np.ndarray:
+        """(T, 52) ARKit and (T, 15) viseme weights -> (T, K) weights of this mesh's targets."""
+        out = np.repeat(self.rest[None].astype(np.float32), len(arkit), axis=0)
+        driven = self.arkit >= 0
+        out[:, driven] = arkit[:, self.arkit[driven]]
+        if visemes is not None:
+            driven = self.visemes >= 0
+            out[:, driven] = visemes[:, self.visemes[driven]]
+        return out
+
+
+@dataclass(frozen=True)
+class AvatarBinding:
+    """What of an avatar the ARKit stream drives.
+
+    Attributes:
+        meshes: the meshes with morph targets that follow the stream.
+        channels: the ARKit names at least one mesh has.
+        missing: the ARKit names no mesh has.
+        visemes: the Oculus visemes driven (only when no mesh has ARKit mouth shapes).
+    """
+
+    meshes: tuple[MeshBinding, ...]
+    channels: tuple[str, ...]
+    missing: tuple[str, ...]
+    visemes: tuple[str, ...]
+
+    def summary(self) -> str:
+        """One line for the user: what moves and which ARKit channels the avatar lacks."""
+        names = ", ".join(m.name for m in self.meshes)
+        line = f"drives {len(self.channels)} of {NUM_ARKIT} ARKit channels on {names}"
+        if self.visemes:
+            line += f" and {len(self.visemes)} Oculus visemes (no ARKit mouth shapes)"
+        if self.missing:
+            shown = ", ".join(self.missing[:6]) + (", ..." if len(self.missing) > 6 else "")
+            line += f"; lacks {len(self.missing)}: {shown}"
+        return line
+
+
+def read_glb(path: str | Path) -> tuple[dict, bytes]:
+    """The JSON and binary chunks of a .glb / .vrm file; one-line TalkmeshErrors for bad files."""
+    path = Path(path)
+    if not path.is_file():
+        raise TalkmeshError(f"{path}: no such file")
+    data = path.read_bytes()
+    if len(data) < 20 or struct.unpack_from("<I", data)[0] != GLB_MAGIC:
+        hint = " (a .gltf: pack it into one .glb first)" if data.lstrip()[:1] == b"{" else ""
+        raise TalkmeshError(f"{path}: not a binary glTF (.glb/.vrm) file{hint}")
+    _, version, length = struct.unpack_from("<III", data)
+    if version != 2:
+        raise TalkmeshError(f"{path}: glTF version {version} is not supported (only 2)")
+    if length > len(data):
+        raise TalkmeshError(
+            f"{path}: truncated (the header says {length} bytes, the file has {len(data)})"
+        )
+    gltf, binary, offset = None, b"", 12
+    while offset + 8 <= length:
+        size, kind = struct.unpack_from("<II", data, offset)
+        chunk = data[offset + 8 : offset + 8 + size]
+        if len(chunk) != size:
+            raise TalkmeshError(f"{path}: truncated (a chunk runs past the end of the file)")
+        if kind == GLB_JSON and gltf is None:
+            try:
+                gltf = json.loads(chunk.decode("utf-8"))
+            except (UnicodeDecodeError, ValueError) as e:
+                raise TalkmeshError(f"{path}: its JSON chunk is not valid JSON ({e})") from None
+        elif kind == GLB_BIN and offset > 12 and not binary:
+            binary = chunk
+        offset += 8 + size
+    if not isinstance(gltf, dict):
+        raise TalkmeshError(f"{path}: no JSON chunk")
+    return gltf, binary
+
+
+def glb_bytes(gltf: dict, binary: bytes) -> bytes:
+    """The GLB container: 12-byte header, JSON chunk (space-padded), BIN chunk (zero-padded)."""
+    text = json.dumps(gltf, ensure_ascii=False, separators=(",", ":")).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    chunks = [struct.pack("<II", len(text), GLB_JSON), text]
+    if binary:
+        binary += b"\0" * (-len(binary) % 4)
+        chunks += [struct.pack("<II", len(binary), GLB_BIN), binary]
+    body = b"".join(chunks)
+    return struct.pack("<III", GLB_MAGIC, 2, 12 + len(body)) + body
+
+
+def _target_names(mesh: dict) -> list[str]:
+    names = (mesh.get("extras") or {}).get("targetNames")
+    if not isinstance(names, list):
+        primitives = mesh.get("primitives") or [{}]
+        names = (primitives[0].get("extras") or {}).get("targetNames")
+    return [str(n) for n in names] if isinstance(names, list) else []
+
+
+def bind_avatar(gltf: dict, source: str = "the avatar") -> AvatarBinding:
+    """Which meshes, nodes and morph targets of ``gltf`` follow ARKit weights (or visemes)."""
+    candidates: list[tuple[int, str, tuple[int, ...], int, np.ndarray, np.ndarray, np.ndarray]] = []
+    for m, mesh in enumerate(gltf.get("meshes") or []):
+        primitives = mesh.get("primitives") or []
+        num_targets = len(primitives[0].get("targets") or []) if primitives else 0
+        names = _target_names(mesh)
+        if not num_targets or len(names) != num_targets:
+            continue
+        nodes = tuple(i for i, n in enumerate(gltf.get("nodes") or []) if n.get("mesh") == m)
+        if not nodes:
+            continue
+        rest = np.asarray(mesh.get("weights") or [0.0] * num_targets, np.float32)
+        arkit = np.array([arkit_channel(n) for n in names], np.int64)
+        visemes = np.array([viseme_channel(n) for n in names], np.int64)
+        visemes[~np.isin(visemes, _MAPPED_VISEMES)] = -1  # tongue-only visemes keep their rest
+        arkit[visemes >= 0] = -1  # ``viseme_O`` is a viseme, not an ARKit suffix
+        name = str(mesh.get("name") or f"mesh {m}")
+        candidates.append((m, name, nodes, num_targets, arkit, visemes, rest))
+    found = {int(i) for c in candidates for i in c[4] if i >= 0}
+    use_visemes = not any(ARKIT_NAMES.index(n) in found for n in MOUTH_CHANNELS)
+    meshes = []
+    for m, name, nodes, k, arkit, visemes, rest in candidates:
+        visemes = visemes if use_visemes else np.full(k, -1, np.int64)
+        if (arkit >= 0).any() or (visemes >= 0).any():
+            meshes.append(MeshBinding(m, name, nodes, k, arkit, visemes, rest))
+    driven_visemes = sorted({int(i) for b in meshes for i in b.visemes if i >= 0})
+    if not meshes:
+        raise TalkmeshError(
+            f"{source} has no morph targets with ARKit names (jawOpen, eyeBlinkLeft, ...) or "
+            "Oculus visemes (viseme_aa, ...): export it with ARKit blendshapes, or rig a plain "
+            "head mesh"
+        )
+    return AvatarBinding(
+        meshes=tuple(meshes),
+        channels=tuple(n for i, n in enumerate(ARKIT_NAMES) if i in found),
+        missing=tuple(n for i, n in enumerate(ARKIT_NAMES) if i not in found),
+        visemes=tuple(VISEMES[i] for i in driven_visemes),
+    )
+
+
+def _unique_clip_name(gltf: dict, name: str) -> str:
+    taken = {a.get("name") for a in gltf.get("animations") or []}
+    if name not in taken:
+        return name
+    return next(f"{name}_{k}" for k in range(2, len(taken) + 3) if f"{name}_{k}" not in taken)
+
+
+def add_clip(
+    gltf: dict, binary: bytes, binding: AvatarBinding, weights: np.ndarray, fps: float
+) -> tuple[dict, bytes]:
+    """A copy of ``gltf`` with one LINEAR clip of ``weights`` (T, 52) at ``fps``, and the binary
+    chunk with its keyframes appended (the existing bytes unchanged)."""
+    weights = np.asarray(weights, np.float32)
+    assert weights.ndim == 2 and weights.shape[1] == NUM_ARKIT, weights.shape
+    if not len(weights):
+        raise TalkmeshError("the animation has no frames")
+    buffers = gltf.get("buffers") or []
+    if buffers and "uri" in buffers[0]:
+        raise TalkmeshError(
+            "the avatar keeps its binary data in an external file: pack it into one self-"
+            "contained .glb first"
+        )
+    out = dict(gltf)
+    views, accessors = list(gltf.get("bufferViews") or []), list(gltf.get("accessors") or [])
+    data = bytearray(binary)
+
+    def add(array: np.ndarray, bounds: bool) -> int:
+        data.extend(b"\0" * (-len(data) % 4))
+        views.append({"buffer": 0, "byteOffset": len(data), "byteLength": array.nbytes})
+        data.extend(array.astype("<f4").tobytes())
+        accessor = {"bufferView": len(views) - 1, "componentType": FLOAT,
+                    "count": int(array.size), "type": SCALAR}  # fmt: skip
+        if bounds:  # required for animation inputs
+            accessor["min"], accessor["max"] = [float(array.min())], [float(array.max())]
+        accessors.append(accessor)
+        return len(accessors) - 1
+
+    visemes = visemes_from_arkit(weights) if binding.visemes else None
+    times = add((np.arange(len(weights), dtype=np.float64) / fps).astype(np.float32), True)
+    samplers, channels = [], []
+    for mesh in binding.meshes:
+        values = add(mesh.weights(weights, visemes).ravel(), False)
+        samplers.append({"input": times, "output": values, "interpolation": "LINEAR"})
+        for node in mesh.nodes:
+            channels.append(
+                {"sampler": len(samplers) - 1, "target": {"node": node, "path": "weights"}}
+            )
+    clip = {"name": _unique_clip_name(gltf, CLIP_NAME), "samplers": samplers,
+            "channels": channels, "extras": {"fps": float(fps)}}  # fmt: skip
+    out["animations"] = [*(gltf.get("animations") or []), clip]
+    out["bufferViews"], out["accessors"] = views, accessors
+    out["buffers"] = [{**(buffers[0] if buffers else {}), "byteLength": len(data)}, *buffers[1:]]
+    return out, bytes(data)
+
+
+def animate_avatar(
+    avatar: str | Path,
+    weights: np.ndarray,
+    fps: float,
+    output: str | Path,
+    *,
+    overwrite: bool = False,
+) -> AvatarBinding:
+    """Write a copy of ``avatar`` (.glb/.vrm) with a clip of ``weights`` (T, 52, ARKit order) at
+    ``fps`` to ``output`` (.glb/.vrm); returns what it drove. Atomic: a failed write leaves
+    nothing, and an existing ``output`` is replaced only with ``overwrite``."""
+    avatar, output = Path(avatar), Path(output)
+    if output.suffix.lower() not in AVATAR_SUFFIXES:
+        raise TalkmeshError(f"{output}: avatars are written as .glb or .vrm files")
+    if output.resolve() == avatar.resolve():
+        raise TalkmeshError(f"{output}: refusing to write over the avatar")
+    if output.exists() and not overwrite:
+        raise TalkmeshError(f"{output} already exists: choose another -o or pass --overwrite")
+    if not fps > 0:
+        raise TalkmeshError(f"fps must be positive, got {fps}")
+    gltf, binary = read_glb(avatar)
+    binding = bind_avatar(gltf, str(avatar))
+    new_gltf, new_binary = add_clip(gltf, binary, binding, weights, fps)
+    _write_atomic(output, glb_bytes(new_gltf, new_binary), overwrite)
+    return binding
+
+
+def _write_atomic(path: Path, data: bytes, overwrite: bool) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".talkmesh-", suffix=path.suffix)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            if overwrite:
+                os.replace(tmp, path)
+            else:
+                os.link(tmp, path)  # fails if path appeared meanwhile, unlike rename
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    except FileExistsError:
+        raise TalkmeshError(
+            f"{path} already exists: choose another -o or pass --overwrite"
+        ) from None
+    except OSError as e:
+        raise TalkmeshError(f"{path}: cannot write it ({e.strerror or e})") from None
