@@ -41,6 +41,11 @@ def _free_port() -> int:
 @pytest.fixture(scope="module")
 def server():
     """The real app under uvicorn in a thread; yields its base URL."""
+    yield from run_server()
+
+
+def run_server(**app_options):
+    """Serve ``create_app(models=("procedural",), **app_options)`` in a thread; yields its URL."""
     import uvicorn
 
     from talkmesh.serve.server import create_app
@@ -48,9 +53,8 @@ def server():
     if not (STATIC / "viewer.js").is_file():
         pytest.fail(f"{STATIC}/viewer.js is missing: run `make viewer` (or `npm run build:viewer`)")
     port = _free_port()
-    config = uvicorn.Config(
-        create_app(models=("procedural",)), host="127.0.0.1", port=port, log_level="warning"
-    )
+    app = create_app(models=("procedural",), **app_options)
+    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning")
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
@@ -97,12 +101,11 @@ JAW_INFLUENCES = """() => {
 }"""
 
 
-def test_viewer_streams_microphone_speech(server, speech_wav, tmp_path):
-    from playwright.sync_api import sync_playwright
-
+def chromium_args(speech_wav: Path) -> list[str]:
+    """Headless Chromium with ``speech_wav`` as its microphone and WebGL without a GPU."""
     if not CHROMIUM.is_file():
         pytest.fail(f"{CHROMIUM} is missing: run `make setup` (installs Debian's chromium)")
-    args = [
+    return [
         "--use-fake-ui-for-media-stream",
         "--use-fake-device-for-media-stream",
         f"--use-file-for-fake-audio-capture={speech_wav}",
@@ -111,6 +114,12 @@ def test_viewer_streams_microphone_speech(server, speech_wav, tmp_path):
         "--use-angle=swiftshader",  # WebGL without a GPU
         "--enable-unsafe-swiftshader",
     ]
+
+
+def test_viewer_streams_microphone_speech(server, speech_wav, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    args = chromium_args(speech_wav)
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=args)
         try:

@@ -209,7 +209,13 @@ def test_bad_sessions_do_not_disturb_a_good_one(client, pcm, alone):
 
 def test_one_session_too_many_is_refused_until_one_ends(client):
     health = client.get("/health").json()
-    assert health == {"status": "ok", "sessions": 0, "max_sessions": 4, "models": ["procedural"]}
+    assert health == {
+        "status": "ok",
+        "sessions": 0,
+        "max_sessions": 4,
+        "models": ["procedural"],
+        "avatar": None,
+    }
     with (
         client.websocket_connect("/ws/stream") as a,
         client.websocket_connect("/ws/stream") as b,

@@ -371,6 +371,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         max_message_bytes=args.max_message_bytes,
         max_upload_bytes=int(args.max_upload_mb * 2**20),
         idle_timeout=args.idle_timeout,
+        avatar=args.avatar,
     )
     return 0
 
@@ -589,6 +590,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="largest audio file POST /animate accepts (default 20)")  # fmt: skip
     sv.add_argument("--idle-timeout", type=float, default=10.0,
                     help="seconds without a client message before a stream is closed (default 10)")  # fmt: skip
+    sv.add_argument("--avatar", help="a .glb/.vrm with ARKit-named morph targets for the viewer "
+                    "to show instead of the bundled head")  # fmt: skip
     sv.add_argument("-q", "--quiet", action="store_true", help="log only warnings and errors")
     sv.set_defaults(func=cmd_serve)
 

@@ -4,14 +4,19 @@
 // drives the ARKit morph targets of /head.glb with the weights the server sends back, one binary
 // "TMF1" message per frame. Bundled by esbuild (`npm run build:viewer`): no CDN.
 //
+// An avatar (`talkmesh serve --avatar FILE`, or a .glb/.vrm dropped on the page) replaces the
+// head: every mesh whose morph targets carry ARKit names (in exporters' spellings, see
+// arkit_names.js) follows the stream; one with Oculus visemes only gets them from the ARKit weights.
+//
 // For tests, `window.talkmesh` is the live state: state, framesReceived, latencyMs {median, p95},
 // fps, weightHistory {jawOpen}, lastWeights, plus names, streamFps, lookaheadMs, model, endFrames,
-// error and head.
+// error, avatar {name, meshes, channels, missing, visemes} and head (the three.js scene).
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { RoomEnvironment } from "three/addons/environments/RoomEnvironment.js";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+import { ARKIT_NAMES, bindAvatar } from "./arkit_names.js";
 
 const SAMPLE_RATE = 16000; // what the server expects
 const CHUNK_MS = 20;
@@ -35,6 +40,7 @@ const talkmesh = {
   model: null,
   endFrames: null,
   error: null,
+  avatar: null,
 };
 // The three.js head (for tests that read morphTargetInfluences); not enumerable, so that
 // serialising `window.talkmesh` (e.g. Playwright's page.evaluate) does not walk the scene graph.
@@ -190,8 +196,10 @@ function resize() {
 window.addEventListener("resize", resize);
 resize();
 
-let morphMeshes = []; // every mesh of the head that has morph target names
-let drivers = []; // per mesh: morph index for each weight of the stream (-1 where absent)
+let morphMeshes = []; // every mesh of the model that has morph targets
+let drivers = []; // per mesh: [[morph index, stream index]...] and [[morph index, viseme]...]
+let visemeTerms = []; // per viseme: [[stream index, coefficient]...]
+let visemeValues = new Float32Array(0);
 
 function frameHead(object) {
   const box = new THREE.Box3().setFromObject(object);
@@ -206,40 +214,115 @@ function frameHead(object) {
   controls.update();
 }
 
+// Morph target names of a three.js mesh: its dictionary (from mesh.extras.targetNames), else the
+// glTF primitive's extras.targetNames (UniVRM writes them there), which then fill the dictionary.
+function targetNames(mesh, parser) {
+  const count = mesh.morphTargetInfluences.length;
+  const names = new Array(count).fill("");
+  for (const [name, k] of Object.entries(mesh.morphTargetDictionary || {})) names[k] = name;
+  if (names.some((n, k) => n !== String(k)) || !parser) return names; // three.js numbers unnamed ones
+  const def = meshDef(mesh, parser);
+  const where = parser.associations.get(mesh);
+  const primitive = def && (def.primitives[where.primitives ?? 0] || def.primitives[0]);
+  const stored = primitive && primitive.extras && primitive.extras.targetNames;
+  if (!Array.isArray(stored) || stored.length !== count) return names;
+  mesh.morphTargetDictionary = Object.fromEntries(stored.map((n, k) => [String(n), k]));
+  return stored.map(String);
+}
+
+// The glTF mesh a three.js mesh came from (three.js names the object after the node).
+function meshDef(mesh, parser) {
+  const where = parser && parser.associations.get(mesh);
+  return where && where.meshes !== undefined && parser.json.meshes ? parser.json.meshes[where.meshes] : null;
+}
+
 function bind() {
-  if (!talkmesh.names) return;
-  drivers = morphMeshes.map((mesh) => ({
-    mesh,
-    index: talkmesh.names.map((name) => mesh.morphTargetDictionary[name] ?? -1),
-  }));
+  const names = talkmesh.names || ARKIT_NAMES;
+  const binding = bindAvatar(morphMeshes.map((m) => ({ targets: m.userData.talkmeshTargets })), names);
+  drivers = morphMeshes.map((mesh, i) => ({ mesh, ...binding.meshes[i] }));
+  visemeTerms = binding.visemeTerms;
+  visemeValues = new Float32Array(visemeTerms.length);
+  const driven = drivers.filter((d) => d.arkit.length || d.visemes.length);
+  return { binding, meshes: driven.map((d) => d.mesh.userData.talkmeshName) };
 }
 
 function applyWeights(weights) {
-  for (const { mesh, index } of drivers) {
+  for (let v = 0; v < visemeTerms.length; v++) {
+    let x = 0;
+    for (const [i, c] of visemeTerms[v]) x += c * weights[i];
+    visemeValues[v] = Math.min(1, Math.max(0, x));
+  }
+  for (const { mesh, arkit, visemes } of drivers) {
     const influences = mesh.morphTargetInfluences;
-    for (let i = 0; i < index.length; i++) if (index[i] >= 0) influences[index[i]] = weights[i];
+    for (const [k, i] of arkit) influences[k] = weights[i];
+    for (const [k, v] of visemes) influences[k] = visemeValues[v];
   }
 }
 
-new GLTFLoader().load(
-  "head.glb",
-  (gltf) => {
-    const head = gltf.scene;
-    head.traverse((o) => {
-      if (o.isMesh && o.morphTargetDictionary && Object.keys(o.morphTargetDictionary).length) {
-        morphMeshes.push(o);
-      }
-    });
-    scene.add(head);
-    talkmesh.head = head;
-    frameHead(head);
-    bind();
-    if (talkmesh.state === "loading") setState("idle");
-    if (!morphMeshes.length) showError("head.glb has no morph targets");
-  },
-  undefined,
-  (err) => showError(`could not load head.glb: ${err.message || err}`),
-);
+// Show `gltf` (a loaded .glb/.vrm) instead of the current model.
+function show(gltf, label) {
+  const head = gltf.scene;
+  const meshes = [];
+  head.traverse((o) => {
+    if (o.isMesh && o.morphTargetInfluences && o.morphTargetInfluences.length) {
+      o.userData.talkmeshTargets = targetNames(o, gltf.parser);
+      o.userData.talkmeshName = (meshDef(o, gltf.parser) || {}).name || o.name || "mesh";
+      meshes.push(o);
+    }
+  });
+  if (talkmesh.head) scene.remove(talkmesh.head);
+  morphMeshes = meshes;
+  scene.add(head);
+  talkmesh.head = head;
+  frameHead(head);
+  const { binding, meshes: driven } = bind();
+  talkmesh.avatar = {
+    name: label,
+    meshes: driven,
+    channels: binding.channels,
+    missing: binding.missing,
+    visemes: binding.visemes,
+  };
+  let summary = `${label}: ${binding.channels.length} of ${ARKIT_NAMES.length} ARKit channels`;
+  if (binding.visemes.length) summary += ` + ${binding.visemes.length} visemes`;
+  $("avatar").textContent = summary;
+  $("avatar").title = binding.missing.length ? `lacks ${binding.missing.join(", ")}` : "all 52";
+  if (talkmesh.state === "loading" || talkmesh.state === "error") setState("idle");
+  if (!driven.length) showError(`${label} has no morph targets with ARKit names or visemes`);
+  else showMessage("");
+}
+
+function load(url, label) {
+  new GLTFLoader().load(
+    url,
+    (gltf) => show(gltf, label),
+    undefined,
+    (err) => showError(`could not load ${label}: ${err.message || err}`),
+  );
+}
+
+// Drag and drop of a .glb/.vrm anywhere on the page.
+window.addEventListener("dragover", (e) => e.preventDefault());
+window.addEventListener("drop", async (e) => {
+  e.preventDefault();
+  const file = e.dataTransfer && e.dataTransfer.files[0];
+  if (!file) return;
+  if (!/\.(glb|vrm)$/i.test(file.name)) {
+    showMessage(`${file.name}: drop a .glb or .vrm avatar`);
+    return;
+  }
+  try {
+    const buffer = await file.arrayBuffer();
+    new GLTFLoader().parse(
+      buffer,
+      "",
+      (gltf) => show(gltf, file.name),
+      (err) => showError(`could not load ${file.name}: ${err.message || err}`),
+    );
+  } catch (err) {
+    showError(`could not read ${file.name}: ${err.message || err}`);
+  }
+});
 
 // --- the stream
 
@@ -531,8 +614,15 @@ function fillModels(health) {
 
 fetch("health")
   .then((r) => r.json())
-  .then(fillModels)
-  .catch(() => fillModels(null));
+  .then((health) => {
+    fillModels(health);
+    if (health.avatar) load("avatar.glb", health.avatar);
+    else load("head.glb", "head.glb");
+  })
+  .catch(() => {
+    fillModels(null);
+    load("head.glb", "head.glb");
+  });
 
 $("mic").addEventListener("click", () => start("mic"));
 $("file").addEventListener("change", (e) => {

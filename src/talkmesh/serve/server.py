@@ -46,6 +46,8 @@ HTTP
 * ``GET /health``: ``{"status": "ok", "sessions": n, "max_sessions": m, "models": [...]}``.
 * ``GET /head.glb``: the bundled head with its 52 ARKit morph targets (named in
   ``meshes[0].extras.targetNames``), a one-frame neutral animation.
+* ``GET /avatar.glb``: the ``--avatar`` file as it is (.glb or .vrm), 404 without one; ``/health``
+  names it (``"avatar": "my.vrm"``, else null) and the viewer then shows it instead of the head.
 * ``POST /animate?format=glb|mp4&model=NAME`` with a wav/flac/mp3/ogg file as the raw body: the
   animated file. 413 for a body over ``--max-upload-mb``, 400 with ``{"type": "error", "message"}``
   for anything wrong with the request or the audio.
@@ -249,7 +251,13 @@ class Limits:
 class Service:
     """The endpoints, sharing the models, the limits and the session registry."""
 
-    def __init__(self, models: dict[str, str], limits: Limits):
+    def __init__(self, models: dict[str, str], limits: Limits, avatar: Path | None = None):
+        self.avatar_name, self.avatar_glb = None, None
+        if avatar is not None:  # checked now: a bad avatar stops the server before it starts
+            from talkmesh.output.avatar import bind_avatar, read_glb
+
+            bind_avatar(read_glb(avatar)[0], str(avatar))
+            self.avatar_name, self.avatar_glb = Path(avatar).name, Path(avatar).read_bytes()
         self.models = models
         self.default_model = next(iter(models))
         self.limits = limits
@@ -392,6 +400,7 @@ class Service:
                 "sessions": len(self.sessions),
                 "max_sessions": self.limits.max_sessions,
                 "models": list(self.models),
+                "avatar": self.avatar_name,
             }  # fmt: skip
         )
 
@@ -400,6 +409,11 @@ class Service:
             if self._head_glb is None:
                 self._head_glb = await anyio.to_thread.run_sync(neutral_head_glb)
         return Response(self._head_glb, media_type=ANIMATE_FORMATS["glb"])
+
+    async def avatar(self, request: Request) -> Response:
+        if self.avatar_glb is None:
+            return _error(404, "this server has no avatar: start it with --avatar FILE.glb")
+        return Response(self.avatar_glb, media_type=ANIMATE_FORMATS["glb"])
 
     async def animate(self, request: Request) -> Response:
         query = request.query_params
@@ -536,16 +550,19 @@ def create_app(
     max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES,
     idle_timeout: float = DEFAULT_IDLE_TIMEOUT_S,
     static_dir: Path | None = STATIC_DIR,
+    avatar: str | Path | None = None,
 ) -> Starlette:
-    """The ASGI app. Every model is opened once here, so a bad one fails now, not per client."""
+    """The ASGI app. Every model is opened once here, so a bad one fails now, not per client;
+    ``avatar``: a .glb/.vrm with ARKit morph targets that the viewer shows instead of the head."""
     limits = Limits(max_sessions, max_message_bytes, max_upload_bytes, float(idle_timeout))
-    service = Service(resolve_models(models), limits)
+    service = Service(resolve_models(models), limits, None if avatar is None else Path(avatar))
     for source in service.models.values():
         open_stream(source, head=service.head)
     routes = [
         WebSocketRoute("/ws/stream", service.stream),
         Route("/health", service.health),
         Route("/head.glb", service.head_glb),
+        Route("/avatar.glb", service.avatar),
         Route("/animate", service.animate, methods=["POST"]),
     ]
     if static_dir is not None and Path(static_dir).is_dir():

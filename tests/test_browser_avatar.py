@@ -1,0 +1,150 @@
+"""The browser viewer with your own character: `talkmesh serve --avatar`, and drag and drop.
+
+A .vrm whose head, teeth and tongue carry ARKit names in three exporters' spellings (one with the
+names where UniVRM writes them) is served with --avatar; a spoken audio file streams and every
+mesh's jaw must move. Then an avatar with Oculus visemes only is dropped on the page and its
+``viseme_aa`` must follow the speech.
+"""
+
+from __future__ import annotations
+
+import pytest
+from avatars import make_avatar
+from test_browser import CHROMIUM, VIEWPORT, WAIT_MS, chromium_args, run_server, speech_wav  # noqa: F401
+
+# morph influence of every mesh's first target whose name says "jaw open" or "viseme_aa"
+OPENING = """() => {
+  const out = {};
+  window.talkmesh.head.traverse((o) => {
+    const d = o.morphTargetDictionary || {};
+    const k = Object.keys(d).find((n) => /jaw.?open|viseme_aa/i.test(n));
+    if (k !== undefined) out[o.userData.talkmeshName] = o.morphTargetInfluences[d[k]];
+  });
+  return out;
+}"""
+
+
+@pytest.fixture(scope="module")
+def avatars(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("avatars")
+    return make_avatar(tmp / "me.vrm", vrm=True), make_avatar(tmp / "rpm.glb", visemes=True)
+
+
+@pytest.fixture(scope="module")
+def avatar_server(avatars):
+    yield from run_server(avatar=avatars[0])
+
+
+def stream_file(page, wav) -> dict[str, list[float]]:
+    """Play ``wav`` through the page to the end; the opening influences seen on each mesh."""
+    page.set_input_files("#file", str(wav))
+    seen: dict[str, list[float]] = {}
+    for _ in range(400):
+        for name, value in page.evaluate(OPENING).items():
+            seen.setdefault(name, []).append(value)
+        if page.evaluate("window.talkmesh.state") in ("done", "error"):
+            break
+        page.wait_for_timeout(50)
+    page.wait_for_function("window.talkmesh.state === 'done'", timeout=WAIT_MS)
+    return seen
+
+
+def test_viewer_drives_served_and_dropped_avatars(avatar_server, avatars, speech_wav):  # noqa: F811
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(
+            executable_path=str(CHROMIUM), headless=True, args=chromium_args(speech_wav)
+        )
+        try:
+            page = browser.new_page(viewport=VIEWPORT)
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(avatar_server)
+            page.wait_for_function(
+                "window.talkmesh.avatar && window.talkmesh.state === 'idle'", timeout=WAIT_MS
+            )
+            info = page.evaluate("window.talkmesh.avatar")
+            assert info["name"] == "me.vrm"
+            assert sorted(info["meshes"]) == ["Head", "Teeth", "Tongue"]
+            assert len(info["channels"]) == 7 and "eyeLookUpLeft" in info["missing"]
+            assert info["visemes"] == []
+            assert "7 of 52" in page.inner_text("#avatar")
+
+            seen = stream_file(page, speech_wav)
+            # Teeth carry their names on the glTF primitive (UniVRM's place): they move too.
+            for mesh in ("Head", "Teeth", "Tongue"):
+                values = seen.get(mesh, [])
+                assert values and max(values) - min(values) > 0.1, (mesh, values[:20])
+
+            # Drop an avatar with visemes only on the page: viseme_aa follows the speech.
+            data = list(avatars[1].read_bytes())
+            page.evaluate(
+                """(data) => {
+                  const dt = new DataTransfer();
+                  dt.items.add(new File([new Uint8Array(data)], "rpm.glb"));
+                  window.dispatchEvent(new DragEvent("drop", {dataTransfer: dt, cancelable: true}));
+                }""",
+                data,
+            )
+            page.wait_for_function("window.talkmesh.avatar.name === 'rpm.glb'", timeout=WAIT_MS)
+            info = page.evaluate("window.talkmesh.avatar")
+            assert info["visemes"] == ["PP", "TH", "aa", "O", "U"]
+            assert info["channels"] == ["eyeBlinkLeft", "eyeBlinkRight"]
+            seen = stream_file(page, speech_wav)
+            head = seen.get("Head", [])
+            assert head and max(head) - min(head) > 0.1, head[:20]
+            assert not errors, errors
+        finally:
+            browser.close()
+
+
+def test_viewer_reads_names_like_python():
+    """web/viewer/arkit_names.js and talkmesh.face.arkit_names agree on every spelling."""
+    import json
+    import shutil
+    import subprocess
+
+    from test_browser import ROOT
+
+    from talkmesh.face.arkit import ARKIT_NAMES
+    from talkmesh.face.arkit_names import VISEME_FROM_ARKIT, VISEMES, arkit_channel, viseme_channel
+
+    names = [*ARKIT_NAMES, "blendShape1.jawOpen", "JawOpen", "jaw_open", "Head|mouthSmile_L",
+             "mesh:eyeBlink_R", "ARKit_tongueOut", "CC_Base_mouthRight", "EYE_LOOK_IN_LEFT",
+             "A25_Jaw_Open", "Fcl_MTH_A", "viseme_aa", "viseme_O", "V_PP", "E", "smile", ""]  # fmt: skip
+    script = (
+        f"import * as n from {json.dumps(str(ROOT / 'web/viewer/arkit_names.js'))};"
+        "const names = JSON.parse(process.argv[1]);"
+        "console.log(JSON.stringify({arkit: names.map(n.arkitChannel), visemes: names.map("
+        "n.visemeChannel), order: [n.ARKIT_NAMES, n.VISEMES], map: n.VISEME_FROM_ARKIT}));"
+    )
+    node = shutil.which("node")
+    assert node, "node is not installed (make setup)"
+    run = subprocess.run(
+        [node, "--input-type=module", "-e", script, json.dumps(names)],
+        capture_output=True, text=True, timeout=60, check=True,
+    )  # fmt: skip
+    js = json.loads(run.stdout)
+    assert js["arkit"] == [arkit_channel(n) for n in names]
+    assert js["visemes"] == [viseme_channel(n) for n in names]
+    assert js["order"] == [list(ARKIT_NAMES), list(VISEMES)]
+    assert js["map"] == VISEME_FROM_ARKIT
+
+
+def test_server_serves_the_avatar_as_it_is(avatars, tmp_path):
+    from starlette.testclient import TestClient
+
+    from talkmesh.errors import TalkmeshError
+    from talkmesh.serve.server import create_app
+
+    with TestClient(create_app(avatar=avatars[0])) as client:
+        assert client.get("/health").json()["avatar"] == "me.vrm"
+        response = client.get("/avatar.glb")
+        assert response.status_code == 200 and response.content == avatars[0].read_bytes()
+    with TestClient(create_app()) as client:
+        response = client.get("/avatar.glb")
+        assert response.status_code == 404 and "--avatar" in response.json()["message"]
+    (tmp_path / "plain.glb").write_bytes(b"not a glb at all, just text")
+    with pytest.raises(TalkmeshError, match="not a binary glTF"):
+        create_app(avatar=tmp_path / "plain.glb")
