@@ -50,8 +50,9 @@ def run_server(**app_options):
 
     from talkmesh.serve.server import create_app
 
-    if not (STATIC / "viewer.js").is_file():
-        pytest.fail(f"{STATIC}/viewer.js is missing: run `make viewer` (or `npm run build:viewer`)")
+    static = app_options.get("static_dir", STATIC)
+    if not (static / "viewer.js").is_file():
+        pytest.fail(f"{static}/viewer.js is missing: run `make viewer` (or `npm run build:viewer`)")
     port = _free_port()
     app = create_app(models=("procedural",), **app_options)
     config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning")

@@ -8,9 +8,22 @@ mesh's jaw must move. Then an avatar with Oculus visemes only is dropped on the 
 
 from __future__ import annotations
 
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
 import pytest
 from avatars import make_avatar
-from test_browser import CHROMIUM, VIEWPORT, WAIT_MS, chromium_args, run_server, speech_wav  # noqa: F401
+from test_browser import (  # noqa: F401
+    CHROMIUM,
+    ROOT,
+    VIEWPORT,
+    WAIT_MS,
+    chromium_args,
+    run_server,
+    speech_wav,
+)
 
 # morph influence of every mesh's first target whose name says "jaw open" or "viseme_aa"
 OPENING = """() => {
@@ -31,8 +44,24 @@ def avatars(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def avatar_server(avatars):
-    yield from run_server(avatar=avatars[0])
+def viewer_build(tmp_path_factory) -> Path:
+    """web/viewer built with esbuild into a temporary directory, so that this test checks the
+    viewer's source whether or not the installed copy (talkmesh/serve/static) was rebuilt."""
+    esbuild = ROOT / "node_modules" / ".bin" / "esbuild"
+    if not esbuild.is_file():
+        pytest.fail("esbuild is missing: run `npm ci` in the repo root")
+    out = tmp_path_factory.mktemp("viewer")
+    subprocess.run([str(esbuild), str(ROOT / "web/viewer/main.js"), "--bundle", "--format=esm",
+                    "--target=es2020", f"--outfile={out / 'viewer.js'}", "--log-level=error"],
+                   check=True, timeout=120)  # fmt: skip
+    for name in ("index.html", "style.css"):
+        shutil.copy(ROOT / "web/viewer" / name, out / name)
+    return out
+
+
+@pytest.fixture(scope="module")
+def avatar_server(avatars, viewer_build):
+    yield from run_server(avatar=avatars[0], static_dir=viewer_build)
 
 
 def stream_file(page, wav) -> dict[str, list[float]]:
@@ -101,12 +130,6 @@ def test_viewer_drives_served_and_dropped_avatars(avatar_server, avatars, speech
 
 def test_viewer_reads_names_like_python():
     """web/viewer/arkit_names.js and talkmesh.face.arkit_names agree on every spelling."""
-    import json
-    import shutil
-    import subprocess
-
-    from test_browser import ROOT
-
     from talkmesh.face.arkit import ARKIT_NAMES
     from talkmesh.face.arkit_names import VISEME_FROM_ARKIT, VISEMES, arkit_channel, viseme_channel
 
