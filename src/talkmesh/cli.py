@@ -126,6 +126,32 @@ def _write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
     animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite)
 
 
+def cmd_rig(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from talkmesh.animation import Animation
+    from talkmesh.face.arkit import ARKIT_NAMES
+    from talkmesh.face.rig import load_mesh, rig_head
+    from talkmesh.output.formats import save_animation
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".glb":
+        raise TalkmeshError(f"{out}: the rigged head is written as .glb")
+    if out.exists() and not args.overwrite:
+        raise TalkmeshError(f"{out} already exists: choose another -o or pass --overwrite")
+    rig = rig_head(*load_mesh(args.mesh))
+    neutral = Animation(
+        vertices=rig.vertices[None], faces=rig.faces, fps=30.0,
+        weights=np.zeros((1, len(ARKIT_NAMES)), np.float32), weight_names=list(ARKIT_NAMES),
+        template=rig.vertices, basis=rig.blendshapes,
+    )  # fmt: skip
+    save_animation(neutral, out, overwrite=args.overwrite)
+    if not args.quiet:
+        print(f"wrote {out}: 52 ARKit morph targets on {len(rig.vertices)} vertices (units "
+              f"{rig.units}, up {rig.up_axis}, fit within {rig.residual:.3g} {rig.units} median)")  # fmt: skip
+    return 0
+
+
 def _load(path: str, fps: float | None):
     from talkmesh.output.formats import load_animation
 
@@ -573,6 +599,15 @@ def build_parser() -> argparse.ArgumentParser:
         rt.add_argument("--overwrite", action="store_true", help="replace an existing output")
         rt.add_argument("-q", "--quiet", action="store_true")
         rt.set_defaults(func=cmd_retarget)
+
+    rg = sub.add_parser("rig", help="give a plain head mesh the 52 ARKit blendshapes (.glb out)")
+    rg.add_argument(
+        "mesh", help="a head mesh (.obj .ply .stl .off .glb .gltf), any units and up-axis"
+    )
+    rg.add_argument("-o", "--output", required=True, help="output .glb (use it with --avatar)")
+    rg.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    rg.add_argument("-q", "--quiet", action="store_true")
+    rg.set_defaults(func=cmd_rig)
 
     sv = sub.add_parser(
         "serve", help="stream face animation over WebSocket and serve the browser viewer"
