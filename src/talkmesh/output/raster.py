@@ -157,16 +157,18 @@ def create_context() -> moderngl.Context:
 
 
 def head_vertex_colors(num_vertices: int) -> np.ndarray | None:
-    """(V, 3) sRGB colours of the bundled head's parts, or None if the mesh is not that head."""
+    """(V, 3) sRGB colours of the bundled head (``talkmesh.face.look``: lips, irises and pupils,
+    teeth, tongue, a dark mouth cavity), or None if the mesh is not that head."""
     try:
         from talkmesh.face.assets import load_head
+        from talkmesh.face.look import head_colors
 
         head = load_head()
     except Exception:  # no bundled head (or a broken one): the caller renders plain skin
         return None
     if head.num_vertices != num_vertices:
         return None
-    return PART_SRGB[np.clip(head.regions.vertex_part, 0, len(PART_SRGB) - 1)]
+    return head_colors(head)
 
 
 def _perspective(fov_y: float, aspect: float, near: float, far: float) -> np.ndarray:

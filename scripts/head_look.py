@@ -1,0 +1,52 @@
+"""Before/after frames of the bundled head's look for docs/guide/avatars.md.
+
+    PYTHONPATH=src python scripts/head_look.py [-o docs/head-look.png]
+
+Left: the plain part colours; middle: ``talkmesh.face.look`` (irises and pupils, lip colour, dark
+mouth cavity); right: the same from a 3/4 view (the mesh turned 35 degrees about +y). Mouth half
+open (jawOpen 0.5), eyes looking left (eyeLookOutLeft / eyeLookInRight 0.6).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from talkmesh.face.arkit import ARKIT_NAMES
+from talkmesh.face.assets import load_head
+from talkmesh.face.look import head_colors
+from talkmesh.output.raster import PART_SRGB, Renderer
+
+SIZE = 384
+POSE = {"jawOpen": 0.5, "eyeLookOutLeft": 0.6, "eyeLookInRight": 0.6}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("-o", "--output", default="docs/head-look.png")
+    args = parser.parse_args()
+    head = load_head()
+    weights = np.zeros(len(ARKIT_NAMES), np.float32)
+    for name, w in POSE.items():
+        weights[ARKIT_NAMES.index(name)] = w
+    vertices = head.vertices_from_weights(weights[None])[0]
+    angle = np.radians(35)
+    turn = np.array(
+        [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+    )
+    plain = PART_SRGB[np.clip(head.regions.vertex_part, 0, len(PART_SRGB) - 1)]
+    panels = []
+    for colors, verts in ((plain, vertices), (head_colors(head), vertices),
+                          (head_colors(head), vertices @ turn.T.astype(np.float32))):  # fmt: skip
+        with Renderer(head.faces, SIZE, vertex_colors=colors, reference=vertices) as renderer:
+            panels.append(renderer.render(verts))
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.concatenate(panels, axis=1)).save(args.output, optimize=True)
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
