@@ -36,8 +36,8 @@ from talkmesh.face.assets import Head, load_head
 ICP_ITERATIONS = 40
 COARSE = 6  # iterations tried from each of the 24 orientations
 TRIM = 0.9  # ICP fits the closest 90% of the pairs, so hair and shoulders do not pull
-NONRIGID_ROUNDS = 4
-SMOOTHING = 30  # Laplacian smoothing iterations of each round's displacement field
+NONRIGID_ROUNDS = 8
+SMOOTHING = 15  # Laplacian smoothing iterations of each round's displacement field
 FALLOFF = (0.02, 0.06)  # fraction of the head's RMS radius: full motion within, none beyond
 MIN_VERTICES = 100
 CANDIDATES = 12  # nearest head vertices whose triangles are searched for the closest point
