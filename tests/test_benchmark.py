@@ -294,3 +294,36 @@ def test_end_to_end_then_resume_then_partial(bench_root):
         == after["codetalker/seed0/speech/model.safetensors"]
     )
     assert "codetalker" not in json.loads(fourth.json.read_text())["methods"]
+
+
+def test_report_renders_one_seed_no_claims_and_a_discussion_link():
+    from talkmesh.evaluation.benchmark import aggregate, render_markdown
+
+    scores = {p: {"lve": 5e-3, "fdd": 4e-4, "mve": 1e-3, "lip_sync": 0.5} for p in ("codetalker", "physical")}  # fmt: skip
+    timing = {"stage": "voca", "task": "voca", "epochs": 3, "batch_size": 2, "max_seconds": 1.0,
+              "seconds": 75.0, "frames_per_second": 40.0, "resumed": True}  # fmt: skip
+    seed = {"scores": scores, "training": [timing], "predict": {"seconds": 4.2}}
+    report = {
+        "name": "one", "command": "talkmesh benchmark one.yaml", "finished": "now",
+        "talkmesh": "0", "config": {"work_dir": "runs/one"}, "seeds": [0],
+        "machine": {"cpu_model": "cpu", "usable_cpus": 1, "cpu_count": 2, "torch": "2",
+                    "torch_threads": 1, "python": "3", "platform": "os", "load_average": None},
+        "data": {"kind": "synth", "root": "c", "split": "test", "sequences": 2, "frames": 9,
+                 "motion_fps": 30.0},
+        "methods": {"voca": {"seeds": {"0": seed}, "aggregate": aggregate({0: scores})}},
+        "baselines": {"static": {"scores": {p: {**s, "lip_sync": None} for p, s in scores.items()}}},
+        "claims": [], "discussion": "docs/why.md#voca", "ablation": None, "speed": None,
+        "samples": ["a"], "figures": {"notes": ["no video: the dataset has no faces (.ply) to render"]},
+    }  # fmt: skip
+    lines = render_markdown(report).splitlines()
+    assert "| voca | 50.000 | 40.000 | 1.000 | 0.500 | 50.000 |" in lines  # anchor units, one seed
+    assert "| voca | 5.000 | 0.400 | 1.000 | 0.500 | 5.000 |" in lines  # physical: mm
+    assert "| static (baseline) | 5.000 | 0.400 | 1.000 | - | - |" in lines  # no lip sync
+    assert "No claim applies: the config lacks the pairs of methods they compare." in lines
+    assert (
+        "Why these orderings come out as they do (written by hand, not by this command): "
+        "[docs/why.md](docs/why.md#voca)." in lines
+    )
+    assert "- no video: the dataset has no faces (.ply) to render" in lines
+    assert not any(line.startswith(("## Ablation", "## Speed", "![")) for line in lines)
+    assert "| voca | voca | voca | 3 | 2 | 1.0 | 1m15s (resumed) | 40 | 4s |" in lines
