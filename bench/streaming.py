@@ -121,12 +121,11 @@ def write_streamed(
     for index in range(len(dataset)):
         sample = dataset[index]
         head = head_for(sample, ids)
-        if model == "procedural":
-            streamer = open_stream("procedural", lookahead_ms=lookahead, head=head, offsets=True,
-                                   seed=index, fps=dataset.spec.motion_fps)  # fmt: skip
-        else:
-            streamer = open_stream(model, lookahead_ms=lookahead, head=head, offsets=True,
-                                   blinks=blinks, seed=index)  # fmt: skip
+        # the procedural animator takes the data's frame rate; a model streams its own, with eyes
+        extra = {"fps": dataset.spec.motion_fps} if model == "procedural" else {"blinks": blinks}
+        streamer = open_stream(
+            model, lookahead_ms=lookahead, head=head, offsets=True, seed=index, **extra
+        )
         t0 = time.perf_counter()
         frames = stream_clip(streamer, sample.audio, chunk)
         spent += time.perf_counter() - t0
@@ -140,11 +139,15 @@ def write_streamed(
 
 def score(data: Path, pred: Path) -> dict:
     scores, _ = evaluate_dataset(open_dataset("synth", data, "test"), pred, protocol="physical")
-    return {"lve_mm": scores.lve * 1e3, "fdd_mm": scores.fdd * 1e3, "mve_mm": scores.mve * 1e3,
-            "lip_sync_r": scores.lip_sync}  # fmt: skip
+    return {
+        "lve_mm": scores.lve * 1e3,
+        "fdd_mm": scores.fdd * 1e3,
+        "mve_mm": scores.mve * 1e3,
+        "lip_sync_r": scores.lip_sync,
+    }
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", help="streaming CodeTalker release (.safetensors)")
     p.add_argument("--data", default="corpus/synth", type=Path)
@@ -153,84 +156,111 @@ def main() -> None:
     p.add_argument("--latency-lookaheads", default="50,100")
     p.add_argument("--lookaheads", default="0,50,100,200")
     p.add_argument("--offline-model", default="codetalker-synth")
-    p.add_argument("--no-blinks", dest="blinks", action="store_false",
-                   help="stream the model without the procedural blinks and gaze it adds by default")  # fmt: skip
+    p.add_argument(
+        "--no-blinks",
+        dest="blinks",
+        action="store_false",
+        help="stream the model without the procedural blinks and gaze it adds by default",
+    )
     p.add_argument("--skip", default="", help="comma list of parts to skip: latency,quality")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--json", type=Path)
     p.add_argument("--plot", type=Path)
-    args = p.parse_args()
+    return p.parse_args()
+
+
+def latency_table(args: argparse.Namespace, labels: dict[str, str], chunk: int) -> list[dict]:
+    """``--minutes`` of test-split speech streamed through every animator; prints the table."""
+    dataset = open_dataset("synth", args.data, "test")
+    one = np.concatenate([dataset[i].audio for i in range(len(dataset))])
+    reps = int(np.ceil(args.minutes * 60 * SAMPLE_RATE / len(one)))
+    audio = np.tile(one, reps)[: int(args.minutes * 60 * SAMPLE_RATE)]
+    rows = []
+    print(
+        f"\n## Latency: {args.minutes:g} min of speech in {args.chunk_ms:g} ms chunks, "
+        f"{args.threads} threads\n"
+    )
+    print(
+        "| animator | look-ahead (ms) | compute / frame (ms) | RTF | latency median (ms) "
+        "| p95 (ms) | max (ms) | after the completing chunk: median / p95 (ms) "
+        "| first min / last min median (ms) | keeps up |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for animator, label in labels.items():
+        for la in map(float, args.latency_lookaheads.split(",")):
+
+            def make(animator=animator, la=la):
+                return open_stream(animator, lookahead_ms=la, offsets=True)
+
+            r = latency_run(make, audio, chunk, 30.0)
+            r.update(animator=label, lookahead_ms=la)
+            rows.append(r)
+            print(
+                f"| {r['animator']} | {la:g} | {r['compute_ms_per_frame']:.2f} | "
+                f"{r['real_time_factor']:.3f} | {r['latency_median_ms']:.0f} | "
+                f"{r['latency_p95_ms']:.0f} | {r['latency_max_ms']:.0f} | "
+                f"{r['after_chunk_median_ms']:.1f} / {r['after_chunk_p95_ms']:.1f} | "
+                f"{r['first_minute_median_ms']:.0f} / {r['last_minute_median_ms']:.0f} | "
+                f"{'yes' if r['keeps_up'] else 'NO'} |",
+                flush=True,
+            )
+    return rows
+
+
+def quality_table(args: argparse.Namespace, labels: dict[str, str], chunk: int) -> list[dict]:
+    """Offline and streamed predictions of the test split, scored; prints the table."""
+    data, rows = args.data, []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+
+        def offline(name: str, model: str, lookahead: str) -> None:
+            out = tmp / name
+            if model == "procedural":
+                write_baseline("synth", data, out, method="procedural", progress=False)
+            else:
+                write_model_predictions(
+                    "synth", data, out, model, blinks=args.blinks, progress=False
+                )
+            rows.append({"animator": name, "lookahead_ms": lookahead, **score(data, out)})
+
+        offline("procedural", "procedural", "offline")
+        if args.offline_model:
+            name = f"{args.offline_model} (offline, Whisper)"
+            offline(name, args.offline_model, "offline")
+        if args.model:
+            offline("streaming CodeTalker, offline generate()", args.model, "max")
+        for animator, label in labels.items():
+            for la in map(float, args.lookaheads.split(",")):
+                out = tmp / f"{label}-{la:g}".replace(" ", "_")
+                spent = write_streamed(animator, data, out, la, chunk, args.blinks)
+                streamed = {"animator": f"{label} (streamed)", "lookahead_ms": la}
+                rows.append({**streamed, "compute_s": spent, **score(data, out)})
+                print(f"streamed {label} at {la:g} ms", flush=True)
+    print("\n## Quality: synthetic unseen-speaker test split (40 sequences)\n")
+    print("| animator | look-ahead (ms) | LVE (mm) | FDD (mm) | MVE (mm) | lip-sync r |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['animator']} | {r['lookahead_ms']} | {r['lve_mm']:.3f} | "
+            f"{r['fdd_mm']:.3f} | {r['mve_mm']:.3f} | {r['lip_sync_r']:.3f} |"
+        )
+    return rows
+
+
+def main() -> None:
+    args = parse_args()
     torch.set_num_threads(args.threads)
     chunk = int(round(args.chunk_ms / 1000 * SAMPLE_RATE))
     skip = set(filter(None, args.skip.split(",")))
     animators = ["procedural"] + ([args.model] if args.model else [])
-    label = {a: "procedural" if a == "procedural" else "streaming CodeTalker" for a in animators}
+    labels = {a: "procedural" if a == "procedural" else "streaming CodeTalker" for a in animators}
     report: dict = {"chunk_ms": args.chunk_ms, "threads": args.threads}
-
     if "latency" not in skip:
-        dataset = open_dataset("synth", args.data, "test")
-        clips = [dataset[i].audio for i in range(len(dataset))]
-        one = np.concatenate(clips)
-        reps = int(np.ceil(args.minutes * 60 * SAMPLE_RATE / len(one)))
-        audio = np.tile(one, reps)[: int(args.minutes * 60 * SAMPLE_RATE)]
-        rows = []
-        print(f"\n## Latency: {args.minutes:g} min of speech in {args.chunk_ms:g} ms chunks, "
-              f"{args.threads} threads\n")  # fmt: skip
-        print("| animator | look-ahead (ms) | compute / frame (ms) | RTF | latency median (ms) "
-              "| p95 (ms) | max (ms) | after the completing chunk: median / p95 (ms) "
-              "| first min / last min median (ms) | keeps up |")  # fmt: skip
-        print("|---|---|---|---|---|---|---|---|---|---|")
-        for animator in animators:
-            for la in map(float, args.latency_lookaheads.split(",")):
-
-                def make(animator=animator, la=la):
-                    return open_stream(animator, lookahead_ms=la, offsets=True)
-
-                r = latency_run(make, audio, chunk, 30.0)
-                r.update(animator=label[animator], lookahead_ms=la)
-                rows.append(r)
-                print(f"| {r['animator']} | {la:g} | {r['compute_ms_per_frame']:.2f} | "
-                      f"{r['real_time_factor']:.3f} | {r['latency_median_ms']:.0f} | "
-                      f"{r['latency_p95_ms']:.0f} | {r['latency_max_ms']:.0f} | "
-                      f"{r['after_chunk_median_ms']:.1f} / {r['after_chunk_p95_ms']:.1f} | "
-                      f"{r['first_minute_median_ms']:.0f} / {r['last_minute_median_ms']:.0f} | "
-                      f"{'yes' if r['keeps_up'] else 'NO'} |", flush=True)  # fmt: skip
-        report["latency"] = rows
-
+        report["latency"] = latency_table(args, labels, chunk)
     if "quality" not in skip:
-        rows = []
-        with tempfile.TemporaryDirectory() as tmp:
-            tmp = Path(tmp)
-            write_baseline("synth", args.data, tmp / "proc", method="procedural", progress=False)
-            rows.append({"animator": "procedural", "lookahead_ms": "offline",
-                         **score(args.data, tmp / "proc")})  # fmt: skip
-            if args.offline_model:
-                write_model_predictions("synth", args.data, tmp / "off", args.offline_model,
-                                        blinks=args.blinks, progress=False)  # fmt: skip
-                rows.append({"animator": f"{args.offline_model} (offline, Whisper)",
-                             "lookahead_ms": "offline", **score(args.data, tmp / "off")})  # fmt: skip
-            if args.model:
-                write_model_predictions("synth", args.data, tmp / "smo", args.model,
-                                        blinks=args.blinks, progress=False)  # fmt: skip
-                rows.append({"animator": "streaming CodeTalker, offline generate()",
-                             "lookahead_ms": "max", **score(args.data, tmp / "smo")})  # fmt: skip
-            for animator in animators:
-                for la in map(float, args.lookaheads.split(",")):
-                    out = tmp / f"{label[animator]}-{la:g}".replace(" ", "_")
-                    spent = write_streamed(animator, args.data, out, la, chunk, args.blinks)
-                    rows.append({"animator": f"{label[animator]} (streamed)",
-                                 "lookahead_ms": la, "compute_s": spent,
-                                 **score(args.data, out)})  # fmt: skip
-                    print(f"streamed {label[animator]} at {la:g} ms", flush=True)
-        print("\n## Quality: synthetic unseen-speaker test split (40 sequences)\n")
-        print("| animator | look-ahead (ms) | LVE (mm) | FDD (mm) | MVE (mm) | lip-sync r |")
-        print("|---|---|---|---|---|---|")
-        for r in rows:
-            print(f"| {r['animator']} | {r['lookahead_ms']} | {r['lve_mm']:.3f} | "
-                  f"{r['fdd_mm']:.3f} | {r['mve_mm']:.3f} | {r['lip_sync_r']:.3f} |")  # fmt: skip
-        report["quality"] = rows
+        report["quality"] = quality_table(args, labels, chunk)
         if args.plot:
-            plot(rows, args.plot)
+            plot(report["quality"], args.plot)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
 
@@ -247,8 +277,12 @@ def plot(rows: list[dict], path: Path) -> None:
         for name in dict.fromkeys(r["animator"] for r in streamed):
             pts = [(r["lookahead_ms"], r[metric]) for r in streamed if r["animator"] == name]
             line = ax.plot(*zip(*pts), marker="o", label=name.replace(" (streamed)", ""))[0]
-            offline = [r for r in rows if r["lookahead_ms"] in ("offline", "max")
-                       and r["animator"].split(" ")[0] == name.split(" ")[0]]  # fmt: skip
+            offline = [
+                r
+                for r in rows
+                if r["lookahead_ms"] in ("offline", "max")
+                and r["animator"].split(" ")[0] == name.split(" ")[0]
+            ]
             for r in offline:
                 ax.axhline(r[metric], color=line.get_color(), ls="--", lw=1)
         ax.set_xlabel("look-ahead (ms)")
