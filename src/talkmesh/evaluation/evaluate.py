@@ -122,25 +122,39 @@ def evaluate(
     return scores
 
 
+# the table's metric columns per protocol: (header, Scores field, scale, decimals)
+TABLE_COLUMNS = {
+    "codetalker": (
+        ("LVE (x1e-4, squared)", "lve", 1e4, 4),
+        ("FDD (x1e-5, signed)", "fdd", 1e5, 4),
+        ("MVE (mm)", "mve", 1e3, 3),
+    ),
+    "physical": (
+        ("LVE (mm)", "lve", 1e3, 3),
+        ("FDD (mm, absolute)", "fdd", 1e3, 4),
+        ("MVE (mm)", "mve", 1e3, 3),
+    ),
+}
+
+
 def format_table(scores: Scores, label: str = "") -> str:
     """A one-row table in the papers' units (anchor protocol) or in mm (physical)."""
-    if scores.protocol == "codetalker":
-        head = "| method | LVE (x1e-4, squared) | FDD (x1e-5, signed) | MVE (mm) | lip-sync r | seqs | frames |"
-        row = (
-            f"| {label or '-'} | {scores.lve * 1e4:.4f} | {scores.fdd * 1e5:.4f} | "
-            f"{scores.mve * 1e3:.3f} | {scores.lip_sync:.3f} | {scores.n_sequences} | {scores.n_frames} |"
-        )
-    else:
-        head = "| method | LVE (mm) | FDD (mm, absolute) | MVE (mm) | lip-sync r | seqs | frames |"
-        row = (
-            f"| {label or '-'} | {scores.lve * 1e3:.3f} | {scores.fdd * 1e3:.4f} | "
-            f"{scores.mve * 1e3:.3f} | {scores.lip_sync:.3f} | {scores.n_sequences} | {scores.n_frames} |"
-        )
-    sep = "|" + "|".join("---" for _ in head.strip("|").split("|")) + "|"
-    return "\n".join([head, sep, row])
+    columns = TABLE_COLUMNS.get(scores.protocol, TABLE_COLUMNS["physical"])
+    heads = ["method", *(c[0] for c in columns), "lip-sync r", "seqs", "frames"]
+    cells = [label or "-", *(f"{getattr(scores, k) * scale:.{d}f}" for _, k, scale, d in columns)]
+    cells += [f"{scores.lip_sync:.3f}", str(scores.n_sequences), str(scores.n_frames)]
+    return "\n".join(
+        [
+            "| " + " | ".join(heads) + " |",
+            "|" + "---|" * len(heads),
+            "| " + " | ".join(cells) + " |",
+        ]
+    )
 
 
 def scores_to_json(scores: Scores, split: str | None = None) -> dict:
+    """The scores as written by ``talkmesh evaluate --json`` and the benchmark: the pooled values
+    and one row per (sequence, condition); NaN lip sync becomes null."""
     return {
         "protocol": scores.protocol,
         "split": split,

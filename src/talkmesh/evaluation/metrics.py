@@ -94,6 +94,8 @@ def correlation(a: np.ndarray, b: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class SequenceScores:
+    """One (sequence, condition) row of a table, in the protocol's units."""
+
     name: str
     condition: str | None
     frames: int
@@ -106,6 +108,8 @@ class SequenceScores:
 
 @dataclass(frozen=True)
 class Scores:
+    """A split's scores: LVE and MVE pooled over all frames, FDD and lip sync over sequences."""
+
     protocol: str
     lve: float
     fdd: float
@@ -117,7 +121,9 @@ class Scores:
 
 
 @dataclass(frozen=True)
-class _Pending:
+class PendingScores:
+    """One sequence's scores and the per-frame values that :func:`pool` pools over sequences."""
+
     row: SequenceScores
     lip_frames: np.ndarray
     mve_frames: np.ndarray
@@ -133,7 +139,7 @@ def score_sequence(
     lip_pairs: np.ndarray | None = None,
     name: str = "",
     condition: str | None = None,
-) -> _Pending:
+) -> PendingScores:
     """Scores of one sequence, keeping the per-frame values needed for pooling."""
     if protocol not in PROTOCOLS:
         raise TalkmeshError(f"unknown protocol '{protocol}': use one of {', '.join(PROTOCOLS)}")
@@ -151,10 +157,10 @@ def score_sequence(
     row = SequenceScores(
         name, condition, n, truncated, float(lip.mean()), fdd, float(mve.mean()), sync
     )
-    return _Pending(row, lip, mve)
+    return PendingScores(row, lip, mve)
 
 
-def pool(pending: list[_Pending], protocol: Protocol) -> Scores:
+def pool(pending: list[PendingScores], protocol: Protocol) -> Scores:
     """Pool per-sequence results: LVE and MVE over all frames, FDD and lip sync over sequences."""
     if not pending:
         raise TalkmeshError("nothing to score: no prediction matched a sequence of the split")
