@@ -41,11 +41,12 @@ import time
 
 import torch
 
+from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.models.codetalker import CodeTalker, paper_vocaset_config, small_synth_config
 from talkmesh.models.codetalker_generate import FrameGenerator
 from talkmesh.models.int8 import quantize_int8
 
-SR = 16_000
+SR = SAMPLE_RATE
 MODES = ("fast", "fast-steps", "naive", "exact", "fast-int8-speech", "fast-int8", "fast-int8-all")
 SHORT, REPEATS = 5.0, 5  # rows of up to 5 s of audio: the median of 5 runs after a warm-up
 WAV2VEC2_BASE = dict(

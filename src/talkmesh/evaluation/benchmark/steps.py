@@ -194,13 +194,14 @@ def codebook_usage(release: Path, dataset) -> dict[str, Any]:
     from talkmesh.models.release import load_model
 
     net = load_model(release)
-    size = net.cfg.vq.codebook_size
+    size = net.codebook_size
     counts = torch.zeros(size, dtype=torch.float64)
     with torch.inference_mode():
         for i in range(len(dataset)):
             s = dataset[i]
-            motion = torch.from_numpy(s.vertices - s.template).flatten(1)[None]
-            codes = net.vqvae(motion).codes
+            # copies: the dataset memory-maps its arrays read-only
+            vertices, template = torch.tensor(s.vertices), torch.tensor(s.template)
+            codes = net.motion_codes(vertices[None], template[None])
             counts += torch.bincount(codes.flatten(), minlength=size).double()
     p = counts / counts.sum()
     entropy = -(p[p > 0] * p[p > 0].log()).sum()
