@@ -321,6 +321,23 @@ def cmd_convert_whisper(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_import_checkpoint(args: argparse.Namespace) -> int:
+    from talkmesh.models.official import import_checkpoint
+    from talkmesh.models.release import save_model
+
+    out = Path(args.out)
+    if out.suffix != ".safetensors":
+        raise TalkmeshError(f"-o {out}: a talkmesh model is a .safetensors file")
+    if out.exists() and not args.overwrite:
+        raise TalkmeshError(f"{out} already exists: choose another -o or pass --overwrite")
+    model = import_checkpoint(args.files, args.family, args.dataset)
+    save_model(model, out)
+    if not args.quiet:
+        print(f"wrote {out} ({args.family}, {args.dataset}, {model.motion_fps:g} fps, "
+              f"styles: {', '.join(model.styles)})")  # fmt: skip
+    return 0
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from talkmesh.training.trainer import load_recipes, train
 
@@ -550,6 +567,19 @@ def build_parser() -> argparse.ArgumentParser:
     cw.add_argument("--overwrite", action="store_true", help="replace an existing directory")
     cw.add_argument("-q", "--quiet", action="store_true")
     cw.set_defaults(func=cmd_convert_whisper)
+
+    ic = sub.add_parser(
+        "import-checkpoint",
+        help="convert a paper's released weights into a talkmesh model (docs/guide/official.md)",
+    )
+    ic.add_argument("files", nargs="+", help="the released file(s), e.g. vocaset.pth")
+    ic.add_argument("--family", required=True, choices=("codetalker", "faceformer", "meshtalk"))
+    ic.add_argument("--dataset", required=True, choices=("vocaset", "biwi"),
+                    type=str.lower, help="what the weights were trained on")  # fmt: skip
+    ic.add_argument("-o", "--out", required=True, help="output model (.safetensors)")
+    ic.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    ic.add_argument("-q", "--quiet", action="store_true")
+    ic.set_defaults(func=cmd_import_checkpoint)
 
     tr = sub.add_parser("train", help="train a model stage from a YAML recipe")
     tr.add_argument("recipe", help="recipe YAML (see configs/)")

@@ -198,12 +198,17 @@ def animate_learned(
         weights = np.array([style_mix.get(s, 0.0) / total for s in styles], np.float32)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     fps_model = net.motion_fps
+    # a model that counts its own frames (imported official models: from the speech features)
+    own_count = getattr(net, "default_frames", None)
+    frames = (
+        own_count(len(wave)) if own_count else num_frames_for(len(wave), SAMPLE_RATE, fps_model)
+    )
     with torch.inference_mode():
         verts = net.generate(
             torch.from_numpy(wave)[None],
             torch.from_numpy(head.template)[None],
             style_weights=None if weights is None else torch.from_numpy(weights)[None],
-            num_frames=num_frames_for(len(wave), SAMPLE_RATE, fps_model),
+            num_frames=frames,
             seed=seed,
         )[0].numpy()
     if abs(fps - fps_model) > 1e-6:  # resample the motion to the requested frame rate

@@ -43,6 +43,11 @@ Differences from the paper and the official code, and why:
   both give the same frames.
 * Padding masks hold for any batch size, and an unseen speaker takes style weights over the
   training speakers (e.g. their mean) instead of one training speaker's one-hot.
+
+Models imported from the released weights (``talkmesh import-checkpoint``, models/official.py)
+switch on ``postnorm``, ``interleaved_ppe``, ``frame0_motion_bias=False`` and the speech
+encoder's ``resample="cnn"`` and ``normalize``: then generation equals the official ``predict``
+(docs/guide/official.md has the table of official vs default and why).
 """
 
 from __future__ import annotations
@@ -63,6 +68,7 @@ from talkmesh.models.layers import (
     periodic_encoding,
     temporal_bias,
 )
+from talkmesh.models.postnorm import PostNormDecoderLayer, interleaved_encoding
 from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
 
 MODES = ("fast", "naive")
@@ -91,6 +97,12 @@ class FaceFormerConfig:
     attention_window: int = 600  # frames of self-attention (the official length cap)
     self_feedback: float = 0.0  # training: fraction of fed-back frames that are the model's own
     # one-pass predictions instead of the truth (0: plain teacher forcing; see the module doc)
+    # official-exact options (on in models imported from the released weights; docs/guide/official.md):
+    postnorm: bool = False  # the official decoder layers: post-norm, ReLU, dropout inside, real
+    # attention over the frame's k aligned audio tokens, no final norm (models/postnorm.py)
+    interleaved_ppe: bool = False  # the official PPE channel order (sin/cos interleaved)
+    frame0_motion_bias: bool = True  # generation's frame 0 reads motion_map(0) (= its bias), as
+    # in training; the official generation feeds the style vector alone
 
     def __post_init__(self) -> None:
         for name in ("num_vertices", "d_model", "heads", "ff", "period",
@@ -205,10 +217,17 @@ class FaceFormer(MotionModel):
         self.style = nn.Embedding(len(cfg.styles), d)  # obj_vector (one-hot x matrix)
         self.motion_map = nn.Linear(vertex_dims, d)  # vertice_map: the motion encoder
         self.dropout = nn.Dropout(cfg.dropout)
-        self.blocks = nn.ModuleList(Block(d, cfg.heads, cfg.ff) for _ in range(cfg.layers))
-        # cross-modal attention onto the frame's aligned audio token: one key, so a linear map
-        self.cross = nn.ModuleList(nn.Linear(d, d) for _ in range(cfg.layers))
-        self.norm = nn.LayerNorm(d)
+        if cfg.postnorm:
+            self.blocks = nn.ModuleList(
+                PostNormDecoderLayer(d, cfg.heads, cfg.ff, cfg.dropout) for _ in range(cfg.layers)
+            )
+            self.cross = nn.ModuleList()  # the layers attend to the aligned tokens themselves
+            self.norm = nn.Identity()
+        else:
+            self.blocks = nn.ModuleList(Block(d, cfg.heads, cfg.ff) for _ in range(cfg.layers))
+            # cross-modal attention onto the frame's aligned audio token: one key, a linear map
+            self.cross = nn.ModuleList(nn.Linear(d, d) for _ in range(cfg.layers))
+            self.norm = nn.LayerNorm(d)
         self.out = nn.Linear(d, vertex_dims)  # vertice_map_r: the motion decoder
         nn.init.zeros_(self.out.weight)  # zero-initialised, as in the official code
         nn.init.zeros_(self.out.bias)
@@ -280,16 +299,40 @@ class FaceFormer(MotionModel):
 
     def audio_tokens(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
         """(B, S) -> (B, T, d): the audio token(s) each frame's alignment bias lets it see (with
-        k tokens per frame, their mean: uniform attention over them)."""
+        k tokens per frame, their mean: uniform attention over them); ``postnorm``: all k tokens,
+        (B, T, k, d), for the layers' attention."""
         k = self.cfg.audio_tokens_per_frame
         feats = self.audio_map(self.speech(audio, audio_lengths, num_frames * k))
+        if self.cfg.postnorm:
+            return feats.view(feats.shape[0], num_frames, k, -1)
         if k > 1:
             feats = feats.view(feats.shape[0], num_frames, k, -1).mean(2)
         return feats
 
     def cross_terms(self, audio_tokens: Tensor) -> list[Tensor]:
-        """Per decoder layer, the (B, T, d) cross-attention output of every frame at once."""
+        """Per decoder layer, the (B, T, d) cross-attention output of every frame at once
+        (``postnorm``: the (B, T, k, d) tokens, which the layers attend to)."""
+        if self.cfg.postnorm:
+            return [audio_tokens] * len(self.blocks)
         return [layer(audio_tokens) for layer in self.cross]
+
+    def ppe(self, num_frames: int, device: torch.device, offset: int = 0) -> Tensor:
+        """(T, d) periodic positional encoding of frames offset..offset+T-1."""
+        cfg = self.cfg
+        encode = interleaved_encoding if cfg.interleaved_ppe else periodic_encoding
+        return encode(num_frames, cfg.d_model, cfg.period, device, offset)
+
+    def first_input(self, style: Tensor) -> Tensor:
+        """(B, d) generation's input for frame 0 (no previous frame)."""
+        return self.motion_map.bias + style if self.cfg.frame0_motion_bias else style
+
+    def default_frames(self, samples: int) -> int:
+        """Motion frames for ``samples`` of 16 kHz audio: the encoder's own count where it
+        resamples its CNN features (the official frame count), else duration x fps."""
+        count = getattr(self.speech, "frames_for", None)
+        if count is not None and self.cfg.speech.resample == "cnn":
+            return count(samples, self.cfg.motion_fps, self.cfg.audio_tokens_per_frame)
+        return frames_for_audio(samples, self.cfg.motion_fps)
 
     def _bias(self, length: int, device: torch.device) -> Tensor:
         cfg = self.cfg
@@ -299,7 +342,7 @@ class FaceFormer(MotionModel):
         """previous (B, T, V*3) the normalised offsets each frame reads (zero for frame 0),
         style (B, d) -> (B, T, d) decoder inputs."""
         x = self.motion_map(previous) + style[:, None]
-        return x + periodic_encoding(x.shape[1], self.cfg.d_model, self.cfg.period, x.device)
+        return x + self.ppe(x.shape[1], x.device)
 
     def hidden_states(
         self, x: Tensor, cross: list[Tensor], bias: Tensor, caches: list[KVCache] | None = None
@@ -385,7 +428,7 @@ class FaceFormer(MotionModel):
         B, V = audio.shape[0], self.cfg.num_vertices
         if num_frames is None:
             samples = int(audio_lengths.max()) if audio_lengths is not None else audio.shape[1]
-            num_frames = frames_for_audio(samples, self.cfg.motion_fps)
+            num_frames = self.default_frames(samples)
         if num_frames < 1:
             raise TalkmeshError(f"num_frames must be at least 1, got {num_frames}")
         style = self.style_vector(styles, style_weights)
@@ -410,11 +453,10 @@ class FaceFormer(MotionModel):
         """The official loop: every step runs the whole decoder (its cross-attention onto the
         prefix's audio ``tokens`` (B, T, d) included) and motion decoder over the whole prefix and
         feeds its last frame back -> offsets (B, T, V*3)."""
-        inputs = self.motion_map.bias + style  # frame 0 reads zero offsets
-        previous = [inputs[:, None]]
+        previous = [self.first_input(style)[:, None]]
         for t in range(num_frames):
             x = torch.cat(previous, dim=1)
-            x = x + periodic_encoding(t + 1, self.cfg.d_model, self.cfg.period, x.device)
+            x = x + self.ppe(t + 1, x.device)
             h = self.hidden_states(
                 x, self.cross_terms(tokens[:, : t + 1]), self._bias(t + 1, x.device)[None]
             )
@@ -439,11 +481,11 @@ class FrameGenerator:
         self.caches = [KVCache(self.window) for _ in model.blocks]
         self.fold = folded_linear(model, model.out, model.motion_map)  # (d -> d)
         device = style.device
-        self.ppe = periodic_encoding(cfg.period, cfg.d_model, cfg.period, device)
+        self.ppe = model.ppe(cfg.period, device)
         self.bias = decoder_bias(
             cfg.heads, 1, self.window, cfg.period, self.window, device, q_offset=self.window - 1
         )[None]
-        self.x_in = model.motion_map.bias + style  # frame 0 reads zero offsets
+        self.x_in = model.first_input(style)
         self.t = 0
 
     def step(self, cross: list[Tensor]) -> Tensor:

@@ -50,10 +50,20 @@ class SpeechEncoderConfig:
     context_seconds: float = 2.0  # each with this much audio either side, so memory is bounded
 
     frozen: bool = False  # wav2vec2/whisper: keep the whole pretrained encoder fixed
+    resample: str = "output"  # wav2vec2: where features meet the motion rate: "output" (after the
+    # transformer) or "cnn" (the official FaceFormer/CodeTalker: the CNN features are resampled,
+    # linearly or, at the CNN's own rate, by cutting, before the transformer; that also sets the
+    # frame count, see Wav2Vec2Encoder.frames_for)
+    normalize: bool = False  # zero-mean unit-variance audio per utterance (the wav2vec2
+    # processor that the official demos run before the model)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"speech.kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        if self.resample not in ("output", "cnn") or (
+            self.resample == "cnn" and self.kind != "wav2vec2"
+        ):
+            raise ValueError("speech.resample must be 'output', or 'cnn' with kind wav2vec2")
         if self.lookahead_max_ms is not None and (
             self.kind != "mel" or self.lookahead_max_ms < self.lookahead_ms
         ):
@@ -86,6 +96,66 @@ class Wav2Vec2Encoder(nn.Module):
     def hf_config(self) -> dict[str, Any]:
         return self.model.config.to_dict()
 
+    @property
+    def cnn_rate(self) -> float:
+        """CNN feature vectors per second of 16 kHz audio (50 for wav2vec 2.0)."""
+        return SAMPLE_RATE / math.prod(self.model.config.conv_stride)
+
+    def frames_for(self, samples: int, fps: float, tokens_per_frame: int = 1) -> int:
+        """Motion frames for ``samples`` of audio as the official code counts them: N CNN
+        features give int(N / rate * fps) frames, or N // k at the CNN's own rate (k tokens per
+        frame: BIWI drops an odd last feature)."""
+        n = int(self.model._get_feat_extract_output_lengths(torch.tensor(samples)))
+        if abs(fps * tokens_per_frame - self.cnn_rate) < 1e-6:
+            return max(1, n // tokens_per_frame)
+        return max(1, int(n / self.cnn_rate * fps))
+
+    def _normalize(self, audio: Tensor) -> Tensor:
+        """(1, S) -> zero mean, unit variance (the processor's ``do_normalize``)."""
+        if not self.cfg.normalize:
+            return audio
+        return (audio - audio.mean()) / torch.sqrt(audio.var(unbiased=False) + 1e-7)
+
+    def _cnn_tokens(self, audio: Tensor, n: int) -> Tensor:
+        """(1, S) unpadded audio -> (1, n, D): CNN features resampled to ``n`` (cut or padded
+        at the CNN's own rate, else linearly interpolated), then the transformer (in windows with
+        context when long, as :meth:`features`)."""
+        feats = self.model.feature_extractor(self._normalize(audio)).transpose(1, 2)
+        if abs(self.cfg.frame_rate - self.cnn_rate) < 1e-6:
+            feats = feats[:, :n]
+            if feats.shape[1] < n:
+                feats = torch.cat([feats, feats[:, -1:].expand(-1, n - feats.shape[1], -1)], 1)
+        else:
+            feats = interpolate_frames(feats, n)
+        hidden = self.model.feature_projection(feats)
+        hidden = hidden[0] if isinstance(hidden, tuple) else hidden
+        rate = self.cfg.frame_rate
+        window, context = int(self.cfg.window_seconds * rate), int(self.cfg.context_seconds * rate)
+        if n <= window + 2 * context:
+            return self.model.encoder(hidden)[0]
+        parts = []
+        for start in range(0, n, window):
+            a, b = max(0, start - context), min(n, start + window + context)
+            out = self.model.encoder(hidden[:, a:b])[0]
+            parts.append(out[:, start - a : start - a + min(window, n - start)])
+        return torch.cat(parts, dim=1)
+
+    def _forward_cnn(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
+        """``resample="cnn"``: each sample on its own valid audio, over its share of the frames
+        (the rest repeat its last token, padding masked by the caller)."""
+        S = audio.shape[1]
+        out = []
+        for b in range(audio.shape[0]):
+            valid = int(audio_lengths[b]) if audio_lengths is not None else S
+            n = num_frames
+            if valid < S:
+                n = min(num_frames, max(1, int(round(num_frames * valid / S))))
+            tokens = self._cnn_tokens(audio[b : b + 1, :valid], n)[0]
+            if n < num_frames:
+                tokens = torch.cat([tokens, tokens[-1:].expand(num_frames - n, -1)])
+            out.append(tokens)
+        return torch.stack(out)
+
     def features(self, audio: Tensor) -> Tensor:
         """(1, S) unpadded audio -> (1, N, D) features; audio longer than the window is encoded in
         windows with context on both sides that is dropped (the transformer's attention is
@@ -106,6 +176,13 @@ class Wav2Vec2Encoder(nn.Module):
         return torch.cat(parts, dim=1)
 
     def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
+        if self.cfg.resample == "cnn":
+            return self._forward_cnn(audio, audio_lengths, num_frames)
+        if self.cfg.normalize:  # each sample over its own valid audio
+            audio = audio.clone()
+            for i in range(len(audio)):
+                n = int(audio_lengths[i]) if audio_lengths is not None else audio.shape[1]
+                audio[i, :n] = self._normalize(audio[i : i + 1, :n])[0]
         longest = int(audio_lengths.max()) if audio_lengths is not None else audio.shape[1]
         if longest > int((self.cfg.window_seconds + 2 * self.cfg.context_seconds) * SAMPLE_RATE):
             lengths = (

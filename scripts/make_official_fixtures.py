@@ -1,0 +1,164 @@
+"""Make the official-format fixtures that tests/test_official.py imports and compares against.
+
+    python scripts/make_official_fixtures.py --official /path/to/FaceFormer [--official ...]
+
+Each ``--official`` is a local checkout of one of the papers' code (FaceFormer: EvelynFan/FaceFormer);
+this script imports it at run time (none of its code is copied here) and, per dataset setup:
+
+1. builds the official model at a tiny size with random weights (seeded): the speech encoder is
+   ``Wav2Vec2Config`` made tiny instead of ``from_pretrained``, everything else is the official
+   class with the official dataset arguments (d_model, period, train subjects);
+2. saves it exactly as the official trainer does (FaceFormer: ``torch.save(model.state_dict())``),
+   with the weight-norm tensors under the torch 1.x names the released files carry
+   (``weight_g``/``weight_v``);
+3. runs the official prediction (``model.predict``) on ``speech.wav`` prepared as the official demo
+   prepares it (16 kHz, the wav2vec2 processor's zero-mean unit-variance normalisation);
+4. writes ``<family>_<dataset>.pth`` (the checkpoint) and ``<family>_<dataset>.npz`` (template,
+   conditioning subject, the official output) to tests/fixtures/official/.
+
+Only what cannot run here is patched: ``from_pretrained`` (no network) and, for transformers >= 4.x
+where ``Wav2Vec2FeatureProjection`` returns ``(hidden, normed)`` instead of ``hidden``, that call
+takes the first element (the same computation). The checkout's files are not modified.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "tests" / "fixtures" / "official"
+NUM_VERTICES = 24  # tiny meshes: the architecture does not depend on the vertex count
+SEED = 0
+
+VOCASET_SUBJECTS = (
+    "FaceTalk_170728_03272_TA FaceTalk_170904_00128_TA FaceTalk_170725_00137_TA "
+    "FaceTalk_170915_00223_TA FaceTalk_170811_03274_TA FaceTalk_170913_03279_TA "
+    "FaceTalk_170904_03276_TA FaceTalk_170912_03278_TA"
+)
+BIWI_SUBJECTS = "F2 F3 F4 M3 M4 M5"
+
+
+def tiny_wav2vec2_config():
+    """wav2vec 2.0 with the official width (768: the official models hard-code Linear(768, d))
+    but no transformer layer and 8-channel convolutions, so the fixture stays small. The CNN,
+    feature projection, positional convolution and encoder norm all run."""
+    from transformers import Wav2Vec2Config
+
+    return Wav2Vec2Config(
+        hidden_size=768,
+        num_hidden_layers=0,
+        num_attention_heads=4,
+        intermediate_size=8,
+        conv_dim=(8,) * 7,
+        num_conv_pos_embeddings=4,
+        num_conv_pos_embedding_groups=768,
+        attn_implementation="eager",  # the official forward sets output_attentions
+    )
+
+
+def speech(path: Path) -> np.ndarray:
+    """The committed wav as float32 at 16 kHz (it is stored at 16 kHz: no resampling)."""
+    import soundfile as sf
+
+    audio, sr = sf.read(str(path), dtype="float32")
+    if sr != 16000 or audio.ndim != 1:
+        raise SystemExit(f"{path}: expected 16 kHz mono")
+    return audio
+
+
+def processor_input(audio: np.ndarray) -> np.ndarray:
+    """What the official demos feed the model: Wav2Vec2Processor's zero-mean unit-variance input."""
+    from transformers import Wav2Vec2FeatureExtractor
+
+    fe = Wav2Vec2FeatureExtractor(do_normalize=True, return_attention_mask=False)
+    return np.squeeze(fe(audio, sampling_rate=16000).input_values)
+
+
+def torch1_names(state: dict) -> dict:
+    """Weight-norm tensors under the names torch 1.9 saved them with."""
+    out = {}
+    for k, v in state.items():
+        k = k.replace("parametrizations.weight.original0", "weight_g")
+        k = k.replace("parametrizations.weight.original1", "weight_v")
+        out[k] = v.detach().clone()
+    return out
+
+
+def patch_encoder(model) -> None:
+    """transformers >= 4.x: the feature projection returns (hidden, normed); 4.6.1 returned hidden."""
+    projection = model.feature_projection
+    forward = projection.forward
+
+    def first(*args, **kwargs):
+        out = forward(*args, **kwargs)
+        return out[0] if isinstance(out, tuple) else out
+
+    projection.forward = first
+
+
+def faceformer(checkout: Path, wav: Path) -> None:
+    sys.path.insert(0, str(checkout))
+    import faceformer as official  # the checkout's faceformer.py
+
+    config = tiny_wav2vec2_config()
+    official.Wav2Vec2Model.from_pretrained = classmethod(lambda cls, *a, **k: cls(config))
+    audio = speech(wav)
+    for dataset, subjects, d, period in (
+        ("vocaset", VOCASET_SUBJECTS, 32, 30),  # d_model: official 64 (tiny here)
+        ("BIWI", BIWI_SUBJECTS, 32, 25),  # official 128
+    ):
+        torch.manual_seed(SEED)
+        args = SimpleNamespace(dataset=dataset, vertice_dim=NUM_VERTICES * 3, feature_dim=d,
+                               period=period, train_subjects=subjects, device="cpu")  # fmt: skip
+        model = official.Faceformer(args)
+        # the official motion decoder starts at zero: give it weights so the output moves
+        torch.nn.init.normal_(model.vertice_map_r.weight, std=0.05)
+        torch.nn.init.normal_(model.vertice_map_r.bias, std=0.01)
+        model.eval()
+        patch_encoder(model.audio_encoder)
+        names = subjects.split()
+        condition = len(names) // 2
+        one_hot = torch.zeros(1, len(names))
+        one_hot[0, condition] = 1
+        template = torch.randn(NUM_VERTICES, 3, generator=torch.Generator().manual_seed(1)) * 0.1
+        inputs = torch.from_numpy(processor_input(audio))[None]
+        with torch.no_grad():
+            out = model.predict(inputs, template.reshape(1, -1), one_hot)
+        name = f"faceformer_{dataset.lower()}"
+        torch.save(torch1_names(model.state_dict()), OUT / f"{name}.pth")
+        np.savez(
+            OUT / f"{name}.npz",
+            template=template.numpy(),
+            condition=np.array(names[condition]),
+            subjects=np.array(names),
+            vertices=out[0].reshape(-1, NUM_VERTICES, 3).numpy(),
+        )
+        print(f"{name}: {out.shape[1]} frames from {len(audio)} samples")
+    sys.path.remove(str(checkout))
+
+
+def detect(checkout: Path) -> str:
+    if (checkout / "faceformer.py").is_file():
+        return "faceformer"
+    raise SystemExit(f"{checkout}: not a checkout of FaceFormer")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--official", type=Path, action="append", required=True,
+                   help="a local checkout of the official code (repeatable)")  # fmt: skip
+    p.add_argument("--wav", type=Path, default=OUT / "speech.wav")
+    args = p.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    for checkout in args.official:
+        {"faceformer": faceformer}[detect(checkout)](checkout.resolve(), args.wav)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,149 @@
+"""Models imported from the papers' released weights compute what the official code computes.
+
+The fixtures (tests/fixtures/official/) are tiny official models with random weights, saved as the
+official trainers save them, and the official prediction on speech.wav; they are made by
+``scripts/make_official_fixtures.py --official PATH`` from a local checkout of the official code.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("transformers")
+
+from talkmesh.audio.loading import load_audio  # noqa: E402
+from talkmesh.cli import main  # noqa: E402
+from talkmesh.errors import TalkmeshError  # noqa: E402
+from talkmesh.models.official import import_checkpoint, load_checkpoint  # noqa: E402
+from talkmesh.models.postnorm import PostNormDecoderLayer, interleaved_encoding  # noqa: E402
+from talkmesh.models.release import load_model  # noqa: E402
+
+FIXTURES = Path(__file__).parent / "fixtures" / "official"
+TOLERANCE = 1e-4  # of the motion's scale
+
+
+def fixture(name: str) -> dict[str, np.ndarray]:
+    with np.load(FIXTURES / f"{name}.npz", allow_pickle=False) as f:
+        return {k: f[k] for k in f.files}
+
+
+def compare(model, name: str, mode: str) -> float:
+    """max |talkmesh - official| / max |official motion| on the fixture's speech."""
+    fx = fixture(name)
+    audio = torch.from_numpy(load_audio(FIXTURES / "speech.wav"))[None]
+    template = torch.from_numpy(fx["template"])[None]
+    style = list(model.styles).index(str(fx["condition"]))
+    out = model.generate(audio, template, styles=torch.tensor([style]), mode=mode)[0].numpy()
+    ref = fx["vertices"]
+    assert out.shape == ref.shape  # same frame count
+    scale = np.abs(ref - fx["template"]).max()
+    assert scale > 0.1  # the official output moves: the comparison is not trivially equal
+    return float(np.abs(out - ref).max() / scale)
+
+
+@pytest.mark.parametrize("dataset", ["vocaset", "biwi"])
+@pytest.mark.parametrize("mode", ["naive", "fast"])
+def test_faceformer_import_equals_official(dataset, mode):
+    model = import_checkpoint([FIXTURES / f"faceformer_{dataset}.pth"], "faceformer", dataset)
+    assert model.motion_fps == {"vocaset": 30, "biwi": 25}[dataset]
+    assert str(fixture(f"faceformer_{dataset}")["subjects"][0]) == model.styles[0]
+    assert compare(model, f"faceformer_{dataset}", mode) <= TOLERANCE
+
+
+def test_cli_import_writes_a_release(tmp_path, capsys):
+    out = tmp_path / "ff.safetensors"
+    src = FIXTURES / "faceformer_biwi.pth"
+    args = ["import-checkpoint", str(src), "--family", "faceformer", "--dataset", "BIWI"]
+    assert main([*args, "-o", str(out)]) == 0
+    assert "25 fps" in capsys.readouterr().out
+    model = load_model(out)
+    assert model.styles == ("F2", "F3", "F4", "M3", "M4", "M5")
+    assert compare(model, "faceformer_biwi", "fast") <= TOLERANCE
+    assert main([*args, "-o", str(out)]) == 2  # never overwritten without --overwrite
+    assert "already exists" in capsys.readouterr().err
+
+
+def test_prefixed_checkpoint_from_dataparallel(tmp_path):
+    state = torch.load(FIXTURES / "faceformer_vocaset.pth", weights_only=True)
+    path = tmp_path / "prefixed.pth"
+    torch.save({"state_dict": {"module." + k: v for k, v in state.items()}}, path)
+    model = import_checkpoint([path], "faceformer", "vocaset")
+    assert compare(model, "faceformer_vocaset", "fast") <= TOLERANCE
+
+
+class Payload:
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def test_malicious_checkpoint_never_runs(tmp_path):
+    marker = tmp_path / "pwned"
+    path = tmp_path / "evil.pth"
+    with open(path, "wb") as f:
+        pickle.dump({"state_dict": Payload(marker)}, f)
+    torch.save({"w": torch.zeros(1), "x": Payload(marker)}, tmp_path / "evil2.pth")
+    for p in (path, tmp_path / "evil2.pth"):
+        with pytest.raises(TalkmeshError) as e:
+            load_checkpoint(p)
+        assert "\n" not in str(e.value) and "refused" in str(e.value)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda s: s.pop("vertice_map_r.bias"), "vertice_map_r.bias' is missing"),
+        (lambda s: s.update(extra=torch.zeros(2)), "unexpected tensor 'extra'"),
+        (lambda s: s.update({"vertice_map_r.bias": torch.zeros(5)}), "'out.bias' has shape"),
+        (lambda s: s.pop("obj_vector.weight"), "not a FaceFormer checkpoint"),
+    ],
+)
+def test_checkpoint_that_does_not_fit_is_named(tmp_path, edit, message):
+    state = torch.load(FIXTURES / "faceformer_vocaset.pth", weights_only=True)
+    edit(state)
+    torch.save(state, tmp_path / "bad.pth")
+    with pytest.raises(TalkmeshError, match=message):
+        import_checkpoint([tmp_path / "bad.pth"], "faceformer", "vocaset")
+
+
+def test_wrong_dataset_and_missing_files_are_named(tmp_path):
+    with pytest.raises(TalkmeshError, match="is --dataset right"):
+        import_checkpoint([FIXTURES / "faceformer_vocaset.pth"], "faceformer", "biwi")
+    with pytest.raises(TalkmeshError, match="no such checkpoint"):
+        import_checkpoint([tmp_path / "none.pth"], "faceformer", "vocaset")
+    (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
+    with pytest.raises(TalkmeshError, match="refused: not a plain PyTorch weight file"):
+        import_checkpoint([tmp_path / "junk.pth"], "faceformer", "vocaset")
+
+
+def test_postnorm_layer_is_torch_decoder_layer_with_alignment_mask():
+    torch.manual_seed(0)
+    d, heads, T, k = 16, 4, 7, 2
+    ours = PostNormDecoderLayer(d, heads, 2 * d).eval()
+    ref = torch.nn.TransformerDecoderLayer(d, heads, 2 * d, batch_first=True).eval()
+    ref.load_state_dict(ours.state_dict())
+    x, memory = torch.randn(1, T, d), torch.randn(1, T * k, d)
+    bias = torch.randn(heads, T, T).masked_fill(torch.ones(T, T).triu(1).bool(), float("-inf"))
+    aligned = torch.ones(T, T * k, dtype=torch.bool)
+    for t in range(T):
+        aligned[t, t * k : t * k + k] = False  # frame t sees its own k tokens
+    want = ref(x, memory, tgt_mask=bias, memory_mask=aligned)
+    got = ours(x, bias[None], None, memory.view(1, T, k, d))
+    assert torch.allclose(got, want, atol=1e-5)
+
+
+def test_interleaved_encoding_is_periodic():
+    pe = interleaved_encoding(70, 8, 30)
+    assert torch.equal(pe[:30], pe[30:60])
+    assert torch.allclose(
+        pe[1, 0::2], torch.sin(torch.tensor(1.0) * 10000 ** (-torch.arange(0, 8, 2) / 8))
+    )
