@@ -143,10 +143,71 @@ def faceformer(checkout: Path, wav: Path) -> None:
     sys.path.remove(str(checkout))
 
 
+def codetalker(checkout: Path, wav: Path) -> None:
+    """Stage 1 (the VQ-VAE) is saved by the official ``save_checkpoint`` as the stage-1 trainer
+    does, stage 2 as the stage-2 trainer does (``stage=2``: every ``autoencoder.*`` tensor
+    dropped), and stage 2 is built from the stage-1 file as the official demo builds it."""
+    sys.path.insert(0, str(checkout))
+    from base.baseTrainer import save_checkpoint
+    from models.lib import wav2vec
+    from models.stage2 import CodeTalker
+
+    config = tiny_wav2vec2_config()
+    wav2vec.Wav2Vec2Model.from_pretrained = classmethod(lambda cls, *a, **k: cls(config))
+    audio = speech(wav)
+    # tiny sizes (official: hidden 1024, 6 layers, 8 heads, FF 1536, N 256; VOCASET H 16 x C 64,
+    # BIWI H 8 x C 128 with maps between hidden and H x C; stage 2 d 1024, 6 / 12 layers)
+    for dataset, subjects, H, C, hidden, period in (
+        ("vocaset", VOCASET_SUBJECTS, 2, 8, 16, 30),  # VOCASET: hidden = H x C
+        ("BIWI", BIWI_SUBJECTS, 2, 12, 16, 25),
+    ):
+        torch.manual_seed(SEED)
+        args = SimpleNamespace(
+            dataset=dataset, train_subjects=subjects, in_dim=NUM_VERTICES * 3,
+            hidden_size=hidden, num_hidden_layers=1, num_attention_heads=4, intermediate_size=24,
+            window_size=1, quant_factor=0, face_quan_num=H, neg=0.2, INaffine=False,
+            n_embed=16, zquant_dim=C, autoencoder=f"stage1_{dataset}", feature_dim=32,
+            vertice_dim=NUM_VERTICES * 3, device="cpu", period=period, n_head=4, num_layers=2,
+            wav2vec2model_path="(tiny)", motion_weight=1.0, reg_weight=1.0,
+        )  # fmt: skip
+        stage1_module = __import__(f"models.stage1_{dataset}", fromlist=["VQAutoEncoder"])
+        vq = stage1_module.VQAutoEncoder(args)
+        # a trained codebook is spread like the encoder's outputs, not the tiny uniform init
+        torch.nn.init.normal_(vq.quantize.embedding.weight, std=0.5)
+        name = f"codetalker_{dataset.lower()}"
+        save_checkpoint(vq, {"epoch": 200}, sav_path=str(OUT), filename=f"{name}_stage1.pth.tar")
+        args.vqvae_pretrained_path = str(OUT / f"{name}_stage1.pth.tar")
+        model = CodeTalker(args)
+        torch.nn.init.normal_(model.feat_map.weight, std=0.5)  # zero-initialised officially
+        model.eval()
+        patch_encoder(model.audio_encoder)
+        save_checkpoint(model, {"epoch": 100}, sav_path=str(OUT),
+                        filename=f"{name}_stage2.pth.tar", stage=2)  # fmt: skip
+        names = subjects.split()
+        condition = len(names) // 2
+        one_hot = torch.zeros(1, len(names))
+        one_hot[0, condition] = 1
+        template = torch.randn(NUM_VERTICES, 3, generator=torch.Generator().manual_seed(1)) * 0.1
+        inputs = torch.from_numpy(processor_input(audio))[None]
+        with torch.no_grad():
+            out = model.predict(inputs, template.reshape(1, -1), one_hot)
+        np.savez(
+            OUT / f"{name}.npz",
+            template=template.numpy(),
+            condition=np.array(names[condition]),
+            subjects=np.array(names),
+            vertices=out[0].reshape(-1, NUM_VERTICES, 3).numpy(),
+        )
+        print(f"{name}: {out.shape[1]} frames from {len(audio)} samples")
+    sys.path.remove(str(checkout))
+
+
 def detect(checkout: Path) -> str:
     if (checkout / "faceformer.py").is_file():
         return "faceformer"
-    raise SystemExit(f"{checkout}: not a checkout of FaceFormer")
+    if (checkout / "models" / "stage2.py").is_file():
+        return "codetalker"
+    raise SystemExit(f"{checkout}: not a checkout of FaceFormer or CodeTalker")
 
 
 def main() -> None:
@@ -157,7 +218,9 @@ def main() -> None:
     args = p.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     for checkout in args.official:
-        {"faceformer": faceformer}[detect(checkout)](checkout.resolve(), args.wav)
+        {"faceformer": faceformer, "codetalker": codetalker}[detect(checkout)](
+            checkout.resolve(), args.wav
+        )
 
 
 if __name__ == "__main__":
