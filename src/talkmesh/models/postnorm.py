@@ -5,12 +5,12 @@ models imported from the papers' released weights (``talkmesh import-checkpoint`
   official stage 2 uses it (post-norm, ReLU, dropout 0.1, ``batch_first``), with the same
   parameter names (``self_attn.in_proj_weight``, ``multihead_attn.*``, ``linear1``, ``norm1``...)
   so released tensors map one to one. Unlike torch's layer it takes an additive self-attention
-  bias, a :class:`~talkmesh.models.codetalker.KVCache` for one-frame steps, and the audio tokens
+  bias, a :class:`~talkmesh.models.layers.KVCache` for one-frame steps, and the audio tokens
   aligned with each frame as ``(B, T, k, D)``: the official alignment mask lets frame t attend to
   its own k tokens only (VOCASET k = 1, BIWI k = 2), which is this per-frame attention without a
   (T, T*k) matrix.
 * :func:`interleaved_encoding`: the official periodic positional encoding (sin in even, cos in odd
-  channels); talkmesh's own models put the sines first (:func:`~talkmesh.models.codetalker.sinusoid`).
+  channels); talkmesh's own models put the sines first (:func:`~talkmesh.models.layers.sinusoid`).
 """
 
 from __future__ import annotations
