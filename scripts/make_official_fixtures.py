@@ -155,7 +155,8 @@ def codetalker(checkout: Path, wav: Path) -> None:
     config = tiny_wav2vec2_config()
     wav2vec.Wav2Vec2Model.from_pretrained = classmethod(lambda cls, *a, **k: cls(config))
     audio = speech(wav)
-    # tiny sizes (official: hidden 1024, 6 layers, 8 heads, FF 1536, N 256; VOCASET H 16 x C 64,
+    # tiny sizes, 8 stage-1 heads as released (shapes do not tell the head count; official:
+    # hidden 1024, 6 layers, FF 1536, N 256; VOCASET H 16 x C 64,
     # BIWI H 8 x C 128 with maps between hidden and H x C; stage 2 d 1024, 6 / 12 layers)
     for dataset, subjects, H, C, hidden, period in (
         ("vocaset", VOCASET_SUBJECTS, 2, 8, 16, 30),  # VOCASET: hidden = H x C
@@ -164,7 +165,7 @@ def codetalker(checkout: Path, wav: Path) -> None:
         torch.manual_seed(SEED)
         args = SimpleNamespace(
             dataset=dataset, train_subjects=subjects, in_dim=NUM_VERTICES * 3,
-            hidden_size=hidden, num_hidden_layers=1, num_attention_heads=4, intermediate_size=24,
+            hidden_size=hidden, num_hidden_layers=1, num_attention_heads=8, intermediate_size=24,
             window_size=1, quant_factor=0, face_quan_num=H, neg=0.2, INaffine=False,
             n_embed=16, zquant_dim=C, autoencoder=f"stage1_{dataset}", feature_dim=32,
             vertice_dim=NUM_VERTICES * 3, device="cpu", period=period, n_head=4, num_layers=2,

@@ -56,6 +56,29 @@ def test_faceformer_import_equals_official(dataset, mode):
     assert compare(model, f"faceformer_{dataset}", mode) <= TOLERANCE
 
 
+def codetalker_files(dataset: str) -> list[Path]:
+    return [FIXTURES / f"codetalker_{dataset}_stage{n}.pth.tar" for n in (1, 2)]
+
+
+@pytest.mark.parametrize("dataset", ["vocaset", "biwi"])
+def test_codetalker_import_equals_official(dataset):
+    model = import_checkpoint(codetalker_files(dataset)[::-1], "codetalker", dataset)  # any order
+    assert model.motion_fps == {"vocaset": 30, "biwi": 25}[dataset]
+    # the official loop; the same with stage-2 caches; fast, which InstanceNorm makes exact
+    for mode in ("naive", "exact", "fast"):
+        assert compare(model, f"codetalker_{dataset}", mode) <= TOLERANCE
+
+
+def test_codetalker_needs_both_files(tmp_path):
+    stage1, stage2 = codetalker_files("vocaset")
+    with pytest.raises(TalkmeshError, match="stage-1 .*is missing"):
+        import_checkpoint([stage2, stage2], "codetalker", "vocaset")
+    with pytest.raises(TalkmeshError, match="needs both released files"):
+        import_checkpoint([stage1], "codetalker", "vocaset")
+    with pytest.raises(TalkmeshError, match="is --dataset right"):
+        import_checkpoint([stage1, stage2], "codetalker", "biwi")
+
+
 def test_cli_import_writes_a_release(tmp_path, capsys):
     out = tmp_path / "ff.safetensors"
     src = FIXTURES / "faceformer_biwi.pth"

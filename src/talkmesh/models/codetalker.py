@@ -12,6 +12,12 @@ on one frame and cannot stream); generation caches keys/values (``generate(mode=
 a faithful ``mode="naive"`` that re-runs everything over the whole prefix at each step, like the
 paper's loop.
 
+Releases imported from the official files (``talkmesh import-checkpoint``, models/official.py)
+switch the official behaviour back on through config options (``vq.instance_norm``,
+``vq.gelu_tanh``, ``vq.final_norm``, ``vq.frame_positions``, ``stage2.postnorm``,
+``stage2.interleaved_ppe``, the speech encoder's ``resample``/``normalize``); their generation
+equals the official ``predict`` (docs/official.md).
+
 Here: the configs, stage 2 and :class:`CodeTalker` (training graph and ``generate``). Stage 1 is in
 :mod:`talkmesh.models.codetalker_vq`, the cached generation engine in
 :mod:`talkmesh.models.codetalker_generate`, the shared transformer layers in
@@ -33,6 +39,7 @@ from talkmesh.models.codetalker_generate import CodeTalkerStream, generate_exact
 from talkmesh.models.codetalker_vq import MotionVQVAE, Quantized, VQConfig
 from talkmesh.models.int8 import quantize_int8
 from talkmesh.models.layers import Block, KVCache, padding_bias, periodic_encoding, temporal_bias
+from talkmesh.models.postnorm import PostNormDecoderLayer, interleaved_encoding
 from talkmesh.models.speech import (
     MelEncoder,
     MelFeatureStream,
@@ -67,6 +74,10 @@ class Stage2Config:
     self_feedback: float = 0.0  # training: probability that a frame's fed-back motion is the
     # model's own prediction from a first, teacher-forced pass (no gradient) instead of the truth
     # (parallel scheduled sampling, Duckworth et al. 2019), so it learns from its own feedback
+    # official-exact options (on in imported releases, docs/official.md)
+    postnorm: bool = False  # the official nn.TransformerDecoder layers (post-norm, ReLU,
+    # dropout 0.1, attention over the frame's k aligned audio tokens, no final norm)
+    interleaved_ppe: bool = False  # the official PPE channel order (sin/cos interleaved)
 
     def __post_init__(self) -> None:
         if self.d_model % self.heads:
@@ -170,9 +181,18 @@ class CodeTalker(MotionModel):
         self.audio_map = nn.Linear(self.speech.dim, s2.d_model)
         self.style = nn.Embedding(len(s2.styles), s2.d_model)
         self.motion_map = nn.Linear(vq.num_vertices * 3, s2.d_model)  # vertice_map
-        self.blocks = nn.ModuleList(Block(s2.d_model, s2.heads, s2.ff) for _ in range(s2.layers))
-        self.cross = nn.ModuleList(nn.Linear(s2.d_model, s2.d_model) for _ in range(s2.layers))
-        self.norm = nn.LayerNorm(s2.d_model)
+        if s2.postnorm:  # the official nn.TransformerDecoder layers (models/postnorm.py)
+            self.blocks = nn.ModuleList(
+                PostNormDecoderLayer(s2.d_model, s2.heads, s2.ff) for _ in range(s2.layers)
+            )
+            self.cross = nn.ModuleList()
+            self.norm = nn.Identity()
+        else:
+            self.blocks = nn.ModuleList(
+                Block(s2.d_model, s2.heads, s2.ff) for _ in range(s2.layers)
+            )
+            self.cross = nn.ModuleList(nn.Linear(s2.d_model, s2.d_model) for _ in range(s2.layers))
+            self.norm = nn.LayerNorm(s2.d_model)
         self.feat_map = nn.Linear(s2.d_model, vq.components * vq.code_dim)
         nn.init.zeros_(self.feat_map.weight)  # zero-initialised output map (Sec. 3.2)
         nn.init.zeros_(self.feat_map.bias)
@@ -262,14 +282,33 @@ class CodeTalker(MotionModel):
         k = self.cfg.stage2.audio_tokens_per_frame
         feats = self.speech(audio, audio_lengths, num_frames * k)
         feats = self.audio_map(feats)
+        if self.cfg.stage2.postnorm:  # all k tokens, for the layers' attention
+            return feats.view(feats.shape[0], num_frames, k, -1)
         if k > 1:
             feats = feats.view(feats.shape[0], num_frames, k, -1).mean(2)
         return feats
 
     def cross_terms(self, audio_tokens: Tensor) -> list[Tensor]:
         """Cross-attention of frame t onto its own audio token(s) only: with one key the softmax is
-        1, so the output is a linear map of the token - exact and computed for all frames at once."""
+        1, so the output is a linear map of the token - exact and computed for all frames at once.
+        ``postnorm``: the (B, T, k, d) tokens themselves, which the layers attend to."""
+        if self.cfg.stage2.postnorm:
+            return [audio_tokens] * len(self.blocks)
         return [layer(audio_tokens) for layer in self.cross]
+
+    def ppe(self, num_frames: int, device: torch.device, offset: int = 0) -> Tensor:
+        """(T, d) periodic positional encoding of frames offset..offset+T-1."""
+        s2 = self.cfg.stage2
+        encode = interleaved_encoding if s2.interleaved_ppe else periodic_encoding
+        return encode(num_frames, s2.d_model, s2.period, device, offset)
+
+    def default_frames(self, samples: int) -> int:
+        """Motion frames for ``samples`` of 16 kHz audio: the official count where the speech
+        encoder resamples its CNN features, else duration x fps."""
+        count = getattr(self.speech, "frames_for", None)
+        if count is not None and self.cfg.stage2.speech.resample == "cnn":
+            return count(samples, self.motion_fps, self.cfg.stage2.audio_tokens_per_frame)
+        return frames_for_audio(samples, self.motion_fps)
 
     def decode_features(
         self, x: Tensor, cross: list[Tensor], bias: Tensor, caches: list[KVCache] | None = None
@@ -312,7 +351,7 @@ class CodeTalker(MotionModel):
                 keep = torch.rand(B, T - 1, 1, device=history.device) >= s2.history_dropout
                 history = history * keep
             prev = torch.cat([style[:, None], history + style[:, None]], dim=1)
-            x = prev + periodic_encoding(T, s2.d_model, s2.period, prev.device)
+            x = prev + self.ppe(T, prev.device)
             feats = self.decode_features(x, cross, bias)
             feats = feats.view(B, T, self.cfg.vq.components, self.cfg.vq.code_dim)
             q = self.vqvae.quantizer(feats)
@@ -381,10 +420,13 @@ class CodeTalker(MotionModel):
             )
         if mode == "exact" and self.cfg.vq.causal:
             mode = "fast"
+        if mode == "fast" and self.cfg.vq.instance_norm:
+            # instance statistics span the whole prefix: the cached causal pass cannot compute
+            # them, so such a model (every imported release) generates in exact mode
+            mode = "exact"
         B = audio.shape[0]
-        fps = self.cfg.motion_fps
         if num_frames is None:
-            num_frames = frames_for_audio(audio.shape[1], fps)
+            num_frames = self.default_frames(audio.shape[1])
         s2, vq = self.cfg.stage2, self.cfg.vq
         style = self.style_vector(styles, style_weights)
         tokens = self.audio_tokens(audio, audio_lengths, num_frames)
@@ -393,7 +435,7 @@ class CodeTalker(MotionModel):
             inputs = style[:, None]
             codes = []
             for t in range(num_frames):
-                x = inputs + periodic_encoding(t + 1, s2.d_model, s2.period, inputs.device)
+                x = inputs + self.ppe(t + 1, inputs.device)
                 bias = temporal_bias(s2.heads, t + 1, t + 1, s2.period, x.device)[None]
                 # as the paper's decoder: its cross-attention runs over the prefix at every step
                 feats = self.decode_features(x, self.cross_terms(tokens[:, : t + 1]), bias)

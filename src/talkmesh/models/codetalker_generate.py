@@ -17,7 +17,7 @@ from torch import Tensor, nn
 
 from talkmesh.models.base import FrameStream
 from talkmesh.models.codetalker_vq import DecoderStep, Quantized
-from talkmesh.models.layers import KVCache, folded_linear, periodic_encoding, sinusoid, window_bias
+from talkmesh.models.layers import KVCache, folded_linear, sinusoid, window_bias
 from talkmesh.models.speech import MelFeatureStream
 
 # Fast mode's pass schedule. Each pass runs K frames from guesses of their codes and keeps those up
@@ -147,7 +147,7 @@ class FrameGenerator:
             model, dec.out, model.motion_map, int8=getattr(model, "int8", False)
         )
         device = style.device
-        self.ppe = periodic_encoding(s2.period, s2.d_model, s2.period, device)
+        self.ppe = model.ppe(s2.period, device)
         self.step_bias = window_bias(s2.heads, 1, self.window, self.window, s2.period, device)[None]
         self.x_in: Tensor | None = style[:, None]  # (B, 1, d) the next frame's input ...
         self.pending: Tensor | None = None  # ... or (B, H) codes of the last frame, not yet

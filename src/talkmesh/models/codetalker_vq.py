@@ -45,6 +45,11 @@ class VQConfig:
     # ``causal_window`` frames with relative (ALiBi) positions instead of absolute ones, so frame t
     # never depends on later codes and a cached step equals the full pass (not in the paper)
     causal_window: int = 64
+    # official-exact options (on in imported releases, docs/official.md)
+    gelu_tanh: bool = False  # the official blocks' tanh-approximated GELU
+    final_norm: bool = True  # a LayerNorm after the last block (the official code has none)
+    frame_positions: bool = True  # a sinusoid per frame; the official code adds one vector to
+    # every frame (folded into ``mid``'s bias on import)
 
     def __post_init__(self) -> None:
         for name in ("num_vertices", "hidden", "heads", "ff", "components", "code_dim",
@@ -218,14 +223,19 @@ class TemporalConv(nn.Module):
         return F.leaky_relu(y, 0.2)
 
 
+def _blocks(cfg: VQConfig) -> nn.ModuleList:
+    gelu = "tanh" if cfg.gelu_tanh else "none"
+    return nn.ModuleList(Block(cfg.hidden, cfg.heads, cfg.ff, gelu) for _ in range(cfg.layers))
+
+
 class MotionEncoder(nn.Module):
     def __init__(self, cfg: VQConfig) -> None:
         super().__init__()
         self.inp = nn.Linear(cfg.num_vertices * 3, cfg.hidden)
         self.conv = TemporalConv(cfg.hidden, cfg.instance_norm, cfg.temporal_unit)
         self.mid = nn.Linear(cfg.hidden, cfg.hidden)
-        self.blocks = nn.ModuleList(Block(cfg.hidden, cfg.heads, cfg.ff) for _ in range(cfg.layers))
-        self.norm = nn.LayerNorm(cfg.hidden)
+        self.blocks = _blocks(cfg)
+        self.norm = nn.LayerNorm(cfg.hidden) if cfg.final_norm else nn.Identity()
         self.out = nn.Linear(cfg.hidden, cfg.components * cfg.code_dim)
         self.cfg = cfg
         # per-coordinate motion normalisation (set from training data; a buffer, so it travels with
@@ -236,7 +246,8 @@ class MotionEncoder(nn.Module):
         """motion (B, T, V*3) -> z (B, T/P, H, C)."""
         x = self.conv(hold_last_frame(F.leaky_relu(self.inp(motion / self.scale), 0.2), mask))
         x = self.mid(x)
-        x = x + sinusoid(torch.arange(x.shape[1], device=x.device), x.shape[-1])
+        if self.cfg.frame_positions:
+            x = x + sinusoid(torch.arange(x.shape[1], device=x.device), x.shape[-1])
         bias = padding_bias(
             mask[:, :: self.cfg.temporal_unit] if mask is not None else None, x.dtype
         )
@@ -251,8 +262,8 @@ class MotionDecoder(nn.Module):
         self.inp = nn.Linear(cfg.components * cfg.code_dim, cfg.hidden)
         self.conv = TemporalConv(cfg.hidden, cfg.instance_norm, causal=cfg.causal)
         self.mid = nn.Linear(cfg.hidden, cfg.hidden)
-        self.blocks = nn.ModuleList(Block(cfg.hidden, cfg.heads, cfg.ff) for _ in range(cfg.layers))
-        self.norm = nn.LayerNorm(cfg.hidden)
+        self.blocks = _blocks(cfg)
+        self.norm = nn.LayerNorm(cfg.hidden) if cfg.final_norm else nn.Identity()
         self.out = nn.Linear(cfg.hidden, cfg.num_vertices * 3)
         self.cfg = cfg
         self.register_buffer("scale", torch.ones(cfg.num_vertices * 3))
@@ -260,6 +271,10 @@ class MotionDecoder(nn.Module):
     def hidden(self, z_q: Tensor, mask: Tensor | None = None, offset: int = 0) -> Tensor:
         """z_q (B, T', H, C) -> (B, T, hidden) before the output map (T = T' * P); ``offset`` is
         the position of the first frame (for windows of a longer sequence)."""
+        if self.cfg.instance_norm and z_q.shape[1] * self.cfg.temporal_unit == 1 and mask is None:
+            # instance statistics over one frame do not exist: it is decoded as two copies of
+            # itself, as the official generation decodes frame 0
+            return self.hidden(z_q.expand(-1, 2, -1, -1), None, offset)[:, :1]
         x = self.inp(z_q.flatten(2))
         if self.cfg.temporal_unit > 1:
             x = x.repeat_interleave(self.cfg.temporal_unit, dim=1)
@@ -269,7 +284,7 @@ class MotionDecoder(nn.Module):
             T = x.shape[1]
             band = window_bias(self.cfg.heads, T, T, self.cfg.causal_window, 1, x.device)
             bias = band[None] if bias is None else bias + band
-        else:
+        elif self.cfg.frame_positions:
             x = x + sinusoid(
                 torch.arange(offset, offset + x.shape[1], device=x.device), x.shape[-1]
             )

@@ -102,12 +102,13 @@ class Attention(nn.Module):
 class Block(nn.Module):
     """Pre-LN transformer block (self-attention + MLP), optionally with a cross term added."""
 
-    def __init__(self, dim: int, heads: int, ff: int) -> None:
+    def __init__(self, dim: int, heads: int, ff: int, gelu: str = "none") -> None:
         super().__init__()
         self.norm1 = nn.LayerNorm(dim)
         self.attn = Attention(dim, heads)
         self.norm2 = nn.LayerNorm(dim)
-        self.mlp = nn.Sequential(nn.Linear(dim, ff), nn.GELU(), nn.Linear(ff, dim))
+        # gelu "tanh": the tanh approximation (the official CodeTalker stage 1's)
+        self.mlp = nn.Sequential(nn.Linear(dim, ff), nn.GELU(gelu), nn.Linear(ff, dim))
 
     def forward(
         self,
