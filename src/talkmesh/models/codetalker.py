@@ -16,7 +16,7 @@ Releases imported from the official files (``talkmesh import-checkpoint``, model
 switch the official behaviour back on through config options (``vq.instance_norm``,
 ``vq.gelu_tanh``, ``vq.final_norm``, ``vq.frame_positions``, ``stage2.postnorm``,
 ``stage2.interleaved_ppe``, the speech encoder's ``resample``/``normalize``); their generation
-equals the official ``predict`` (docs/official.md).
+equals the official ``predict`` (docs/guide/official.md).
 
 Here: the configs, stage 2 and :class:`CodeTalker` (training graph and ``generate``). Stage 1 is in
 :mod:`talkmesh.models.codetalker_vq`, the cached generation engine in
@@ -74,7 +74,7 @@ class Stage2Config:
     self_feedback: float = 0.0  # training: probability that a frame's fed-back motion is the
     # model's own prediction from a first, teacher-forced pass (no gradient) instead of the truth
     # (parallel scheduled sampling, Duckworth et al. 2019), so it learns from its own feedback
-    # official-exact options (on in imported releases, docs/official.md)
+    # official-exact options (on in imported releases, docs/guide/official.md)
     postnorm: bool = False  # the official nn.TransformerDecoder layers (post-norm, ReLU,
     # dropout 0.1, attention over the frame's k aligned audio tokens, no final norm)
     interleaved_ppe: bool = False  # the official PPE channel order (sin/cos interleaved)

@@ -45,7 +45,7 @@ class VQConfig:
     # ``causal_window`` frames with relative (ALiBi) positions instead of absolute ones, so frame t
     # never depends on later codes and a cached step equals the full pass (not in the paper)
     causal_window: int = 64
-    # official-exact options (on in imported releases, docs/official.md)
+    # official-exact options (on in imported releases, docs/guide/official.md)
     gelu_tanh: bool = False  # the official blocks' tanh-approximated GELU
     final_norm: bool = True  # a LayerNorm after the last block (the official code has none)
     frame_positions: bool = True  # a sinusoid per frame; the official code adds one vector to
