@@ -9,11 +9,10 @@ model = talkmesh.load_model("codetalker-synth")  # a release by name or path, of
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
-
 from talkmesh.animation import Animation
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.assets import Head, list_identities, load_head, load_template
+from talkmesh.version import __version__
 
 __all__ = [
     "Animation",

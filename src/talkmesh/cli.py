@@ -7,9 +7,9 @@ import os
 import sys
 from pathlib import Path
 
-from talkmesh import __version__
 from talkmesh.errors import TalkmeshError
 from talkmesh.output import VIDEO_SUFFIXES, write_animation
+from talkmesh.version import __version__
 
 DEFAULT_OUTPUT = "{stem}.mp4"
 

@@ -139,7 +139,7 @@ def run_benchmark(
     log: Callable[[str], None] | None = None,
 ) -> BenchmarkResult:
     """Run (or resume) the benchmark of ``config`` and write its markdown, JSON and figures."""
-    from talkmesh import __version__
+    from talkmesh.version import __version__
 
     cfg = load_benchmark(config)
     methods = selected(cfg, only)
