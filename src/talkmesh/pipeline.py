@@ -9,6 +9,7 @@ import numpy as np
 from talkmesh.animation import Animation
 from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 from talkmesh.audio.phonemes import Phone, recognize_phones
+from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, fit_weights
 from talkmesh.face.assets import Head, load_head
@@ -19,7 +20,7 @@ from talkmesh.face.lipsync import (
     replace_eye_motion,
 )
 
-DEFAULT_FPS = 30.0
+DEFAULT_FPS = MOTION_FPS
 MAX_FPS = 240.0
 INT8_MODES = ("speech", "decoders", "all")  # animate(int8=...): CodeTalker layers run in int8
 MODELS = ("procedural",)
@@ -122,6 +123,20 @@ def animate(
         anim.weight_names = list(ARKIT_NAMES)
         anim.basis = head.blendshapes
         return anim
+    return animate_procedural(wave, head, text=text, phones=phones, fps=fps, seed=seed, style=style)
+
+
+def animate_procedural(
+    wave: np.ndarray,
+    head: Head,
+    *,
+    text: str | None,
+    phones: list[Phone] | None,
+    fps: float,
+    seed: int,
+    style: SpeakingStyle | None,
+) -> Animation:
+    """The phone-driven animator on ``head`` (arguments as in :func:`animate`)."""
     if phones is None:
         phones = recognize_phones(wave, SAMPLE_RATE, text=text)
     num_frames = num_frames_for(len(wave), SAMPLE_RATE, fps)

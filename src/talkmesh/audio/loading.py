@@ -21,9 +21,9 @@ import numpy as np
 import soundfile as sf
 from scipy.signal import resample_poly
 
+from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
-SAMPLE_RATE = 16_000  # Hz: what the phone recogniser and the animators expect
 MAX_DURATION_S = 3 * 60 * 60  # longer inputs are almost certainly a mistake: refuse them
 BLOCK_S = 30.0  # seconds of input decoded and resampled at a time
 INT16_SCALE = 32_768.0  # s16 PCM -> [-1, 1)

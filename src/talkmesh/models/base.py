@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 import numpy as np
 from torch import Tensor, nn
 
-from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 
 INT8_LAYERS = ("speech", "decoders", "all")  # MotionModel.int8_copy(layers=...)

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.base import INT8_LAYERS, FrameStream, MotionModel, frames_for_audio
 from talkmesh.models.codetalker_generate import CodeTalkerStream, generate_exact, generate_fast
@@ -98,7 +99,7 @@ class Stage2Config:
 class CodeTalkerConfig:
     vq: VQConfig
     stage2: Stage2Config
-    motion_fps: float = 30.0
+    motion_fps: float = MOTION_FPS
 
 
 def paper_vocaset_config(

@@ -59,6 +59,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.base import MotionModel, frames_for_audio
 from talkmesh.models.layers import (
@@ -85,7 +86,7 @@ class FaceFormerConfig:
 
     num_vertices: int
     styles: tuple[str, ...]  # training speakers, in one-hot order
-    motion_fps: float = 30.0
+    motion_fps: float = MOTION_FPS
     d_model: int = 64
     heads: int = 4
     ff: int = 128

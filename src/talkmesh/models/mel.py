@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 
 LEAKY_SLOPE = 0.2  # LeakyReLU slope used throughout MeshTalk, as in the official code

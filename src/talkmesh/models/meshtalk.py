@@ -5,7 +5,7 @@ Read top to bottom:
 1. Configs: :class:`MeshTalkConfig` and the presets ``paper`` (H=64, C=128), ``released`` (the
    official code, H=16, C=128) and ``small`` (a synthetic corpus on 2 CPU cores).
 2. Audio: the log-mel encoder (:class:`talkmesh.models.mel.MelAudioEncoder`, the paper's) or
-   :class:`SpeechFeatures` (any talkmesh speech encoder behind the same call).
+   :class:`talkmesh.models.speech.SpeechFeatures` (any talkmesh speech encoder, same call).
 3. :class:`ExpressionEncoder`: per-frame MLP + LSTM over the mesh sequence.
 4. :class:`FusionQuantizer`: MLP to H heads of C logits, hard straight-through Gumbel-softmax (Eq. 1-2).
 5. :class:`TemplateDecoder`: U-Net over the template with additive skips, the code concatenated at the
@@ -32,11 +32,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.base import MotionModel, frames_for_audio
 from talkmesh.models.mel import LEAKY_SLOPE, MelAudioEncoder, MelConfig
 from talkmesh.models.meshtalk_prior import PRESETS, AutoregressivePrior, PriorConfig
-from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
+from talkmesh.models.speech import SpeechEncoderConfig, SpeechFeatures, release_config
 
 
 def _fail(message: str) -> None:
@@ -62,7 +63,7 @@ class MeshTalkConfig:
     """The expression space: encoders, Gumbel quantiser and template-conditioned decoder."""
 
     num_vertices: int
-    fps: float = 30.0
+    fps: float = MOTION_FPS
     num_heads: int = 16  # H
     num_classes: int = 128  # C
     audio: MelConfig = MelConfig(layer_norm=True)
@@ -108,7 +109,7 @@ class MeshTalkConfig:
             _fail(f"meshtalk config: inputs must be both or expression, got {self.inputs!r}")
 
 
-def meshtalk_config(preset: str, num_vertices: int, fps: float = 30.0) -> MeshTalkConfig:
+def meshtalk_config(preset: str, num_vertices: int, fps: float = MOTION_FPS) -> MeshTalkConfig:
     """``paper`` (H=64, C=128), ``released`` (official code: H=16, C=128) or ``small``."""
     if preset == "paper":
         return MeshTalkConfig(num_vertices, fps, num_heads=64, num_classes=128)
@@ -126,24 +127,6 @@ def meshtalk_config(preset: str, num_vertices: int, fps: float = 30.0) -> MeshTa
             decoder_widths=(128, 64, 64),
         )
     raise TalkmeshError(f"unknown meshtalk preset '{preset}': choose one of {', '.join(PRESETS)}")
-
-
-class SpeechFeatures(nn.Module):
-    """A talkmesh speech encoder (mel, wav2vec2, Whisper; ``talkmesh.models.speech``) behind the
-    audio encoder's call, mapped to ``out_dim`` with a LayerNorm."""
-
-    def __init__(self, cfg: SpeechEncoderConfig, out_dim: int) -> None:
-        super().__init__()
-        self.encoder = build_speech_encoder(cfg)
-        self.output = nn.Linear(self.encoder.dim, out_dim)
-        self.norm = nn.LayerNorm(out_dim)
-
-    def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
-        return self.norm(self.output(self.encoder(audio, audio_lengths, num_frames)))
-
-    def set_statistics(self, audio: Tensor) -> None:
-        if hasattr(self.encoder, "set_statistics"):
-            self.encoder.set_statistics(audio)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.mel import LEAKY_SLOPE, MelAudioEncoder, MelConfig
 
@@ -39,7 +40,7 @@ class PriorConfig:
     dilations: tuple[int, ...] = (1, 2, 4, 8)
     kernel_size: int = 2
     audio: MelConfig = MelConfig(layer_norm=True)
-    fps: float = 30.0
+    fps: float = MOTION_FPS
     # "own": the prior's own mel encoder (``audio``, causal with its look-ahead, paper Eq. 8);
     # "expression": the trained expression space's audio features (as the official code does)
     audio_source: str = "own"
@@ -63,7 +64,7 @@ class PriorConfig:
         return 1 + (self.kernel_size - 1) * sum(self.dilations)
 
 
-def prior_config(preset: str, fps: float = 30.0) -> PriorConfig:
+def prior_config(preset: str, fps: float = MOTION_FPS) -> PriorConfig:
     """The prior matching :func:`meshtalk_config`'s preset (same H and C)."""
     if preset == "paper":
         return PriorConfig(num_heads=64, num_classes=128, width=32, fps=fps)

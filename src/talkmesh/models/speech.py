@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.models.frames import fit_sample_frames, interpolate_frames
 from talkmesh.models.mel import LOG_FLOOR, MelAudioEncoder, MelConfig
@@ -389,6 +389,24 @@ def build_speech_encoder(cfg: SpeechEncoderConfig) -> nn.Module:
     if cfg.kind == "whisper":
         return WhisperEncoder(cfg)
     return MelEncoder(cfg)
+
+
+class SpeechFeatures(nn.Module):
+    """A speech encoder of ``cfg.kind`` mapped to ``out_dim`` with a LayerNorm (MeshTalk's audio
+    encoder when its config names a talkmesh speech encoder instead of the paper's mel convs)."""
+
+    def __init__(self, cfg: SpeechEncoderConfig, out_dim: int) -> None:
+        super().__init__()
+        self.encoder = build_speech_encoder(cfg)
+        self.output = nn.Linear(self.encoder.dim, out_dim)
+        self.norm = nn.LayerNorm(out_dim)
+
+    def forward(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
+        return self.norm(self.output(self.encoder(audio, audio_lengths, num_frames)))
+
+    def set_statistics(self, audio: Tensor) -> None:
+        if hasattr(self.encoder, "set_statistics"):
+            self.encoder.set_statistics(audio)
 
 
 def release_config(cfg: SpeechEncoderConfig, encoder: nn.Module) -> SpeechEncoderConfig:

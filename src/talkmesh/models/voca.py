@@ -50,7 +50,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.constants import MOTION_FPS, SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.base import MotionModel, frames_for_audio
 from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
@@ -71,7 +71,7 @@ class VOCAConfig:
 
     num_vertices: int
     styles: tuple[str, ...] = ()  # training speakers, in one-hot order (() : no conditioning)
-    motion_fps: float = 30.0
+    motion_fps: float = MOTION_FPS
     speech: SpeechEncoderConfig = SpeechEncoderConfig()
     tokens_per_frame: int = 2  # speech tokens per motion frame: 60 Hz windows at 30 fps, as VOCA
     window_before: int = 8  # tokens before the frame's own token
@@ -111,7 +111,7 @@ class VOCAConfig:
 
 
 def small_config(
-    styles: tuple[str, ...], num_vertices: int, motion_fps: float = 30.0
+    styles: tuple[str, ...], num_vertices: int, motion_fps: float = MOTION_FPS
 ) -> VOCAConfig:
     """The paper's network sizes on a mel encoder trained from scratch (CPU-trainable)."""
     return VOCAConfig(

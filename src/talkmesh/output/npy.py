@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from talkmesh.animation import Animation
-from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.constants import MOTION_FPS, SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 from talkmesh.output.files import bundled_head, check_magic, finite
 
-NPY_DEFAULT_FPS = 30.0  # FaceFormer / CodeTalker write VOCASET predictions at 30 fps
+NPY_DEFAULT_FPS = MOTION_FPS  # FaceFormer / CodeTalker write VOCASET predictions at 30 fps
 NPZ_FORMAT_VERSION = 1
 
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.audio.phonemes import FRAME_RATE, SILENCE_RMS, Phone
+from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, WeightFitter
 from talkmesh.face.assets import Head, load_head
@@ -172,7 +173,7 @@ class ProceduralStreamer(Streamer):
         lookahead_ms: float,
         head: Head,
         offsets: bool,
-        fps: float = 30.0,
+        fps: float = MOTION_FPS,
         seed: int = 0,
         style: SpeakingStyle | None = None,
     ) -> None:
@@ -331,7 +332,7 @@ def open_stream(
     head: Head | None = None,
     offsets: bool = False,
     seed: int = 0,
-    fps: float = 30.0,
+    fps: float = MOTION_FPS,
     style_weights: np.ndarray | None = None,
     blinks: bool = True,
 ) -> Streamer:
