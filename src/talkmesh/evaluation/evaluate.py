@@ -54,7 +54,9 @@ def _load_prediction(path: Path, num_vertices: int) -> np.ndarray:
     return arr.astype(np.float32)
 
 
-def _lip_pairs(dataset: MotionDataset, num_vertices: int) -> np.ndarray | None:
+def bundled_lip_pairs(num_vertices: int) -> np.ndarray | None:
+    """The bundled head's (P, 2) upper/lower inner-lip vertex pairs, or None when a mesh of
+    ``num_vertices`` is another topology (its lip pairs are unknown: no lip-sync score)."""
     from talkmesh.face.assets import load_head
 
     head = load_head()
@@ -88,7 +90,7 @@ def evaluate_dataset(
             missing.append(name)
             continue
         sample = dataset[index]
-        pairs = _lip_pairs(dataset, len(sample.template))
+        pairs = bundled_lip_pairs(len(sample.template))
         for cond, path in found[name]:
             p = _load_prediction(path, len(sample.template))
             pending.append(

@@ -40,15 +40,6 @@ def _load_pred(pred_dir: Path, name: str, num_vertices: int) -> np.ndarray:
     return np.load(pred_dir / f"{name}.npy").reshape(-1, num_vertices, 3)
 
 
-def _lip_pairs(num_vertices: int) -> np.ndarray | None:
-    from talkmesh.face.assets import load_head
-
-    head = load_head()
-    if num_vertices != head.num_vertices:
-        return None
-    return np.asarray(head.regions.lip_pair).reshape(-1, 2)
-
-
 def sample_indices(n: int, k: int) -> list[int]:
     """``k`` sequence indices spread over a split of ``n`` (the first is always 0)."""
     if k <= 0 or n == 0:
@@ -58,11 +49,12 @@ def sample_indices(n: int, k: int) -> list[int]:
 
 def lip_figure(dataset, indices: list[int], preds: dict[str, Path], path: Path) -> Path | None:
     """Paper Figs. 5/8: upper-lower lip distance over time, every method vs ground truth."""
+    from talkmesh.evaluation.evaluate import bundled_lip_pairs
     from talkmesh.evaluation.metrics import lip_opening_pairs
 
     Figure, _ = _matplotlib()
     first = dataset[indices[0]]
-    pairs = _lip_pairs(len(first.template))
+    pairs = bundled_lip_pairs(len(first.template))
     if pairs is None:
         return None
     fps = dataset.spec.motion_fps
