@@ -170,3 +170,12 @@ def test_interleaved_encoding_is_periodic():
     assert torch.allclose(
         pe[1, 0::2], torch.sin(torch.tensor(1.0) * 10000 ** (-torch.arange(0, 8, 2) / 8))
     )
+
+
+def test_imported_models_count_frames_as_the_official_code():
+    samples = len(load_audio(FIXTURES / "speech.wav"))
+    for dataset in ("vocaset", "biwi"):
+        model = import_checkpoint([FIXTURES / f"faceformer_{dataset}.pth"], "faceformer", dataset)
+        official = len(fixture(f"faceformer_{dataset}")["vertices"])
+        assert model.default_frames(samples) == official  # what animate and serve generate
+    assert official == 38 != round(samples / 16000 * 30)  # VOCASET: not the duration's 39

@@ -213,11 +213,7 @@ def animate_learned(
         weights = np.array([style_mix.get(s, 0.0) / total for s in styles], np.float32)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     fps_model = net.motion_fps
-    # a model that counts its own frames (imported official models: from the speech features)
-    own_count = getattr(net, "default_frames", None)
-    frames = (
-        own_count(len(wave)) if own_count else num_frames_for(len(wave), SAMPLE_RATE, fps_model)
-    )
+    frames = net.default_frames(len(wave))  # imported official models count as the official code
     with torch.inference_mode():
         verts = net.generate(
             torch.from_numpy(wave)[None],

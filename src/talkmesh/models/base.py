@@ -101,9 +101,15 @@ class MotionModel(nn.Module, ABC):
         """audio (B, S) at 16 kHz, template (B, V, 3) -> vertices (B, T, V, 3).
 
         ``style_weights`` (B, K) over :attr:`styles` (None: a family's default; must be None
-        without styles); ``num_frames`` T (default: the audio's duration at :attr:`motion_fps`);
+        without styles); ``num_frames`` T (default: :meth:`default_frames`);
         ``seed`` matters only to sampling models; ``mode`` one of :attr:`generation_modes`.
         """
+
+    def default_frames(self, samples: int) -> int:
+        """The frames ``generate`` makes for ``samples`` of 16 kHz audio when not told: the
+        duration at :attr:`motion_fps` (imported official models count them as the official code
+        does, from the speech encoder's features)."""
+        return frames_for_audio(samples, self.motion_fps)
 
     # -- optional verbs -----------------------------------------------------------------------
 
