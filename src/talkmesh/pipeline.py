@@ -9,7 +9,7 @@ import numpy as np
 from talkmesh.animation import Animation
 from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 from talkmesh.audio.phonemes import Phone, recognize_phones
-from talkmesh.constants import MOTION_FPS
+from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, fit_weights
 from talkmesh.face.assets import Head, load_head
@@ -22,7 +22,7 @@ from talkmesh.face.lipsync import (
 
 DEFAULT_FPS = MOTION_FPS
 MAX_FPS = 240.0
-INT8_MODES = ("speech", "decoders", "all")  # animate(int8=...): CodeTalker layers run in int8
+INT8_MODES = INT8_LAYERS  # animate(int8=...): CodeTalker layers run in int8
 MODELS = ("procedural",)
 BLOCK = 2048  # frames processed at once on long animations
 

@@ -19,8 +19,6 @@ from torch import Tensor, nn
 from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 
-INT8_LAYERS = ("speech", "decoders", "all")  # MotionModel.int8_copy(layers=...)
-
 
 def frames_for_audio(samples: int, fps: float) -> int:
     """Motion frames of ``samples`` audio samples at ``fps`` (at least one)."""
@@ -126,7 +124,8 @@ class MotionModel(nn.Module, ABC):
         return None
 
     def int8_copy(self, layers: str) -> MotionModel:
-        """A copy whose ``layers`` (one of :data:`INT8_LAYERS`) run in int8 on the CPU."""
+        """A copy whose ``layers`` (one of :data:`talkmesh.constants.INT8_LAYERS`) run in int8 on
+        the CPU."""
         raise TalkmeshError(f"--int8 applies to CodeTalker models; this is a {self.family} model")
 
     def reconstruct(self, vertices: Tensor, template: Tensor) -> Tensor:

@@ -33,9 +33,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from talkmesh.constants import MOTION_FPS
+from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.base import INT8_LAYERS, FrameStream, MotionModel, frames_for_audio
+from talkmesh.models.base import FrameStream, MotionModel, frames_for_audio
 from talkmesh.models.codetalker_generate import CodeTalkerStream, generate_exact, generate_fast
 from talkmesh.models.codetalker_vq import MotionVQVAE, Quantized, VQConfig
 from talkmesh.models.int8 import quantize_int8
