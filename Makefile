@@ -3,6 +3,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.setup-stamp
+TORCH_INDEX ?=
 export HF_HUB_OFFLINE := 1
 
 .PHONY: setup viewer demo test test-slow lint format bench assets clean
@@ -12,12 +13,14 @@ VIEWER := src/talkmesh/serve/static/viewer.js
 setup: $(STAMP) $(VIEWER)
 
 # Idempotent: system packages are installed only when missing, the venv only when its inputs change.
-# torch is pinned and installed first so that no extra ever pulls a CUDA build.
+# torch is pinned and installed first so that no extra replaces it. PyPI's Linux wheel is the CUDA
+# build: on a machine without a GPU, take the CPU wheel with
+# `make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu`.
 $(STAMP): pyproject.toml package.json package-lock.json scripts/setup_system.sh
 	bash scripts/setup_system.sh
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
-	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(PIP) install -q -e '.[dev]'
 	npm ci --silent --no-audit --no-fund
 	touch $(STAMP)
