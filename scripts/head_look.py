@@ -1,6 +1,6 @@
 """Before/after frames of the bundled head's look for docs/guide/avatars.md.
 
-    PYTHONPATH=src python scripts/head_look.py [-o docs/head-look.png]
+    PYTHONPATH=src python scripts/head_look.py [-o docs/images/head-look.png]
 
 Left: the plain part colours; middle: ``talkmesh.face.look`` (irises and pupils, lip colour, dark
 mouth cavity); right: the same from a 3/4 view (the mesh turned 35 degrees about +y). Mouth half
@@ -26,7 +26,7 @@ POSE = {"jawOpen": 0.5, "eyeLookOutLeft": 0.6, "eyeLookInRight": 0.6}
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("-o", "--output", default="docs/head-look.png")
+    parser.add_argument("-o", "--output", default="docs/images/head-look.png")
     args = parser.parse_args()
     head = load_head()
     weights = np.zeros(len(ARKIT_NAMES), np.float32)
