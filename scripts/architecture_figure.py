@@ -21,7 +21,7 @@ OUT = Path(__file__).resolve().parents[1] / "docs" / "images" / "architecture.pn
 
 # One row per level, top to bottom: (package, what it holds). A row imports only rows above it.
 ROWS: list[list[tuple[str, str]]] = [
-    [("core", "errors, config, animation")],
+    [("core", "constants, errors, config, animation")],
     [("audio", "load + resample, phones, voices")],
     [("face", "head, ARKit rig, procedural lip sync")],
     [("models", "one interface, a file per family"), ("datasets", "readers, synthetic corpus")],
