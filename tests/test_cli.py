@@ -87,8 +87,18 @@ def test_int8_animation_stays_close_to_float32(speech, tmp_path, capsys):
         diff = np.abs(out[mode] - ref).max(-1).mean()  # mean per-vertex distance
         assert 0 < diff < 0.1 * motion, (mode, diff, motion)  # int8 ran, and is close
     assert not np.array_equal(out["speech"], out["all"])
-    rc = main(["animate", str(speech), "--model", "procedural", "--int8", "all",
-               "-o", str(tmp_path / "p.npy")])  # fmt: skip
+    rc = main(
+        [
+            "animate",
+            str(speech),
+            "--model",
+            "procedural",
+            "--int8",
+            "all",
+            "-o",
+            str(tmp_path / "p.npy"),
+        ]
+    )
     assert rc == 1 and not (tmp_path / "p.npy").exists()
     assert_one_line_error(capsys.readouterr().err, "--int8", "procedural")
 
@@ -270,7 +280,7 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
             "-o",
             str(glb),
             "-q",
-        ],  # fmt: skip
+        ],
         capture_output=True,
         text=True,
         timeout=900,
@@ -279,3 +289,61 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
     peak_mb = int(res.stdout.split()[-1]) / 1024
     assert peak_mb < bound_mb, peak_mb  # 18000 frames x 4766 vertices are 1 GB of float32 alone
     assert out.stat().st_size > 0 and glb.stat().st_size > 0
+
+
+# Every subcommand with its positional arguments and long options: none may disappear.
+COMMANDS = {
+    "animate": (
+        ["audio"],
+        "--fps --identity --int8 --model --no-blinks --output --overwrite "
+        "--quiet --seed --size --style --template --text",
+    ),
+    "render": (["anim"], "--audio --fps --labels --output --overwrite --quiet --size"),
+    "export": (["anim"], "--fps --output --overwrite --quiet --size"),
+    "synth": ([], "--out --overwrite --quiet --seed --sentences --subjects --workers"),
+    "evaluate": ([], "--data --dataset --json --overwrite --pred --protocol --regions --split"),
+    "baseline": ([], "--data --dataset --method --out --quiet --split"),
+    "predict": ([], "--blinks --conditions --data --dataset --mode --model --out --quiet --split"),
+    "prepare-biwi": (["raw", "out"], "--quiet"),
+    "convert-whisper": (["source"], "--out --overwrite --quiet"),
+    "train": (["recipe", "overrides"], "--devices --num-nodes --quiet --resume --stage"),
+    "benchmark": (["config"], "--dry-run --only --quiet --skip-ablation --skip-video"),
+    "retarget": (
+        [],
+        "--anim --audio --model --output --overwrite --quiet --source-template --template",
+    ),
+    "dub": ([], "--anim --audio --model --output --overwrite --quiet --source-template"),
+    "serve": (
+        [],
+        "--host --idle-timeout --max-message-bytes --max-sessions --max-upload-mb "
+        "--model --port --quiet",
+    ),
+    "info": ([], ""),
+}
+
+
+def test_every_command_and_flag_is_there():
+    import argparse
+
+    from talkmesh.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    found = {}
+    for name, parser in sub.choices.items():
+        options = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+        positional = [a.dest for a in parser._actions if not a.option_strings]
+        found[name] = (positional, " ".join(sorted(set(options) - {"--help"})))
+    assert found == COMMANDS
+
+
+def test_baseline_help_explains_its_choices(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["baseline", "--help"])
+    assert exit_.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for name in ("vocaset", "biwi", "synth", "folder"):  # --dataset
+        assert name in text
+    assert "static: every frame is the subject's neutral template" in text  # --method
+    assert "procedural: phones recognised from the audio" in text
+    for split in ("train", "val", "test", "test-a", "test-b"):  # --split
+        assert split in text

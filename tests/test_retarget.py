@@ -23,9 +23,15 @@ def files(tmp_path_factory):
     head = load_head()
     V = head.num_vertices
     torch.manual_seed(0)
-    cfg = MeshTalkConfig(num_vertices=V, num_heads=4, num_classes=8,
-                         audio=MelConfig(width=16, out_dim=16), expression_widths=(32, 16, 16),
-                         fusion_width=32, decoder_widths=(32, 16, 16))  # fmt: skip
+    cfg = MeshTalkConfig(
+        num_vertices=V,
+        num_heads=4,
+        num_classes=8,
+        audio=MelConfig(width=16, out_dim=16),
+        expression_widths=(32, 16, 16),
+        fusion_width=32,
+        decoder_widths=(32, 16, 16),
+    )
     system = MeshTalkModel(MeshTalkModelConfig(cfg)).eval()
     torch.nn.init.normal_(system.model.decoder.output.weight, std=0.01)  # not the bare template
     torch.nn.init.normal_(system.model.audio_encoder.output.weight, std=3.0)  # audio matters
@@ -52,9 +58,25 @@ def files(tmp_path_factory):
 def test_retarget_puts_the_motion_on_the_target_face(files):
     tmp, head, target = files
     out = tmp / "retargeted.npy"
-    assert main(["retarget", "--model", str(tmp / "mt.safetensors"), "--anim", str(tmp / "src.npy"),
-                 "--audio", str(tmp / "src.wav"), "--template", str(tmp / "target.npy"),
-                 "-o", str(out), "-q"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "retarget",
+                "--model",
+                str(tmp / "mt.safetensors"),
+                "--anim",
+                str(tmp / "src.npy"),
+                "--audio",
+                str(tmp / "src.wav"),
+                "--template",
+                str(tmp / "target.npy"),
+                "-o",
+                str(out),
+                "-q",
+            ]
+        )
+        == 0
+    )
     verts = np.load(out).reshape(-1, head.num_vertices, 3)
     assert verts.shape[0] == 30
     # decoded on the target's neutral mesh: close to it, far from the source's
@@ -73,28 +95,61 @@ def test_dub_keeps_the_animation_and_follows_the_new_audio(files):
 
 def test_retarget_and_dub_errors(files, capsys):
     tmp, _, _ = files
-    base = ["retarget", "--model", str(tmp / "mt.safetensors"), "--anim", str(tmp / "src.npy"),
-            "--audio", str(tmp / "src.wav"), "-o", str(tmp / "x.npy")]  # fmt: skip
+    base = [
+        "retarget",
+        "--model",
+        str(tmp / "mt.safetensors"),
+        "--anim",
+        str(tmp / "src.npy"),
+        "--audio",
+        str(tmp / "src.wav"),
+        "-o",
+        str(tmp / "x.npy"),
+    ]
     assert main([*base, "--template", str(tmp / "small.npy")]) != 0
     assert "100 vertices" in capsys.readouterr().err
     assert main([*base, "--template", str(tmp / "missing.obj")]) != 0
     assert "missing.obj" in capsys.readouterr().err
     (tmp / "bad.safetensors").write_bytes(b"garbage")
-    bad = ["dub", "--model", str(tmp / "bad.safetensors"), "--anim", str(tmp / "src.npy"),
-           "--audio", str(tmp / "new.wav"), "-o", str(tmp / "y.npy")]  # fmt: skip
+    bad = [
+        "dub",
+        "--model",
+        str(tmp / "bad.safetensors"),
+        "--anim",
+        str(tmp / "src.npy"),
+        "--audio",
+        str(tmp / "new.wav"),
+        "-o",
+        str(tmp / "y.npy"),
+    ]
     assert main(bad) != 0
     assert "bad.safetensors" in capsys.readouterr().err
     (tmp / "exists.npy").write_bytes(b"keep")
-    dub = ["dub", "--model", str(tmp / "mt.safetensors"), "--anim", str(tmp / "src.npy"),
-           "--audio", str(tmp / "new.wav"), "-o", str(tmp / "exists.npy")]  # fmt: skip
+    dub = [
+        "dub",
+        "--model",
+        str(tmp / "mt.safetensors"),
+        "--anim",
+        str(tmp / "src.npy"),
+        "--audio",
+        str(tmp / "new.wav"),
+        "-o",
+        str(tmp / "exists.npy"),
+    ]
     assert main(dub) != 0 and (tmp / "exists.npy").read_bytes() == b"keep"
     assert "already exists" in capsys.readouterr().err
 
 
 def test_animate_with_a_meshtalk_release_samples_by_seed(files, capsys):
     tmp, head, _ = files
-    base = ["animate", str(tmp / "src.wav"), "--model", str(tmp / "mt_prior.safetensors"),
-            "--no-blinks", "-q"]  # fmt: skip
+    base = [
+        "animate",
+        str(tmp / "src.wav"),
+        "--model",
+        str(tmp / "mt_prior.safetensors"),
+        "--no-blinks",
+        "-q",
+    ]
     assert main([*base, "--seed", "1", "-o", str(tmp / "a1.npy")]) == 0
     assert main([*base, "--seed", "1", "-o", str(tmp / "a1b.npy")]) == 0
     assert main([*base, "--seed", "2", "-o", str(tmp / "a2.npy")]) == 0

