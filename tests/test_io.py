@@ -44,9 +44,15 @@ def arkit_animation(frames: int = T, seed: int = 0) -> Animation:
     vertices = template + np.einsum("tk,kvc->tvc", weights, basis)
     audio = rng.normal(0, 0.1, 16_000 * frames // 30).astype(np.float32)
     return Animation(
-        vertices, faces, 30.0, audio=audio, weights=weights, weight_names=list(ARKIT_NAMES),
-        template=template, basis=basis,
-    )  # fmt: skip
+        vertices,
+        faces,
+        30.0,
+        audio=audio,
+        weights=weights,
+        weight_names=list(ARKIT_NAMES),
+        template=template,
+        basis=basis,
+    )
 
 
 def vertex_animation(frames: int = T, rank: int = 6, seed: int = 1) -> Animation:
@@ -271,6 +277,7 @@ def test_live_link_csv_layout(tmp_path):
     assert len(header) == 2 + 61
     assert header[:4] == ["Timecode", "BlendShapeCount", "EyeBlinkLeft", "EyeLookDownLeft"]
     assert header[16:20] == ["JawForward", "JawRight", "JawLeft", "JawOpen"]
+    # fmt: skip keeps one line each for the head, the left eye and the right eye.
     assert header[-9:] == [
         "HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
         "RightEyeYaw", "RightEyePitch", "RightEyeRoll",
@@ -320,9 +327,12 @@ def test_weight_files_use_arkit_order_whatever_the_column_order(tmp_path):
     anim = arkit_animation()
     perm = np.random.default_rng(5).permutation(52)
     shuffled = Animation(
-        anim.vertices, anim.faces, anim.fps, weights=anim.weights[:, perm],
+        anim.vertices,
+        anim.faces,
+        anim.fps,
+        weights=anim.weights[:, perm],
         weight_names=[ARKIT_NAMES[i] for i in perm],
-    )  # fmt: skip
+    )
     for name in ("w.json", "w.csv"):
         (out,) = save_animation(shuffled, tmp_path / name)
         np.testing.assert_allclose(load_arkit_weights(out, fps=30).weights, anim.weights, atol=1e-6)

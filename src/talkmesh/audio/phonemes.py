@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 
 SILENCE = "SIL"
 # The 39 phones of CMUdict (ARPAbet without stress digits).
+# fmt: skip keeps the alphabetical list a compact block rather than 39 lines.
 ARPABET_PHONES = (
     "AA", "AE", "AH", "AO", "AW", "AY", "B", "CH", "D", "DH", "EH", "ER", "EY", "F", "G", "HH",
     "IH", "IY", "JH", "K", "L", "M", "N", "NG", "OW", "OY", "P", "R", "S", "SH", "T", "TH", "UH",

@@ -75,6 +75,7 @@ VOICES: tuple[Voice, ...] = (
 VOICE_NAMES = tuple(v.name for v in VOICES)
 
 # MBROLA (SAMPA, as espeak-ng writes it for us1-3 and en1) -> ARPABET.
+# fmt: skip keeps this lookup table a compact block (one pair a line would be 70 lines).
 SAMPA_TO_ARPABET = {
     "_": SILENCE, "p": "P", "p_h": "P", "b": "B", "t": "T", "t_h": "T", "d": "D", "k": "K", "k_h": "K",
     "g": "G", "f": "F", "v": "V", "T": "TH", "D": "DH", "s": "S", "z": "Z", "S": "SH", "Z": "ZH",
@@ -93,6 +94,7 @@ FESTIVAL_TO_ARPABET = {p.lower(): p for p in ARPABET_PHONES} | {
     "ax": "AH",
     "h#": SILENCE,
 }
+# fmt: skip keeps this lookup table a compact block.
 MRPA_TO_ARPABET = {
     "#": SILENCE, "@": "AH", "@@": "ER", "a": "AE", "aa": "AA", "ai": "AY", "au": "AW", "e": "EH",
     "e@": "EH", "ei": "EY", "h": "HH", "i": "IH", "i@": "IH", "ii": "IY", "o": "AA", "oi": "OY",

@@ -17,6 +17,7 @@ import numpy as np
 
 from talkmesh.errors import TalkmeshError
 
+# fmt: skip keeps one line per face region, as Apple lists them.
 ARKIT_NAMES: tuple[str, ...] = (
     "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
     "eyeSquintLeft", "eyeWideLeft",
@@ -41,6 +42,7 @@ assert NUM_ARKIT == 52
 LIVE_LINK_NAMES: dict[str, str] = {n: n[0].upper() + n[1:] for n in ARKIT_NAMES}
 
 # Live Link Face column order, as in the header of the CSV files the app exports.
+# fmt: skip keeps the two swaps against ARKit order on lines of their own.
 LIVE_LINK_BLENDSHAPES: tuple[str, ...] = tuple(
     LIVE_LINK_NAMES[n]
     for n in (
@@ -51,6 +53,7 @@ LIVE_LINK_BLENDSHAPES: tuple[str, ...] = tuple(
         *ARKIT_NAMES[23:],
     )
 )  # fmt: skip
+# fmt: skip keeps one line each for the head, the left eye and the right eye.
 LIVE_LINK_ROTATIONS: tuple[str, ...] = (
     "HeadYaw", "HeadPitch", "HeadRoll",
     "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",

@@ -30,16 +30,34 @@ ARKIT = ARKIT_NAMES
 INDEX = {name: i for i, name in enumerate(ARKIT)}
 
 # Mouth channels driven by visemes; symmetric pairs share one value.
-MOUTH = ("jaw", "funnel", "pucker", "stretch", "smile", "press", "rollLower", "rollUpper",
-         "lowerDown", "upperUp", "shrugUpper", "tongue")  # fmt: skip
+MOUTH = (
+    "jaw",
+    "funnel",
+    "pucker",
+    "stretch",
+    "smile",
+    "press",
+    "rollLower",
+    "rollUpper",
+    "lowerDown",
+    "upperUp",
+    "shrugUpper",
+    "tongue",
+)
 MOUTH_TO_ARKIT = {
-    "jaw": ("jawOpen",), "funnel": ("mouthFunnel",), "pucker": ("mouthPucker",),
-    "stretch": ("mouthStretchLeft", "mouthStretchRight"), "smile": ("mouthSmileLeft", "mouthSmileRight"),
-    "press": ("mouthPressLeft", "mouthPressRight"), "rollLower": ("mouthRollLower",),
-    "rollUpper": ("mouthRollUpper",), "lowerDown": ("mouthLowerDownLeft", "mouthLowerDownRight"),
-    "upperUp": ("mouthUpperUpLeft", "mouthUpperUpRight"), "shrugUpper": ("mouthShrugUpper",),
+    "jaw": ("jawOpen",),
+    "funnel": ("mouthFunnel",),
+    "pucker": ("mouthPucker",),
+    "stretch": ("mouthStretchLeft", "mouthStretchRight"),
+    "smile": ("mouthSmileLeft", "mouthSmileRight"),
+    "press": ("mouthPressLeft", "mouthPressRight"),
+    "rollLower": ("mouthRollLower",),
+    "rollUpper": ("mouthRollUpper",),
+    "lowerDown": ("mouthLowerDownLeft", "mouthLowerDownRight"),
+    "upperUp": ("mouthUpperUpLeft", "mouthUpperUpRight"),
+    "shrugUpper": ("mouthShrugUpper",),
     "tongue": ("tongueOut",),
-}  # fmt: skip
+}
 
 VOWELS = frozenset("AA AE AH AO AW AY EH ER EY IH IY OW OY UH UW".split())
 # Diphthongs glide between two targets: first half, second half.
@@ -77,13 +95,34 @@ VISEMES: dict[str, dict[str, float]] = {
     "SIL": {},
 }
 PHONE_TO_VISEME = {
-    "B": "P", "M": "P", "V": "F", "DH": "TH", "Z": "S", "ZH": "SH", "CH": "SH", "JH": "SH",
-    "D": "T", "N": "T", "L": "T", "G": "K", "NG": "K",
-}  # fmt: skip
+    "B": "P",
+    "M": "P",
+    "V": "F",
+    "DH": "TH",
+    "Z": "S",
+    "ZH": "SH",
+    "CH": "SH",
+    "JH": "SH",
+    "D": "T",
+    "N": "T",
+    "L": "T",
+    "G": "K",
+    "NG": "K",
+}
 
 # Dominance of a viseme over each channel: high means neighbours cannot override it.
-_LIP_CLOSURE = {"jaw": 8.0, "lowerDown": 8.0, "upperUp": 8.0, "press": 4.0, "funnel": 4.0,
-                "pucker": 2.0, "stretch": 2.0, "rollLower": 4.0, "rollUpper": 4.0, "tongue": 4.0}  # fmt: skip
+_LIP_CLOSURE = {
+    "jaw": 8.0,
+    "lowerDown": 8.0,
+    "upperUp": 8.0,
+    "press": 4.0,
+    "funnel": 4.0,
+    "pucker": 2.0,
+    "stretch": 2.0,
+    "rollLower": 4.0,
+    "rollUpper": 4.0,
+    "tongue": 4.0,
+}
 DOMINANCE: dict[str, dict[str, float]] = {
     "P": _LIP_CLOSURE,
     "F": {**_LIP_CLOSURE, "upperUp": 5.0, "rollLower": 6.0},
