@@ -22,6 +22,7 @@ from fixtures import procedural_head  # noqa: E402
 
 from talkmesh.animation import Animation  # noqa: E402
 from talkmesh.errors import TalkmeshError  # noqa: E402
+from talkmesh.output import VIDEO_SUFFIXES, write_animation  # noqa: E402
 from talkmesh.output.render import (  # noqa: E402
     Renderer,
     contact_sheet,
@@ -175,6 +176,14 @@ def test_video_audio_and_video_durations_agree(tmp_path, audio_seconds):
 def test_video_without_audio_is_silent(tmp_path):
     info = probe(render_video(talking(10), tmp_path / "silent.mp4", 64, progress=True))
     assert info["frames"] == 10 and info["audio_codec"] == ""
+
+
+@pytest.mark.parametrize("suffix", VIDEO_SUFFIXES)
+def test_write_animation_renders_every_video_suffix(tmp_path, suffix):
+    out = tmp_path / f"talk{suffix}"
+    write_animation(talking(6), out, overwrite=False, size=64)
+    info = probe(out)
+    assert info["video_codec"] == "h264" and info["frames"] == 6
 
 
 def test_side_by_side_has_a_panel_per_animation(tmp_path):

@@ -16,10 +16,9 @@ from pathlib import Path
 from talkmesh import __version__
 from talkmesh.animation import DEFAULT_FPS
 from talkmesh.errors import TalkmeshError
-from talkmesh.output import VIDEO_SUFFIXES, write_animation
+from talkmesh.output import VIDEO_SIZE, VIDEO_SUFFIXES, write_animation
 
 DEFAULT_OUTPUT = "{stem}.mp4"
-DEFAULT_SIZE = 512  # video size in pixels
 
 Subparsers = "argparse._SubParsersAction[argparse.ArgumentParser]"
 
@@ -38,8 +37,8 @@ def _add_output_options(sp: argparse.ArgumentParser) -> None:
     sp.add_argument(
         "--size",
         type=int,
-        default=DEFAULT_SIZE,
-        help=f"video size in pixels (default {DEFAULT_SIZE})",
+        default=VIDEO_SIZE,
+        help=f"video size in pixels (default {VIDEO_SIZE})",
     )
     _add_quiet(sp)
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.geometry import VertexNormals, winding_sign
+from talkmesh.output import VIDEO_SIZE
 
 if TYPE_CHECKING:
     import moderngl
@@ -204,7 +205,7 @@ class Renderer:
     def __init__(
         self,
         faces: np.ndarray,
-        size: int | tuple[int, int] = (512, 512),
+        size: int | tuple[int, int] = (VIDEO_SIZE, VIDEO_SIZE),
         *,
         vertex_colors: np.ndarray | None = None,
         reference: np.ndarray | None = None,

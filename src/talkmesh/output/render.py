@@ -22,6 +22,7 @@ from talkmesh.animation import Animation
 from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.geometry import winding_sign
+from talkmesh.output import VIDEO_SIZE
 from talkmesh.output.labels import TextOverlay, import_pil
 from talkmesh.output.raster import Renderer, create_context, head_vertex_colors
 from talkmesh.output.video import (
@@ -74,7 +75,7 @@ def _renderer_for(
 def render_video(
     anim: Animation,
     path: str | os.PathLike,
-    size: int | tuple[int, int] = 512,
+    size: int | tuple[int, int] = VIDEO_SIZE,
     *,
     vertex_colors: np.ndarray | None = None,
     inputs: Iterable[str | os.PathLike] = (),
@@ -118,7 +119,7 @@ def render_side_by_side(
     anims: Sequence[Animation],
     labels: Sequence[str],
     path: str | os.PathLike,
-    size: int | tuple[int, int] = 512,
+    size: int | tuple[int, int] = VIDEO_SIZE,
     *,
     inputs: Iterable[str | os.PathLike] = (),
     crf: int = VIDEO_CRF,

@@ -20,9 +20,9 @@ import soundfile
 from tqdm import tqdm
 
 from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.output import VIDEO_SUFFIXES
 from talkmesh.output.raster import size_pair
 
-VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov")
 VIDEO_CRF = 18  # visually lossless H.264
 VIDEO_PRESET = "veryfast"
 AUDIO_BITRATE = "128k"
