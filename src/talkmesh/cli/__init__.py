@@ -1,0 +1,73 @@
+"""``talkmesh`` command line: a thin layer of subcommands over the Python API.
+
+Each subcommand is a pair: ``add_<name>(subparsers)`` declares its arguments and
+``cmd_<name>(args)`` calls the library with them; the pairs live in modules by topic
+(:mod:`.animate`, :mod:`.data`, :mod:`.models`, :mod:`.serve`). :data:`COMMANDS` lists them in the
+order ``talkmesh --help`` shows them: adding a subcommand is one new pair plus one line there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+
+from talkmesh import __version__
+from talkmesh.cli.animate import add_animate, add_export, add_render
+from talkmesh.cli.common import Subparsers
+from talkmesh.cli.data import add_baseline, add_evaluate, add_predict, add_prepare_biwi, add_synth
+from talkmesh.cli.models import add_benchmark, add_convert_whisper, add_dub, add_retarget, add_train
+from talkmesh.cli.serve import add_info, add_serve
+from talkmesh.errors import TalkmeshError
+
+COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
+    add_animate,
+    add_render,
+    add_export,
+    add_synth,
+    add_evaluate,
+    add_baseline,
+    add_predict,
+    add_prepare_biwi,
+    add_convert_whisper,
+    add_train,
+    add_benchmark,
+    add_retarget,
+    add_dub,
+    add_serve,
+    add_info,
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="talkmesh", description="Speech-driven 3D facial animation.")
+    p.add_argument("--version", action="version", version=f"talkmesh {__version__}")
+    p.add_argument("--debug", action="store_true", help="show tracebacks for errors")
+    sub = p.add_subparsers(dest="command", required=True)
+    for add in COMMANDS:
+        add(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except TalkmeshError as e:
+        if args.debug:
+            raise
+        print(f"talkmesh: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("talkmesh: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # a bug, not bad input: still one line, with a way to see more
+        if args.debug:
+            raise
+        print(
+            f"talkmesh: internal error: {type(e).__name__}: {e} (rerun with --debug for the "
+            "traceback and please report it)",
+            file=sys.stderr,
+        )
+        return 3

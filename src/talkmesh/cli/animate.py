@@ -1,0 +1,165 @@
+"""``talkmesh animate``, ``render`` and ``export``: speech to animations, animations to videos and files."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from talkmesh.animation import DEFAULT_FPS
+from talkmesh.cli.common import (
+    DEFAULT_OUTPUT,
+    Subparsers,
+    add_output_options,
+    check_outputs,
+    load_input,
+    parse_outputs,
+)
+from talkmesh.errors import TalkmeshError
+from talkmesh.output import write_animation
+
+
+def add_animate(sub: Subparsers) -> None:
+    a = sub.add_parser("animate", help="animate a face from speech files")
+    a.add_argument("audio", nargs="+", help="speech files (wav, flac, ogg, mp3, ...)")
+    a.add_argument(
+        "-o",
+        "--output",
+        action="append",
+        help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv .json); "
+        "repeat for several; {stem} is the input name (default {stem}.mp4)",
+    )
+    who = a.add_mutually_exclusive_group()
+    who.add_argument("--identity", help="a bundled identity (see `talkmesh info`)")
+    who.add_argument(
+        "--template", help="your own neutral mesh with the bundled topology (.obj .ply .npy)"
+    )
+    a.add_argument(
+        "--text", help="transcript of the speech (forced alignment instead of recognition)"
+    )
+    a.add_argument("--seed", type=int, default=0, help="seed of blinks and other free motion")
+    a.add_argument(
+        "--fps",
+        type=float,
+        default=DEFAULT_FPS,
+        help=f"frames per second (default {DEFAULT_FPS:g})",
+    )
+    a.add_argument(
+        "--model",
+        default=None,
+        help="a bundled model (default codetalker-synth), procedural, or a .safetensors release",
+    )
+    a.add_argument(
+        "--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)"
+    )
+    a.add_argument(
+        "--no-blinks",
+        action="store_true",
+        help="learned models: keep the model's own eye motion instead of procedural blinks and "
+        "gaze (speech cannot predict them)",
+    )
+    a.add_argument(
+        "--int8",
+        choices=("speech", "decoders", "all"),
+        help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
+        "(faster on CPUs, not exact: see docs/codetalker.md)",
+    )
+    add_output_options(a)
+    a.set_defaults(func=cmd_animate)
+
+
+def cmd_animate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from talkmesh.face.assets import load_head, load_template
+    from talkmesh.pipeline import animate, parse_style
+
+    inputs = [Path(a) for a in args.audio]
+    outputs = parse_outputs(args.output or [DEFAULT_OUTPUT], inputs)
+    check_outputs(outputs, inputs, args.overwrite)
+    head = load_template(args.template) if args.template else load_head(args.identity)
+    failures: list[str] = []
+    bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
+    for audio, paths in zip(inputs, outputs):
+        bar.set_description(audio.name)
+        try:
+            anim = animate(
+                audio,
+                head=head,
+                text=args.text,
+                fps=args.fps,
+                seed=args.seed,
+                model=args.model,
+                style_mix=parse_style(args.style),
+                blinks=not args.no_blinks,
+                int8=args.int8,
+            )
+            for p in paths:
+                write_animation(anim, p, overwrite=args.overwrite, size=args.size)
+                if not args.quiet:
+                    tqdm.write(f"wrote {p} ({anim.num_frames} frames, {anim.duration:.2f} s)")
+        except TalkmeshError as e:
+            failures.append(str(e) if str(audio) in str(e) else f"{audio}: {e}")
+        bar.update()
+    bar.close()
+    for f in failures:
+        print(f"talkmesh: error: {f}", file=sys.stderr)
+    if failures:
+        print(f"talkmesh: {len(failures)} of {len(inputs)} files failed", file=sys.stderr)
+    return 1 if failures else 0
+
+
+def add_render(sub: Subparsers) -> None:
+    r = sub.add_parser("render", help="render animations to an mp4 (several: side by side)")
+    r.add_argument("anim", nargs="+", help="animation files (.npz .glb .npy)")
+    r.add_argument("-o", "--output", required=True, help="output .mp4")
+    r.add_argument("--audio", help="speech to mux into the video")
+    r.add_argument("--labels", help="comma-separated panel labels for side-by-side")
+    r.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
+    add_output_options(r)
+    r.set_defaults(func=cmd_render)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+    from talkmesh.output.render import render_side_by_side, render_video
+
+    out = Path(args.output)
+    inputs = [Path(a) for a in args.anim] + ([Path(args.audio)] if args.audio else [])
+    check_outputs([[out]], inputs, args.overwrite)
+    anims = [load_input(a, args.fps) for a in args.anim]
+    if args.audio:
+        anims[0].audio, anims[0].sample_rate = load_audio(args.audio), SAMPLE_RATE
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if len(anims) == 1:
+        render_video(anims[0], out, size=args.size, progress=not args.quiet)
+    else:
+        labels = args.labels.split(",") if args.labels else [Path(a).stem for a in args.anim]
+        if len(labels) != len(anims):
+            raise TalkmeshError(
+                f"--labels names {len(labels)} panels but {len(anims)} animations were given"
+            )
+        render_side_by_side(anims, labels, out, size=args.size, progress=not args.quiet)
+    if not args.quiet:
+        print(f"wrote {out}")
+    return 0
+
+
+def add_export(sub: Subparsers) -> None:
+    e = sub.add_parser("export", help="convert an animation to another format")
+    e.add_argument("anim", help="animation file (.npz .glb .npy)")
+    e.add_argument(
+        "-o", "--output", required=True, help="output file; the extension picks the format"
+    )
+    e.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
+    add_output_options(e)
+    e.set_defaults(func=cmd_export)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    src, out = Path(args.anim), Path(args.output)
+    check_outputs([[out]], [src], args.overwrite)
+    write_animation(load_input(args.anim, args.fps), out, overwrite=args.overwrite, size=args.size)
+    if not args.quiet:
+        print(f"wrote {out}")
+    return 0

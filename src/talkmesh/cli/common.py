@@ -1,0 +1,105 @@
+"""What several subcommands share: common options, dataset arguments and output paths."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from talkmesh.errors import TalkmeshError
+from talkmesh.output import VIDEO_SIZE, VIDEO_SUFFIXES
+
+Subparsers = argparse._SubParsersAction  # what ``add_subparsers()`` returns
+DEFAULT_OUTPUT = "{stem}.mp4"
+
+
+def add_quiet(sp: argparse.ArgumentParser, text: str = "print nothing but errors") -> None:
+    sp.add_argument("-q", "--quiet", action="store_true", help=text)
+
+
+def add_output_options(sp: argparse.ArgumentParser) -> None:
+    """--overwrite, --size and --quiet of the commands that write animations."""
+    sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    sp.add_argument(
+        "--size",
+        type=int,
+        default=VIDEO_SIZE,
+        help=f"video size in pixels (default {VIDEO_SIZE})",
+    )
+    add_quiet(sp)
+
+
+DATASET_HELP = (
+    "dataset kind: vocaset (VOCASET, FLAME meshes at 30 fps), biwi (BIWI after `talkmesh "
+    "prepare-biwi`, 25 fps), synth (a `talkmesh synth` corpus) or folder (your own, described "
+    "by DATA/splits.json)"
+)
+SPLIT_HELP = (
+    "which sentences: train, val or test (default test); biwi also has test-a (the training "
+    "speakers' test sentences, the same as test) and test-b (unseen speakers); synth and folder "
+    "datasets name their own splits in manifest.json or splits.json"
+)
+
+
+def add_dataset(sp: argparse.ArgumentParser) -> None:
+    """--dataset, --data and --split of the commands that read a dataset split."""
+    sp.add_argument("--dataset", required=True, help=DATASET_HELP)
+    sp.add_argument("--data", required=True, help="dataset root directory")
+    sp.add_argument("--split", default="test", help=SPLIT_HELP)
+
+
+# ---------------------------------------------------------------------------------------------
+# Output paths
+
+
+def parse_outputs(patterns: list[str], inputs: list[Path]) -> list[list[Path]]:
+    """Expand ``-o`` values into output paths per input.
+
+    Each value is a file path (its extension picks the format), a pattern with ``{stem}`` (the
+    input's file name without extension) or, for several inputs, a directory ending in ``/``
+    (then ``DIR/{stem}.mp4``).
+    """
+    out: list[list[Path]] = [[] for _ in inputs]
+    for pattern in patterns:
+        if pattern.endswith(("/", os.sep)) or (Path(pattern).is_dir() and not Path(pattern).suffix):
+            pattern = os.path.join(pattern, DEFAULT_OUTPUT)
+        if len(inputs) > 1 and "{stem}" not in pattern:
+            raise TalkmeshError(
+                f"-o {pattern}: several inputs need a directory (-o out/) or a pattern "
+                "with {stem} (-o out/{stem}.glb)"
+            )
+        for k, audio in enumerate(inputs):
+            out[k].append(Path(pattern.replace("{stem}", audio.stem)))
+    return out
+
+
+def check_outputs(outputs: list[list[Path]], inputs: list[Path], overwrite: bool) -> None:
+    """Refuse unknown formats, writing over an input, two writes to one file, and (without
+    ``overwrite``) existing files, before any work starts."""
+    from talkmesh.output.formats import EXPORTERS
+
+    known = set(EXPORTERS) | set(VIDEO_SUFFIXES)
+    resolved_inputs = {p.resolve() for p in inputs}
+    seen: set[Path] = set()
+    for paths in outputs:
+        for p in paths:
+            suffix = p.suffix.lower()
+            if suffix not in known:
+                raise TalkmeshError(
+                    f"{p}: unknown output format '{suffix or '(none)'}': "
+                    f"use one of {', '.join(sorted(known))}"
+                )
+            r = p.resolve()
+            if r in resolved_inputs:
+                raise TalkmeshError(f"{p}: refusing to write over an input file")
+            if r in seen:
+                raise TalkmeshError(f"{p}: two inputs would write the same output file")
+            seen.add(r)
+            if p.exists() and not overwrite:
+                raise TalkmeshError(f"{p} already exists: choose another -o or pass --overwrite")
+
+
+def load_input(path: str, fps: float | None):
+    from talkmesh.output.formats import load_animation
+
+    return load_animation(Path(path), fps=fps)

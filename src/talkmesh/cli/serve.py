@@ -1,0 +1,123 @@
+"""``talkmesh serve`` (the streaming server) and ``talkmesh info`` (what is installed)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from talkmesh import __version__
+from talkmesh.cli.common import Subparsers, add_quiet
+
+
+def add_serve(sub: Subparsers) -> None:
+    sv = sub.add_parser(
+        "serve", help="stream face animation over WebSocket and serve the browser viewer"
+    )
+    sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    sv.add_argument("--port", type=int, default=8000, help="port (default 8000; 0: any free port)")
+    sv.add_argument(
+        "--model",
+        action="append",
+        help="procedural or a streaming CodeTalker .safetensors; repeat to offer several, clients "
+        "pick one by name (default procedural)",
+    )
+    sv.add_argument(
+        "--max-sessions",
+        type=int,
+        default=4,
+        help="concurrent streams; more are refused (default 4)",
+    )
+    sv.add_argument(
+        "--max-message-bytes",
+        type=int,
+        default=65536,
+        help="largest WebSocket message accepted (default 65536)",
+    )
+    sv.add_argument(
+        "--max-upload-mb",
+        type=float,
+        default=20.0,
+        help="largest audio file POST /animate accepts (default 20)",
+    )
+    sv.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=10.0,
+        help="seconds without a client message before a stream is closed (default 10)",
+    )
+    add_quiet(sv, "log only warnings and errors")
+    sv.set_defaults(func=cmd_serve)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    try:
+        from talkmesh.serve.server import serve
+    except ImportError as e:
+        if e.name not in ("starlette", "anyio"):
+            raise
+        from talkmesh.errors import MissingDependencyError
+
+        raise MissingDependencyError(e.name, "serve", "talkmesh serve") from None
+    serve(
+        args.host,
+        args.port,
+        quiet=args.quiet,
+        models=args.model or ["procedural"],
+        max_sessions=args.max_sessions,
+        max_message_bytes=args.max_message_bytes,
+        max_upload_bytes=int(args.max_upload_mb * 2**20),
+        idle_timeout=args.idle_timeout,
+    )
+    return 0
+
+
+def add_info(sub: Subparsers) -> None:
+    i = sub.add_parser("info", help="version, assets, models and devices")
+    i.set_defaults(func=cmd_info)
+
+
+OPTIONAL_MODULES = (
+    ("pocketsphinx", "phone recognition"),
+    ("moderngl", "rendering"),
+    ("imageio_ffmpeg", "video"),
+    ("pygltflib", "glb export"),
+)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    import importlib.util
+    import shutil
+
+    from talkmesh.face.assets import default_identity, list_identities, load_head
+    from talkmesh.pipeline import available_models
+
+    head = load_head()
+    print(f"talkmesh {__version__}")
+    print(f"python   {sys.version.split()[0]}")
+    print(
+        f"head     {head.num_vertices} vertices, {len(head.faces)} triangles, "
+        f"{len(head.blendshape_names)} ARKit blendshapes"
+    )
+    ids = list_identities()
+    print(f"identities ({len(ids)}, default {default_identity()}): {', '.join(ids)}")
+    print(f"models   {', '.join(available_models())}")
+    print(f"torch    {_torch_line()}")
+    for mod, purpose in OPTIONAL_MODULES:
+        state = "ok" if importlib.util.find_spec(mod) else "missing"
+        print(f"{mod:<15} {state:<8} ({purpose})")
+    espeak = "ok" if shutil.which("espeak-ng") else "missing"
+    print(f"{'espeak-ng':<15} {espeak:<8} (speech synthesis)")
+    return 0
+
+
+def _torch_line() -> str:
+    try:
+        import torch
+    except ImportError:
+        return "not installed (needed for learned models)"
+    devices = ["cpu"]
+    if torch.cuda.is_available():
+        devices += [
+            f"cuda:{i} ({torch.cuda.get_device_name(i)})" for i in range(torch.cuda.device_count())
+        ]
+    return f"{torch.__version__}; devices: {', '.join(devices)}"
