@@ -21,6 +21,7 @@ from talkmesh.errors import TalkmeshError
 
 
 def file_extension(path: Path, format: str | None) -> str:
+    """The registry key: ``format`` (``"obj"`` -> ``".obj"``) if given, else ``path``'s suffix."""
     if format:
         return "." + format.lower().lstrip(".")
     return path.suffix.lower()
