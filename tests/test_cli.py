@@ -295,7 +295,7 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
 COMMANDS = {
     "animate": (
         ["audio"],
-        "--fps --identity --int8 --model --no-blinks --output --overwrite "
+        "--avatar --fps --identity --int8 --model --no-blinks --output --overwrite "
         "--quiet --seed --size --style --template --text",
     ),
     "render": (["anim"], "--audio --fps --labels --output --overwrite --quiet --size"),
@@ -313,9 +313,10 @@ COMMANDS = {
         "--anim --audio --model --output --overwrite --quiet --source-template --template",
     ),
     "dub": ([], "--anim --audio --model --output --overwrite --quiet --source-template"),
+    "rig": (["mesh"], "--output --overwrite --quiet"),
     "serve": (
         [],
-        "--host --idle-timeout --max-message-bytes --max-sessions --max-upload-mb "
+        "--avatar --host --idle-timeout --max-message-bytes --max-sessions --max-upload-mb "
         "--model --port --quiet",
     ),
     "info": ([], ""),

@@ -13,7 +13,7 @@ import sys
 from collections.abc import Callable
 
 from talkmesh import __version__
-from talkmesh.cli.animate import add_animate, add_export, add_render
+from talkmesh.cli.animate import add_animate, add_export, add_render, add_rig
 from talkmesh.cli.common import Subparsers
 from talkmesh.cli.data import add_baseline, add_evaluate, add_predict, add_prepare_biwi, add_synth
 from talkmesh.cli.models import add_benchmark, add_convert_whisper, add_dub, add_retarget, add_train
@@ -34,6 +34,7 @@ COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
     add_benchmark,
     add_retarget,
     add_dub,
+    add_rig,
     add_serve,
     add_info,
 )

@@ -1,4 +1,5 @@
-"""``talkmesh animate``, ``render`` and ``export``: speech to animations, animations to videos and files."""
+"""``talkmesh animate``, ``render``, ``export`` and ``rig``: speech to animations, animations to
+videos and files, a plain head mesh to a rigged .glb."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from talkmesh.cli.common import (
     DEFAULT_OUTPUT,
     Subparsers,
     add_output_options,
+    add_quiet,
     check_outputs,
     load_input,
     parse_outputs,
@@ -33,6 +35,11 @@ def add_animate(sub: Subparsers) -> None:
     who.add_argument("--identity", help="a bundled identity (see `talkmesh info`)")
     who.add_argument(
         "--template", help="your own neutral mesh with the bundled topology (.obj .ply .npy)"
+    )
+    a.add_argument(
+        "--avatar",
+        help="your rigged character (.glb .vrm with ARKit-named morph targets): .glb/.vrm "
+        "outputs are copies of it with the speech as one animation clip",
     )
     a.add_argument(
         "--text", help="transcript of the speech (forced alignment instead of recognition)"
@@ -62,7 +69,7 @@ def add_animate(sub: Subparsers) -> None:
         "--int8",
         choices=("speech", "decoders", "all"),
         help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
-        "(faster on CPUs, not exact: see docs/codetalker.md)",
+        "(faster on CPUs, not exact: see docs/results/codetalker.md)",
     )
     add_output_options(a)
     a.set_defaults(func=cmd_animate)
@@ -75,8 +82,16 @@ def cmd_animate(args: argparse.Namespace) -> int:
     from talkmesh.pipeline import animate, parse_style
 
     inputs = [Path(a) for a in args.audio]
-    outputs = parse_outputs(args.output or [DEFAULT_OUTPUT], inputs)
-    check_outputs(outputs, inputs, args.overwrite)
+    avatar = Path(args.avatar) if args.avatar else None
+    default = DEFAULT_OUTPUT if avatar is None else "{stem}" + avatar.suffix.lower()
+    outputs = parse_outputs(args.output or [default], inputs)
+    check_outputs(outputs, inputs + ([avatar] if avatar else []), args.overwrite, bool(avatar))
+    if avatar is not None:
+        from talkmesh.output.avatar import bind_avatar, read_glb
+
+        binding = bind_avatar(read_glb(avatar)[0], str(avatar))  # fails before the model runs
+        if not args.quiet:
+            print(f"avatar {avatar}: {binding.summary()}")
     head = load_template(args.template) if args.template else load_head(args.identity)
     failures: list[str] = []
     bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
@@ -95,7 +110,10 @@ def cmd_animate(args: argparse.Namespace) -> int:
                 int8=args.int8,
             )
             for p in paths:
-                write_animation(anim, p, overwrite=args.overwrite, size=args.size)
+                if avatar is not None and p.suffix.lower() in (".glb", ".vrm"):
+                    _write_avatar(anim, avatar, p, args.overwrite)
+                else:
+                    write_animation(anim, p, overwrite=args.overwrite, size=args.size)
                 if not args.quiet:
                     tqdm.write(f"wrote {p} ({anim.num_frames} frames, {anim.duration:.2f} s)")
         except TalkmeshError as e:
@@ -107,6 +125,14 @@ def cmd_animate(args: argparse.Namespace) -> int:
     if failures:
         print(f"talkmesh: {len(failures)} of {len(inputs)} files failed", file=sys.stderr)
     return 1 if failures else 0
+
+
+def _write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
+    from talkmesh.face.arkit import to_arkit_order
+    from talkmesh.output.avatar import animate_avatar
+
+    weights = to_arkit_order(anim.weights, anim.weight_names)
+    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite)
 
 
 def add_render(sub: Subparsers) -> None:
@@ -162,4 +188,47 @@ def cmd_export(args: argparse.Namespace) -> int:
     write_animation(load_input(args.anim, args.fps), out, overwrite=args.overwrite, size=args.size)
     if not args.quiet:
         print(f"wrote {out}")
+    return 0
+
+
+def add_rig(sub: Subparsers) -> None:
+    rg = sub.add_parser("rig", help="give a plain head mesh the 52 ARKit blendshapes (.glb out)")
+    rg.add_argument(
+        "mesh", help="a head mesh (.obj .ply .stl .off .glb .gltf), any units and up-axis"
+    )
+    rg.add_argument("-o", "--output", required=True, help="output .glb (use it with --avatar)")
+    rg.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_quiet(rg)
+    rg.set_defaults(func=cmd_rig)
+
+
+def cmd_rig(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from talkmesh.animation import Animation
+    from talkmesh.face.arkit import ARKIT_NAMES
+    from talkmesh.face.rig import load_mesh, rig_head
+    from talkmesh.output.formats import save_animation
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".glb":
+        raise TalkmeshError(f"{out}: the rigged head is written as .glb")
+    if out.exists() and not args.overwrite:
+        raise TalkmeshError(f"{out} already exists: choose another -o or pass --overwrite")
+    rig = rig_head(*load_mesh(args.mesh))
+    neutral = Animation(
+        vertices=rig.vertices[None],
+        faces=rig.faces,
+        fps=DEFAULT_FPS,
+        weights=np.zeros((1, len(ARKIT_NAMES)), np.float32),
+        weight_names=list(ARKIT_NAMES),
+        template=rig.vertices,
+        basis=rig.blendshapes,
+    )
+    save_animation(neutral, out, overwrite=args.overwrite)
+    if not args.quiet:
+        print(
+            f"wrote {out}: 52 ARKit morph targets on {len(rig.vertices)} vertices (units "
+            f"{rig.units}, up {rig.up_axis}, fit within {rig.residual:.3g} {rig.units} median)"
+        )
     return 0

@@ -73,17 +73,28 @@ def parse_outputs(patterns: list[str], inputs: list[Path]) -> list[list[Path]]:
     return out
 
 
-def check_outputs(outputs: list[list[Path]], inputs: list[Path], overwrite: bool) -> None:
+def check_outputs(
+    outputs: list[list[Path]], inputs: list[Path], overwrite: bool, avatar: bool = False
+) -> None:
     """Refuse unknown formats, writing over an input, two writes to one file, and (without
-    ``overwrite``) existing files, before any work starts."""
+    ``overwrite``) existing files, before any work starts. With ``avatar``, .glb/.vrm outputs
+    are copies of the avatar and videos (which would show the bundled head) are refused."""
+    from talkmesh.output.avatar import AVATAR_SUFFIXES
     from talkmesh.output.formats import EXPORTERS
 
     known = set(EXPORTERS) | set(VIDEO_SUFFIXES)
+    if avatar:
+        known |= set(AVATAR_SUFFIXES)
     resolved_inputs = {p.resolve() for p in inputs}
     seen: set[Path] = set()
     for paths in outputs:
         for p in paths:
             suffix = p.suffix.lower()
+            if avatar and suffix in VIDEO_SUFFIXES:
+                raise TalkmeshError(
+                    f"{p}: a video would show the bundled head, not the avatar: "
+                    "write .glb/.vrm (and .csv/.json) with --avatar"
+                )
             if suffix not in known:
                 raise TalkmeshError(
                     f"{p}: unknown output format '{suffix or '(none)'}': "

@@ -45,6 +45,11 @@ def add_serve(sub: Subparsers) -> None:
         default=10.0,
         help="seconds without a client message before a stream is closed (default 10)",
     )
+    sv.add_argument(
+        "--avatar",
+        help="a .glb/.vrm with ARKit-named morph targets for the viewer to show instead of the "
+        "bundled head",
+    )
     add_quiet(sv, "log only warnings and errors")
     sv.set_defaults(func=cmd_serve)
 
@@ -67,6 +72,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         max_message_bytes=args.max_message_bytes,
         max_upload_bytes=int(args.max_upload_mb * 2**20),
         idle_timeout=args.idle_timeout,
+        avatar=args.avatar,
     )
     return 0
 
