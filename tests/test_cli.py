@@ -306,6 +306,7 @@ COMMANDS = {
     "predict": ([], "--blinks --conditions --data --dataset --mode --model --out --quiet --split"),
     "prepare-biwi": (["raw", "out"], "--quiet"),
     "convert-whisper": (["source"], "--out --overwrite --quiet"),
+    "import-checkpoint": (["files"], "--dataset --family --out --overwrite --quiet"),
     "train": (["recipe", "overrides"], "--devices --num-nodes --quiet --resume --stage"),
     "benchmark": (["config"], "--dry-run --only --quiet --skip-ablation --skip-video"),
     "retarget": (

@@ -6,10 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
-
-SAMPLE_RATE = 16_000  # Hz of every waveform inside talkmesh: audio is resampled to it on load
-DEFAULT_FPS = 30.0  # frames per second of an animation unless the caller asks for another rate
 
 
 @dataclass

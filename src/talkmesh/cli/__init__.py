@@ -12,13 +12,20 @@ import argparse
 import sys
 from collections.abc import Callable
 
-from talkmesh import __version__
 from talkmesh.cli.animate import add_animate, add_export, add_render, add_rig
 from talkmesh.cli.common import Subparsers
 from talkmesh.cli.data import add_baseline, add_evaluate, add_predict, add_prepare_biwi, add_synth
-from talkmesh.cli.models import add_benchmark, add_convert_whisper, add_dub, add_retarget, add_train
+from talkmesh.cli.models import (
+    add_benchmark,
+    add_convert_whisper,
+    add_dub,
+    add_import_checkpoint,
+    add_retarget,
+    add_train,
+)
 from talkmesh.cli.serve import add_info, add_serve
 from talkmesh.errors import TalkmeshError
+from talkmesh.version import __version__
 
 COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
     add_animate,
@@ -30,6 +37,7 @@ COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
     add_predict,
     add_prepare_biwi,
     add_convert_whisper,
+    add_import_checkpoint,
     add_train,
     add_benchmark,
     add_retarget,

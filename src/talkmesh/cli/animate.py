@@ -7,7 +7,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from talkmesh.animation import DEFAULT_FPS
 from talkmesh.cli.common import (
     DEFAULT_OUTPUT,
     Subparsers,
@@ -17,6 +16,7 @@ from talkmesh.cli.common import (
     load_input,
     parse_outputs,
 )
+from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.output import write_animation
 
@@ -48,8 +48,8 @@ def add_animate(sub: Subparsers) -> None:
     a.add_argument(
         "--fps",
         type=float,
-        default=DEFAULT_FPS,
-        help=f"frames per second (default {DEFAULT_FPS:g})",
+        default=MOTION_FPS,
+        help=f"frames per second (default {MOTION_FPS:g})",
     )
     a.add_argument(
         "--model",
@@ -219,7 +219,7 @@ def cmd_rig(args: argparse.Namespace) -> int:
     neutral = Animation(
         vertices=rig.vertices[None],
         faces=rig.faces,
-        fps=DEFAULT_FPS,
+        fps=MOTION_FPS,
         weights=np.zeros((1, len(ARKIT_NAMES)), np.float32),
         weight_names=list(ARKIT_NAMES),
         template=rig.vertices,

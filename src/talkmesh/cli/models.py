@@ -1,4 +1,5 @@
-"""Model subcommands: ``convert-whisper``, ``train``, ``benchmark``, ``retarget``, ``dub``."""
+"""Model subcommands: ``convert-whisper``, ``import-checkpoint``, ``train``, ``benchmark``,
+``retarget``, ``dub``."""
 
 from __future__ import annotations
 
@@ -33,6 +34,45 @@ def cmd_convert_whisper(args: argparse.Namespace) -> int:
     out = convert_whisper(args.source, args.out, overwrite=args.overwrite)
     if not args.quiet:
         print(f"wrote {out} (use it as model.stage2.speech.source with kind: whisper)")
+    return 0
+
+
+def add_import_checkpoint(sub: Subparsers) -> None:
+    ic = sub.add_parser(
+        "import-checkpoint",
+        help="convert a paper's released weights into a talkmesh model (docs/guide/official.md)",
+    )
+    ic.add_argument("files", nargs="+", help="the released file(s), e.g. vocaset.pth")
+    ic.add_argument("--family", required=True, choices=("codetalker", "faceformer", "meshtalk"))
+    ic.add_argument(
+        "--dataset",
+        required=True,
+        choices=("vocaset", "biwi"),
+        type=str.lower,
+        help="what the weights were trained on",
+    )
+    ic.add_argument("-o", "--out", required=True, help="output model (.safetensors)")
+    ic.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    add_quiet(ic)
+    ic.set_defaults(func=cmd_import_checkpoint)
+
+
+def cmd_import_checkpoint(args: argparse.Namespace) -> int:
+    from talkmesh.models.official import import_checkpoint
+    from talkmesh.models.release import save_model
+
+    out = Path(args.out)
+    if out.suffix != ".safetensors":
+        raise TalkmeshError(f"-o {out}: a talkmesh model is a .safetensors file")
+    if out.exists() and not args.overwrite:
+        raise TalkmeshError(f"{out} already exists: choose another -o or pass --overwrite")
+    model = import_checkpoint(args.files, args.family, args.dataset)
+    save_model(model, out)
+    if not args.quiet:
+        print(
+            f"wrote {out} ({args.family}, {args.dataset}, {model.motion_fps:g} fps, "
+            f"styles: {', '.join(model.styles)})"
+        )
     return 0
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from talkmesh import __version__
 from talkmesh.cli.common import Subparsers, add_quiet
+from talkmesh.version import __version__
 
 
 def add_serve(sub: Subparsers) -> None:

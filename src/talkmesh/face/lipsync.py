@@ -21,8 +21,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.audio.phonemes import Phone
+from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 

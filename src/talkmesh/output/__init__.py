@@ -8,9 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from talkmesh.errors import TalkmeshError
+from talkmesh.output.media import VIDEO_SIZE, VIDEO_SUFFIXES
 
-VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov")  # written by the renderer (H.264 + AAC in MP4)
-VIDEO_SIZE = 512  # pixels a side of rendered videos unless asked otherwise
+__all__ = ["VIDEO_SIZE", "VIDEO_SUFFIXES", "write_animation"]
 
 
 def write_animation(anim, path: Path, *, overwrite: bool, size: int = VIDEO_SIZE) -> None:

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from talkmesh.animation import DEFAULT_FPS, Animation
+from talkmesh.animation import Animation
+from talkmesh.constants import MOTION_FPS
 from talkmesh.face.arkit import ARKIT_NAMES, arkit_index
 from talkmesh.face.geometry import vertex_normals
 from talkmesh.output.files import finite
@@ -293,7 +294,7 @@ def import_glb(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
     return Animation(
         vertices=vertices,
         faces=stored_faces if faces is None else faces,
-        fps=fps or stored_fps or DEFAULT_FPS,
+        fps=fps or stored_fps or MOTION_FPS,
         weights=weights,
         weight_names=weight_names,
         template=rig.neutral(),

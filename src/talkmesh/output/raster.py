@@ -20,7 +20,7 @@ import numpy as np
 
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.geometry import VertexNormals, winding_sign
-from talkmesh.output import VIDEO_SIZE
+from talkmesh.output.media import VIDEO_SIZE, size_pair
 
 if TYPE_CHECKING:
     import moderngl
@@ -29,7 +29,6 @@ if TYPE_CHECKING:
 SUPERSAMPLE = 2  # render at 2x and average 2x2 pixels: 4 samples per pixel
 FOV_DEG = 18.0  # a portrait lens: little perspective distortion of the nose
 FRAME_MARGIN = 1.08  # the reference bounding box fills 1 / FRAME_MARGIN of the image height
-MIN_SIZE, MAX_SIZE = 16, 4096
 
 # Materials and lights. Colours are sRGB in [0, 1]; light directions point towards the lights in
 # view space (x right, y up, z towards the viewer).
@@ -127,15 +126,6 @@ def _import_moderngl():
     except ImportError as e:
         raise MissingDependencyError("moderngl", "render", "Rendering") from e
     return moderngl
-
-
-def size_pair(size: int | tuple[int, int]) -> tuple[int, int]:
-    width, height = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
-    if not (MIN_SIZE <= width <= MAX_SIZE and MIN_SIZE <= height <= MAX_SIZE):
-        raise TalkmeshError(
-            f"image size must be {MIN_SIZE} to {MAX_SIZE} pixels a side, got {width}x{height}"
-        )
-    return width, height
 
 
 def create_context() -> moderngl.Context:

@@ -19,20 +19,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from talkmesh.animation import Animation
-from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.geometry import winding_sign
-from talkmesh.output import VIDEO_SIZE
 from talkmesh.output.labels import TextOverlay, import_pil
+from talkmesh.output.media import VIDEO_SIZE, VIDEO_SUFFIXES, video_size
 from talkmesh.output.raster import Renderer, create_context, head_vertex_colors
-from talkmesh.output.video import (
-    VIDEO_CRF,
-    VIDEO_SUFFIXES,
-    atomic_output,
-    check_output,
-    video_size,
-    write_video,
-)
+from talkmesh.output.video import VIDEO_CRF, atomic_output, check_output, write_video
 
 if TYPE_CHECKING:
     import moderngl

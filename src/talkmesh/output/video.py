@@ -20,8 +20,7 @@ import soundfile
 from tqdm import tqdm
 
 from talkmesh.errors import MissingDependencyError, TalkmeshError
-from talkmesh.output import VIDEO_SUFFIXES
-from talkmesh.output.raster import size_pair
+from talkmesh.output.media import VIDEO_SUFFIXES, video_size
 
 VIDEO_CRF = 18  # visually lossless H.264
 VIDEO_PRESET = "veryfast"
@@ -36,13 +35,6 @@ def ffmpeg_exe() -> str:
     except ImportError as e:
         raise MissingDependencyError("imageio-ffmpeg", "render", "Writing videos") from e
     return imageio_ffmpeg.get_ffmpeg_exe()
-
-
-def video_size(size: int | tuple[int, int]) -> tuple[int, int]:
-    width, height = size_pair(size)
-    if width % 2 or height % 2:
-        raise TalkmeshError(f"video width and height must be even for H.264, got {width}x{height}")
-    return width, height
 
 
 def check_output(
