@@ -16,7 +16,7 @@ from talkmesh.cli.common import (
     load_input,
     parse_outputs,
 )
-from talkmesh.constants import MOTION_FPS
+from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.output import write_animation
 
@@ -67,7 +67,7 @@ def add_animate(sub: Subparsers) -> None:
     )
     a.add_argument(
         "--int8",
-        choices=("speech", "decoders", "all"),
+        choices=INT8_LAYERS,
         help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
         "(faster on CPUs, not exact: see docs/results/codetalker.md)",
     )
