@@ -203,10 +203,6 @@ def add_rig(sub: Subparsers) -> None:
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from talkmesh.animation import Animation
-    from talkmesh.face.arkit import ARKIT_NAMES
     from talkmesh.face.rig import load_mesh, rig_head
     from talkmesh.output.formats import save_animation
 
@@ -216,16 +212,7 @@ def cmd_rig(args: argparse.Namespace) -> int:
     if out.exists() and not args.overwrite:
         raise TalkmeshError(f"{out} already exists: choose another -o or pass --overwrite")
     rig = rig_head(*load_mesh(args.mesh))
-    neutral = Animation(
-        vertices=rig.vertices[None],
-        faces=rig.faces,
-        fps=MOTION_FPS,
-        weights=np.zeros((1, len(ARKIT_NAMES)), np.float32),
-        weight_names=list(ARKIT_NAMES),
-        template=rig.vertices,
-        basis=rig.blendshapes,
-    )
-    save_animation(neutral, out, overwrite=args.overwrite)
+    save_animation(rig.neutral_animation(), out, overwrite=args.overwrite)
     if not args.quiet:
         print(
             f"wrote {out}: 52 ARKit morph targets on {len(rig.vertices)} vertices (units "

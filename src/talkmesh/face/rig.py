@@ -30,7 +30,10 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
+from talkmesh.animation import Animation
+from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import Head, load_head
 
 ICP_ITERATIONS = 40
@@ -73,6 +76,19 @@ class Rig:
         """The unit the fitted scale is closest to (by decades): mm, cm or m."""
         decade = int(np.clip(np.round(np.log10(self.scale)), 0, 3))
         return {0: "m", 1: "dm", 2: "cm", 3: "mm"}[decade]
+
+    def neutral_animation(self) -> Animation:
+        """One neutral frame with the 52 blendshapes as its ``basis`` (all weights zero): saved as
+        .glb it is the rigged head, one ARKit-named morph target per blendshape."""
+        return Animation(
+            vertices=self.vertices[None],
+            faces=self.faces,
+            fps=MOTION_FPS,
+            weights=np.zeros((1, len(ARKIT_NAMES)), np.float32),
+            weight_names=list(ARKIT_NAMES),
+            template=self.vertices,
+            basis=self.blendshapes,
+        )
 
     @property
     def up_axis(self) -> str:
