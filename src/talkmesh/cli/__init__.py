@@ -10,11 +10,19 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from collections.abc import Callable
 
 from talkmesh.cli.animate import add_animate, add_export, add_render, add_rig
 from talkmesh.cli.common import Subparsers
-from talkmesh.cli.data import add_baseline, add_evaluate, add_predict, add_prepare_biwi, add_synth
+from talkmesh.cli.data import (
+    add_baseline,
+    add_evaluate,
+    add_predict,
+    add_prepare_biwi,
+    add_prepare_vocaset,
+    add_synth,
+)
 from talkmesh.cli.models import (
     add_benchmark,
     add_convert_whisper,
@@ -24,7 +32,7 @@ from talkmesh.cli.models import (
     add_train,
 )
 from talkmesh.cli.serve import add_info, add_serve
-from talkmesh.errors import TalkmeshError
+from talkmesh.errors import TalkmeshError, TalkmeshWarning
 from talkmesh.version import __version__
 
 COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
@@ -36,6 +44,7 @@ COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
     add_baseline,
     add_predict,
     add_prepare_biwi,
+    add_prepare_vocaset,
     add_convert_whisper,
     add_import_checkpoint,
     add_train,
@@ -58,7 +67,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+_plain_format_warning = warnings.formatwarning
+
+
+def _format_warning(message, category, filename, lineno, line=None) -> str:
+    if issubclass(category, TalkmeshWarning):
+        return f"talkmesh: warning: {message}\n"
+    return _plain_format_warning(message, category, filename, lineno, line)
+
+
 def main(argv: list[str] | None = None) -> int:
+    warnings.formatwarning = _format_warning
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

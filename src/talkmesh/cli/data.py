@@ -1,4 +1,5 @@
-"""Dataset subcommands: ``synth``, ``evaluate``, ``baseline``, ``predict``, ``prepare-biwi``."""
+"""Dataset subcommands: ``synth``, ``evaluate``, ``baseline``, ``predict``, ``prepare-biwi``,
+``prepare-vocaset``."""
 
 from __future__ import annotations
 
@@ -162,16 +163,61 @@ def add_prepare_biwi(sub: Subparsers) -> None:
     pb = sub.add_parser(
         "prepare-biwi", help="CodeTalker's BIWI preprocessing into the VOCASET layout"
     )
-    pb.add_argument("raw", help="raw BIWI directory")
-    pb.add_argument("out", help="output dataset directory")
+    pb.add_argument("raw", help="BIWI's release (faces/, rigid_scans/, videos/) or raw .npy")
+    pb.add_argument("out", help="output dataset directory (re-running skips finished files)")
+    pb.add_argument(
+        "--subset",
+        choices=("all", "biwi6"),
+        default="all",
+        help="all 14 speakers, or biwi6: F2 F3 F4 M3 M4 M5 (train/val/Test-A)",
+    )
+    pb.add_argument("--regions", help="CodeTalker's BIWI/regions folder (lve.txt, fdd.txt)")
     add_quiet(pb)
     pb.set_defaults(func=cmd_prepare_biwi)
 
 
 def cmd_prepare_biwi(args: argparse.Namespace) -> int:
-    from talkmesh.datasets.biwi import prepare_biwi
+    from talkmesh.datasets.biwi import REGIONS_HINT, prepare_biwi, prepare_biwi_release
 
-    n = prepare_biwi(Path(args.raw), Path(args.out), progress=not args.quiet)
+    raw, out = Path(args.raw), Path(args.out)
+    if not (raw / "faces").is_dir():  # the older layout of per-sequence .npy files
+        n = prepare_biwi(raw, out, progress=not args.quiet)
+        if not args.quiet:
+            print(f"wrote {n} sequences to {args.out}")
+        return 0
+    done = prepare_biwi_release(
+        raw, out, subset=args.subset, regions=args.regions, progress=not args.quiet
+    )
+    if done.written + done.existing == 0:
+        raise TalkmeshError(f"{raw / 'faces'}: no sequence could be prepared (see the warnings)")
     if not args.quiet:
-        print(f"wrote {n} sequences to {args.out}")
+        print(f"wrote {done.written} sequences to {out} ({done.existing} already there)")
+        if done.skipped:
+            print(f"{len(done.skipped)} sequences skipped: {', '.join(done.skipped)}")
+        if not (out / "regions" / "lve.txt").is_file():
+            print(REGIONS_HINT)
+    return 0
+
+
+def add_prepare_vocaset(sub: Subparsers) -> None:
+    pv = sub.add_parser(
+        "prepare-vocaset",
+        help="VOCASET's release files (data_verts.npy, pickles) into the VOCASET layout",
+    )
+    pv.add_argument("raw", help="directory with data_verts.npy, raw_audio_fixed.pkl, ...")
+    pv.add_argument("out", help="output dataset directory (re-running skips finished files)")
+    add_quiet(pv)
+    pv.set_defaults(func=cmd_prepare_vocaset)
+
+
+def cmd_prepare_vocaset(args: argparse.Namespace) -> int:
+    from talkmesh.datasets.vocaset import missing_pairs, prepare_vocaset
+
+    written, skipped = prepare_vocaset(Path(args.raw), Path(args.out), progress=not args.quiet)
+    if not args.quiet:
+        print(f"wrote {written} files to {args.out} ({skipped} already there, skipped)")
+        missing = missing_pairs(args.out)
+        if missing:
+            print(f"{len(missing)} sequences of the standard splits have no motion or audio "
+                  f"(e.g. {missing[0]}); readers skip them")  # fmt: skip
     return 0
