@@ -34,8 +34,8 @@ import numpy as np
 from talkmesh.datasets.reader import (
     TEMPLATES_FILE,
     VERTICES_DIR,
-    WAV_DIR,
     VOCASET,
+    WAV_DIR,
     load_templates,
     safe_load_pickle,
 )
