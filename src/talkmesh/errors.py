@@ -18,3 +18,7 @@ class MissingDependencyError(TalkmeshError):
             f"{purpose} needs the '{package}' package: install it with "
             f"`pip install 'talkmesh[{extra}]'` (or `make setup`)."
         )
+
+
+class TalkmeshWarning(UserWarning):
+    """Something was skipped or approximated; the run goes on (the CLI prints one line)."""

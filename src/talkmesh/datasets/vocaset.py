@@ -120,7 +120,7 @@ def open_verts(path: Path) -> np.ndarray:
     return verts
 
 
-def _write_atomic(target: Path, write: Callable[[Path], None]) -> None:
+def write_atomic(target: Path, write: Callable[[Path], None]) -> None:
     """``write(tmp)`` then rename to ``target``: a killed run never leaves a half file."""
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.stem}.", suffix=target.suffix)
     os.close(fd)
@@ -193,7 +193,7 @@ def prepare_vocaset(raw: str | Path, out: str | Path, *, progress: bool = True) 
         if target.is_file():
             skipped += 1
             continue
-        _write_atomic(target, make())
+        write_atomic(target, make())
         written += 1
     for name in (TEMPLATES_FILE, FACES_FILE):
         if (raw / name).is_file() and not (out / name).is_file():
