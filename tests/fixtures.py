@@ -60,7 +60,7 @@ def vocaset_names(missing: int = 3) -> list[str]:
     return names[missing:]  # the first few pairs are missing, like the real data
 
 
-def make_vocaset(root: Path, frames: int = 2) -> list[str]:
+def make_vocaset(root: Path, frames: int = 4) -> list[str]:
     names = vocaset_names()
     make_dataset(root, VOCASET, names, frames, disk_fps=60, sr=22050, python2_pickle=True)
     return names

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from fixtures import write_wav
 
 from talkmesh.datasets.biwi import prepare_biwi_release, read_obj, read_vl
 from talkmesh.datasets.reader import load_templates, open_dataset
 from talkmesh.errors import TalkmeshError
-from tests.fixtures import write_wav
 
 ROWS, COLS = 95, 246  # 23370 vertices, BIWI's count
 

@@ -15,9 +15,10 @@ from talkmesh.datasets.reader import (
     collate,
     load_regions,
     open_dataset,
+    report_skipped,
     safe_load_pickle,
 )
-from talkmesh.errors import TalkmeshError
+from talkmesh.errors import TalkmeshError, TalkmeshWarning
 
 
 @pytest.fixture(scope="module")
@@ -50,11 +51,11 @@ def test_vocaset_sample_is_30fps_float32_with_style(vocaset):
     train = open_dataset("vocaset", vocaset, "train")
     sample = train[0]
     raw = np.load(vocaset / "vertices_npy" / f"{sample.name}.npy")
-    assert raw.shape == (2, 5023 * 3)
-    assert sample.vertices.shape == (1, 5023, 3)  # 60 fps on disk, every second frame
-    np.testing.assert_array_equal(sample.vertices[0], raw[0].reshape(-1, 3))
+    assert raw.shape == (4, 5023 * 3)
+    assert sample.vertices.shape == (2, 5023, 3)  # 60 fps on disk, every second frame
+    np.testing.assert_array_equal(sample.vertices[1], raw[2].reshape(-1, 3))
     assert sample.vertices.dtype == np.float32 and sample.template.dtype == np.float32
-    assert sample.audio.dtype == np.float32 and len(sample.audio) == round(16000 / 30)
+    assert sample.audio.dtype == np.float32 and len(sample.audio) == round(2 * 16000 / 30)
     assert sample.style == VOCASET_TRAIN.index(sample.subject)
     assert open_dataset("vocaset", vocaset, "test")[0].style == -1
     assert train.regions.lve is None  # VOCASET ships no region files
@@ -91,11 +92,11 @@ def test_collate_pads_and_masks(vocaset):
     a, b = ds[0], ds[1]
     b = b._replace(vertices=np.concatenate([b.vertices] * 3), audio=np.concatenate([b.audio] * 3))
     batch = collate([a, b])
-    assert batch.vertices.shape == (2, 3, 5023, 3)
-    assert batch.motion_mask.tolist() == [[True, False, False], [True, True, True]]
+    assert batch.vertices.shape == (2, 6, 5023, 3)
+    assert batch.motion_mask.tolist() == [[True] * 2 + [False] * 4, [True] * 6]
     assert batch.audio_lengths.tolist() == [len(a.audio), len(b.audio)]
     assert (batch.audio[0, len(a.audio) :] == 0).all()
-    np.testing.assert_array_equal(batch.vertices[0, 1], a.template)  # padding rests at the template
+    np.testing.assert_array_equal(batch.vertices[0, 2], a.template)  # padding rests at the template
 
 
 def test_unknown_kind_and_split(vocaset):
@@ -160,26 +161,56 @@ def test_folder_dataset(tmp_path):
         ("truncate", "alice_s01.npy: truncated"),
         ("width", "alice_s01.npy: shape"),
         ("short_wav", "alice_s01.wav"),
-        ("template", "templates.pkl"),
+        ("bad_wav", "alice_s01.wav: not readable audio"),
+        ("one_frame", "too short"),
     ],
 )
-def test_bad_data_names_the_file(tmp_path, damage, fragment):
+def test_bad_sequence_is_skipped_with_a_warning_naming_it(tmp_path, damage, fragment):
     root = small_folder(tmp_path)
-    npy = root / "vertices_npy" / "alice_s01.npy"
+    npy, wav = root / "vertices_npy" / "alice_s01.npy", root / "wav" / "alice_s01.wav"
     if damage == "truncate":
         npy.write_bytes(npy.read_bytes()[:-40])
     elif damage == "width":
         np.save(npy, np.zeros((6, 33), np.float32))
     elif damage == "short_wav":
-        write_wav(
-            root / "wav" / "alice_s01.wav", 2 / 30, 16000
-        )  # 2 frames of audio for 6 of motion
-    elif damage == "template":
-        (root / "templates.pkl").write_bytes(b"\x80\x02}q\x00(X")  # cut short
-    with pytest.raises(TalkmeshError) as e:
+        write_wav(wav, 2 / 30, 16000)  # 2 frames of audio for 6 of motion
+    elif damage == "bad_wav":
+        wav.write_bytes(b"RIFF\x00\x00")
+    elif damage == "one_frame":
+        np.save(npy, np.zeros((1, 30), np.float32))
+    with pytest.warns(TalkmeshWarning, match=f"skipped alice_s01: .*{fragment}"):
         ds = open_dataset("folder", root, "train")
-        ds[0]
-    assert fragment in str(e.value) and "\n" not in str(e.value)
+    assert ds.names == ["alice_s02"] and ds.bad == ["alice_s01"]
+    assert ds[0].name == "alice_s02"
+
+
+def test_a_file_failing_at_load_time_is_skipped_and_counted(tmp_path):
+    root = small_folder(tmp_path)
+    bad = np.zeros((6, 30), np.float32)
+    bad[2, 4] = np.nan  # only the full read sees it
+    np.save(root / "vertices_npy" / "alice_s01.npy", bad)
+    ds = open_dataset("folder", root, "train")
+    assert ds.names == ["alice_s01", "alice_s02"]
+    with pytest.warns(TalkmeshWarning, match="skipped alice_s01: .*NaN"):
+        sample = ds.sample_or_next(0)
+    assert sample.name == "alice_s02" and ds.bad == ["alice_s01"]
+    with pytest.warns(TalkmeshWarning, match="1 sequences skipped by training"):
+        assert report_skipped(ds, "training") == 1
+
+
+def test_an_empty_split_is_an_error_naming_the_splits_with_data(tmp_path):
+    root = small_folder(tmp_path)
+    (root / "vertices_npy" / "bob_s01.npy").unlink()
+    with pytest.raises(TalkmeshError, match="test split has no sequences .*--split train"):
+        open_dataset("folder", root, "test")
+    assert len(open_dataset("folder", root, "test", allow_empty=True)) == 0
+
+
+def test_a_corrupt_template_file_is_an_error(tmp_path):
+    root = small_folder(tmp_path)
+    (root / "templates.pkl").write_bytes(b"\x80\x02}q\x00(X")  # cut short
+    with pytest.raises(TalkmeshError, match="templates.pkl"):
+        open_dataset("folder", root, "train")
 
 
 def test_template_vertex_count_mismatch(tmp_path, vocaset):

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fixtures import write_ply
 from scipy.io import wavfile
 
 from talkmesh.datasets.reader import VOCASET, open_dataset
 from talkmesh.datasets.vocaset import open_verts, prepare_vocaset
 from talkmesh.errors import TalkmeshError
-from tests.fixtures import write_ply
 
 SUBJECTS = (VOCASET.train_subjects[0], VOCASET.train_subjects[1])
 SENTENCES = ("sentence01", "sentence02")

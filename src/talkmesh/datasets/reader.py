@@ -27,6 +27,7 @@ from __future__ import annotations
 import io
 import json
 import pickle
+import warnings
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -35,7 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from talkmesh.errors import TalkmeshError
+from talkmesh.errors import TalkmeshError, TalkmeshWarning
 
 WAV_DIR = "wav"
 VERTICES_DIR = "vertices_npy"
@@ -46,6 +47,7 @@ FDD_FILE = "fdd.txt"
 MANIFEST_FILE = "manifest.json"
 SPLITS_FILE = "splits.json"
 AUDIO_TOLERANCE_FRAMES = 2  # a wav may end this many motion frames before the motion does
+MIN_FRAMES = 2  # motion frames (after the stride): fewer is too short to train or score on
 
 
 # ---------------------------------------------------------------------------------------------
@@ -325,29 +327,82 @@ class MotionDataset:
         self.templates = load_templates(root / TEMPLATES_FILE)
         wanted = spec.splits[split]
         self.names: list[str] = []
-        self.skipped: list[str] = []
-        for subject, sentences in wanted.items():
-            for sentence in sentences:
-                name = f"{subject}_{sentence}"
-                have = (root / WAV_DIR / f"{name}.wav").is_file() and (
-                    root / VERTICES_DIR / f"{name}.npy"
-                ).is_file()
-                if have and subject in self.templates:
-                    self.names.append(name)
-                else:
-                    self.skipped.append(name)
-        if self.names and spec.num_vertices is not None:
-            for subject in {parse_name(n)[0] for n in self.names}:
+        self.skipped: list[str] = []  # listed in the split, but a file or template is missing
+        self.bad: list[str] = []  # present but unusable (corrupt, short, mismatched): warned
+        present = [
+            (subject, f"{subject}_{sentence}")
+            for subject, sentences in wanted.items()
+            for sentence in sentences
+            if (root / WAV_DIR / f"{subject}_{sentence}.wav").is_file()
+            and (root / VERTICES_DIR / f"{subject}_{sentence}.npy").is_file()
+        ]
+        if spec.num_vertices is not None:
+            for subject in dict.fromkeys(s for s, _ in present if s in self.templates):
                 v = len(self.templates[subject])
                 if v != spec.num_vertices:
                     raise TalkmeshError(
                         f"{root / TEMPLATES_FILE}: template of {subject} has {v} vertices, "
                         f"a {spec.kind} dataset has {spec.num_vertices}"
                     )
+        usable = {name for subject, name in present if subject in self.templates}
+        for subject, sentences in wanted.items():
+            for sentence in sentences:
+                name = f"{subject}_{sentence}"
+                if name not in usable:
+                    self.skipped.append(name)
+                    continue
+                problem = self._check(name, len(self.templates[subject]))
+                if problem is None:
+                    self.names.append(name)
+                else:
+                    self.reject(name, problem)
         self._faces: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.names)
+
+    def _check(self, name: str, num_vertices: int) -> str | None:
+        """Why the sequence cannot be used, from the file headers alone (cheap); None if fine."""
+        import soundfile as sf
+
+        npy, wav = self.root / VERTICES_DIR / f"{name}.npy", self.root / WAV_DIR / f"{name}.wav"
+        try:
+            arr = np.load(npy, mmap_mode="r", allow_pickle=False)
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+            return f"{npy.name}: truncated or not a .npy file ({e})"
+        if arr.ndim == 3 and arr.shape[1:] == (num_vertices, 3):
+            arr = arr.reshape(len(arr), -1)
+        if arr.ndim != 2 or arr.shape[1] != num_vertices * 3 or arr.dtype.kind != "f":
+            return f"{npy.name}: shape {arr.shape} {arr.dtype}, expected [T, {num_vertices * 3}]"
+        frames = -(-len(arr) // self.spec.stride)
+        if frames < MIN_FRAMES:
+            return f"{frames} motion frame(s), too short (at least {MIN_FRAMES})"
+        try:
+            info = sf.info(str(wav))
+        except (sf.LibsndfileError, RuntimeError, OSError) as e:
+            return f"{wav.name}: not readable audio ({e})"
+        if info.frames == 0:
+            return f"{wav.name}: no samples"
+        seconds, motion = info.frames / info.samplerate, frames / self.spec.motion_fps
+        if motion - seconds > AUDIO_TOLERANCE_FRAMES / self.spec.motion_fps:
+            return f"{wav.name}: {seconds:.2f} s of audio for {motion:.2f} s of motion (no match)"
+        return None
+
+    def reject(self, name: str, why: str) -> None:
+        warnings.warn(f"skipped {name}: {why}", TalkmeshWarning, stacklevel=3)
+        self.bad.append(name)
+
+    def sample_or_next(self, index: int) -> Sample:
+        """``self[index]``, or if that sequence fails to load (NaN values, a corrupt body), a
+        warning naming it and the next sequence that loads: a run never stops for one file."""
+        for k in range(len(self.names)):
+            i = (index + k) % len(self.names)
+            try:
+                return self[i]
+            except TalkmeshError as e:
+                if self.names[i] not in self.bad:
+                    self.reject(self.names[i], str(e))
+        raise TalkmeshError(f"{self.root}: no {self.split} sequence could be loaded")
 
     def __getitem__(self, index: int) -> Sample:
         from talkmesh.audio.loading import SAMPLE_RATE, load_audio
@@ -403,9 +458,18 @@ def read_faces(root: Path, name: str | None) -> np.ndarray | None:
 
 
 def open_dataset(
-    kind: str, root: str | Path, split: str = "train", *, regions: str | Path | None = None
+    kind: str,
+    root: str | Path,
+    split: str = "train",
+    *,
+    regions: str | Path | None = None,
+    allow_empty: bool = False,
 ) -> MotionDataset:
-    """The ``split`` of the dataset of ``kind`` at ``root`` (see the module docstring)."""
+    """The ``split`` of the dataset of ``kind`` at ``root`` (see the module docstring).
+
+    A split without a usable sequence is an error (saying which splits have data) unless
+    ``allow_empty``; unusable sequences are skipped with a warning and listed in ``.bad``.
+    """
     if kind not in READERS:
         raise TalkmeshError(f"unknown dataset kind '{kind}': use one of {', '.join(READERS)}")
     root = Path(root)
@@ -425,7 +489,48 @@ def open_dataset(
         if (regions is not None or region_dir.is_dir())
         else DatasetRegions()
     )
-    return MotionDataset(spec, root, split, found)
+    dataset = MotionDataset(spec, root, split, found)
+    if not dataset.names and not allow_empty:
+        raise TalkmeshError(_empty_message(dataset))
+    return dataset
+
+
+def _empty_message(dataset: MotionDataset) -> str:
+    spec, root = dataset.spec, dataset.root
+    listed = sum(len(s) for s in spec.splits[dataset.split].values())
+    why = (
+        f"{len(dataset.bad)} unusable (see the warnings)"
+        if dataset.bad
+        else f"none of its {listed} listed sequences has both a .npy and a .wav"
+        if listed
+        else "it lists no sequences"
+    )
+    others = [
+        name
+        for name, subjects in spec.splits.items()
+        if name != dataset.split
+        and any(
+            (root / VERTICES_DIR / f"{s}_{t}.npy").is_file()
+            for s, sents in subjects.items()
+            for t in sents
+        )
+    ]
+    hint = f"pass --split {' or --split '.join(others)}" if others else "add data to the split"
+    if spec.kind == "synth":
+        hint += " (or synthesise at least 3 subjects: talkmesh synth --subjects 3)"
+    return f"{root}: the {dataset.split} split has no sequences ({why}): {hint}"
+
+
+def report_skipped(dataset: MotionDataset, action: str) -> int:
+    """Warn once, at the end of a run, how many sequences ``action`` skipped; returns that."""
+    if dataset.bad:
+        names = ", ".join(dataset.bad[:5]) + (" ..." if len(dataset.bad) > 5 else "")
+        warnings.warn(
+            f"{len(dataset.bad)} sequences skipped by {action} ({names})",
+            TalkmeshWarning,
+            stacklevel=2,
+        )
+    return len(dataset.bad)
 
 
 # ---------------------------------------------------------------------------------------------

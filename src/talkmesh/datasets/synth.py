@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from talkmesh.errors import TalkmeshError
+from talkmesh.errors import TalkmeshError, TalkmeshWarning
 
 DISK_FPS = 60  # VOCASET stores 60 fps; readers take every second frame
 MOTION_FPS = 30
@@ -158,6 +159,13 @@ def make_corpus(
     rng = np.random.default_rng(seed)
     texts = generate_sentences(subjects * sentences, seed)
     n_train, n_val, n_test = split_subjects(subjects)
+    if not n_val or not n_test:
+        warnings.warn(
+            f"with {subjects} subject(s) the val and test splits are empty, so evaluate, "
+            "baseline and predict have nothing to score: use --subjects 3 or more",
+            TalkmeshWarning,
+            stacklevel=2,
+        )
 
     for sub in ("wav", "vertices_npy", "arkit", "regions"):
         (root / sub).mkdir(parents=True, exist_ok=True)

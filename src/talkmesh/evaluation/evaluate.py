@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from talkmesh.datasets.reader import MotionDataset, open_dataset
+from talkmesh.datasets.reader import MotionDataset, open_dataset, report_skipped
 from talkmesh.errors import TalkmeshError
 from talkmesh.evaluation.metrics import PROTOCOLS, Scores, pool, score_sequence
 
@@ -89,7 +89,11 @@ def evaluate_dataset(
         if name not in found:
             missing.append(name)
             continue
-        sample = dataset[index]
+        try:
+            sample = dataset[index]
+        except TalkmeshError as e:  # one bad ground-truth file does not stop the evaluation
+            dataset.reject(name, str(e))
+            continue
         pairs = bundled_lip_pairs(len(sample.template))
         for cond, path in found[name]:
             p = _load_prediction(path, len(sample.template))
@@ -106,6 +110,8 @@ def evaluate_dataset(
                     cond,
                 )
             )
+    if not pending:
+        raise TalkmeshError(f"{dataset.root}: no {dataset.split} sequence could be scored")
     return pool(pending, protocol), missing
 
 
@@ -121,6 +127,7 @@ def evaluate(
     """``talkmesh evaluate``: open the dataset split and score the predictions."""
     dataset = open_dataset(kind, data, split, regions=regions)
     scores, _ = evaluate_dataset(dataset, pred, protocol=protocol)
+    report_skipped(dataset, "evaluation")
     return scores
 
 
@@ -216,7 +223,11 @@ def write_baseline(
         }
     written = 0
     for index in tqdm(range(len(dataset)), desc=method, unit="seq", disable=not progress):
-        sample = dataset[index]
+        try:
+            sample = dataset[index]
+        except TalkmeshError as e:  # one bad file does not stop the run
+            dataset.reject(dataset.names[index], str(e))
+            continue
         path = out / f"{sample.name}.npy"
         if path.exists():
             raise TalkmeshError(f"{path} already exists: choose an empty output directory")
@@ -242,7 +253,7 @@ def write_baseline(
             pred = head.vertices_from_weights(weights)
         np.save(path, pred.reshape(len(pred), -1).astype(np.float32))
         written += 1
-    return written
+    return _written(written, dataset, "baseline")
 
 
 RECONSTRUCT = "reconstruct"  # write_model_predictions(mode=): the model's motion autoencoder alone
@@ -316,7 +327,11 @@ def write_model_predictions(
     written = 0
 
     for index in tqdm(range(len(dataset)), desc="predict", unit="seq", disable=not progress):
-        sample = dataset[index]
+        try:
+            sample = dataset[index]
+        except TalkmeshError as e:  # one bad file does not stop the run
+            dataset.reject(dataset.names[index], str(e))
+            continue
         for filename, weights in _prediction_jobs(sample, styles, conditions):
             path = out / filename
             if path.exists():
@@ -341,4 +356,15 @@ def write_model_predictions(
                 replace_eye_motion(verts, fitted, eyes, basis)
             np.save(path, verts.reshape(len(verts), -1).astype(np.float32))
             written += 1
+    return _written(written, dataset, "predict")
+
+
+def _written(written: int, dataset: MotionDataset, action: str) -> int:
+    """A run that wrote nothing is an error; one that skipped files says how many."""
+    report_skipped(dataset, action)
+    if written == 0:
+        raise TalkmeshError(
+            f"{action} wrote no predictions: all {len(dataset.bad)} sequences of the "
+            f"{dataset.split} split of {dataset.root} failed to load (see the warnings)"
+        )
     return written

@@ -257,7 +257,7 @@ class CroppedMotion:
     def __getitem__(self, index: int):
         from talkmesh.audio.loading import SAMPLE_RATE
 
-        sample = self.dataset[index]
+        sample = self.dataset.sample_or_next(index)  # a file that fails to load is skipped
         start, stop = crop_window(
             len(sample.vertices), self.max_frames, self.seed, self.epoch, index
         )
@@ -305,7 +305,7 @@ def collate_torch(samples) -> TorchBatch:
 
 
 def dataset_info(dataset) -> DatasetInfo:
-    first = dataset[0]
+    first = dataset.sample_or_next(0)
     return DatasetInfo(
         num_vertices=int(first.template.shape[0]),
         motion_fps=float(dataset.spec.motion_fps),
@@ -415,7 +415,7 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
-    from talkmesh.datasets.reader import open_dataset
+    from talkmesh.datasets.reader import open_dataset, report_skipped
 
     out = Path(recipe.train.out_dir)
     last = out / "last.ckpt"
@@ -456,7 +456,11 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     val_loader = None
     if recipe.data.val_split:
         val_set = open_dataset(
-            recipe.data.kind, recipe.data.root, recipe.data.val_split, regions=recipe.data.regions
+            recipe.data.kind,
+            recipe.data.root,
+            recipe.data.val_split,
+            regions=recipe.data.regions,
+            allow_empty=True,
         )
         if len(val_set):
             val_loader = torch.utils.data.DataLoader(
@@ -513,6 +517,7 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     release = out / "model.safetensors"
     if trainer.is_global_zero:
         task_spec(recipe.task).save(system.model, release)
+        report_skipped(train_set, "training")
     return release
 
 
