@@ -44,6 +44,8 @@ TEMPLATES_FILE = "templates.pkl"
 REGIONS_DIR = "regions"
 LVE_FILE = "lve.txt"
 FDD_FILE = "fdd.txt"
+EYELIDS_FILE = "eyelids.txt"
+FLAME_MASKS_FILE = "FLAME_masks.pkl"  # FLAME's vertex masks, where users of VOCASET keep them
 MANIFEST_FILE = "manifest.json"
 SPLITS_FILE = "splits.json"
 AUDIO_TOLERANCE_FRAMES = 2  # a wav may end this many motion frames before the motion does
@@ -270,10 +272,12 @@ def parse_name(stem: str) -> tuple[str, str]:
 
 @dataclass(frozen=True)
 class DatasetRegions:
-    """Region vertex ids: lve (lips, for lip vertex error), fdd (upper face); None if absent."""
+    """Region vertex ids: lve (lips, for lip vertex error), fdd (upper face), eyelids (MeshTalk's
+    eyelid loss); None if absent. See :mod:`talkmesh.datasets.regions` for FLAME's and BIWI's."""
 
     lve: np.ndarray | None = None
     fdd: np.ndarray | None = None
+    eyelids: np.ndarray | None = None
 
 
 def _read_ids(path: Path) -> np.ndarray:
@@ -287,16 +291,25 @@ def _read_ids(path: Path) -> np.ndarray:
     return ids
 
 
-def load_regions(directory: str | Path | None) -> DatasetRegions:
-    """``DIR/lve.txt`` and ``DIR/fdd.txt`` -> :class:`DatasetRegions` (missing files give None)."""
+def load_regions(
+    directory: str | Path | None, template: np.ndarray | None = None
+) -> DatasetRegions:
+    """``DIR/lve.txt``, ``DIR/fdd.txt`` and ``DIR/eyelids.txt`` -> :class:`DatasetRegions`
+    (missing files give None), or FLAME's ``FLAME_masks.pkl`` (eyelids need the ``template``)."""
     if directory is None:
         return DatasetRegions()
     directory = Path(directory)
+    if directory.is_file() and directory.suffix == ".pkl":
+        from talkmesh.datasets.regions import load_flame_masks
+
+        return load_flame_masks(directory, template)
     if not directory.is_dir():
         raise TalkmeshError(f"regions directory not found: {directory}")
-    lve, fdd = directory / LVE_FILE, directory / FDD_FILE
+    lve, fdd, lids = directory / LVE_FILE, directory / FDD_FILE, directory / EYELIDS_FILE
     return DatasetRegions(
-        _read_ids(lve) if lve.is_file() else None, _read_ids(fdd) if fdd.is_file() else None
+        _read_ids(lve) if lve.is_file() else None,
+        _read_ids(fdd) if fdd.is_file() else None,
+        _read_ids(lids) if lids.is_file() else None,
     )
 
 
@@ -392,6 +405,24 @@ class MotionDataset:
         warnings.warn(f"skipped {name}: {why}", TalkmeshWarning, stacklevel=3)
         self.bad.append(name)
 
+    def drop_unloadable(self) -> int:
+        """Load every sequence once and drop (with a warning naming it) those that fail, so
+        everything after (statistics, DataLoader workers) sees only good files. Returns how many
+        were dropped; an error if none is left."""
+        keep = []
+        for index, name in enumerate(list(self.names)):
+            try:
+                self[index]
+            except TalkmeshError as e:
+                self.reject(name, str(e))
+                continue
+            keep.append(name)
+        dropped = len(self.names) - len(keep)
+        self.names = keep
+        if not keep:
+            raise TalkmeshError(_empty_message(self))
+        return dropped
+
     def sample_or_next(self, index: int) -> Sample:
         """``self[index]``, or if that sequence fails to load (NaN values, a corrupt body), a
         warning naming it and the next sequence that loads: a run never stops for one file."""
@@ -483,13 +514,19 @@ def open_dataset(
     spec = READERS[kind](root)
     if split not in spec.splits:
         raise TalkmeshError(f"{kind} has no split '{split}': use one of {', '.join(spec.splits)}")
-    region_dir = Path(regions) if regions is not None else root / REGIONS_DIR
-    found = (
-        load_regions(region_dir)
-        if (regions is not None or region_dir.is_dir())
-        else DatasetRegions()
-    )
+    if regions is not None:
+        source: Path | None = Path(regions)
+    elif (root / REGIONS_DIR).is_dir():
+        source = root / REGIONS_DIR
+    elif (root / FLAME_MASKS_FILE).is_file():
+        source = root / FLAME_MASKS_FILE
+    else:
+        source = None
+    found = load_regions(source) if source is None or source.is_dir() else DatasetRegions()
     dataset = MotionDataset(spec, root, split, found)
+    if source is not None and not source.is_dir():  # FLAME's masks: eyelids need a template
+        template = next(iter(dataset.templates.values()), None)
+        dataset.regions = load_regions(source, template)
     if not dataset.names and not allow_empty:
         raise TalkmeshError(_empty_message(dataset))
     return dataset

@@ -36,22 +36,25 @@ def _config(cls, preset_fn, model: dict[str, Any], *args):
 def region_maps(
     info: DatasetInfo,
 ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
-    """Soft mouth / upper-face maps and eyelid ids for the training topology.
+    """Mouth / upper-face maps and eyelid ids for the training topology.
 
-    The bundled head ships soft maps; other topologies fall back to uniform maps (the
-    cross-modality loss then weighs every vertex alike).
+    The bundled head ships soft maps; VOCASET (FLAME_masks.pkl) and BIWI (CodeTalker's region
+    files) get binary maps from the dataset's regions (:mod:`talkmesh.datasets.regions`);
+    anything else falls back to uniform maps with a warning.
     """
+    from talkmesh.datasets.regions import region_masks
     from talkmesh.face.assets import load_head
 
     head = load_head()
-    if info.num_vertices != head.num_vertices:
-        return None, None, None
-    r = head.regions
-    return (
-        torch.as_tensor(r.mouth_weight, dtype=torch.float32),
-        torch.as_tensor(r.upper_weight, dtype=torch.float32),
-        torch.as_tensor(r.eyelids, dtype=torch.long),
-    )
+    if info.num_vertices == head.num_vertices:
+        r = head.regions
+        return (
+            torch.as_tensor(r.mouth_weight, dtype=torch.float32),
+            torch.as_tensor(r.upper_weight, dtype=torch.float32),
+            torch.as_tensor(r.eyelids, dtype=torch.long),
+        )
+    masks = region_masks(info.regions, info.num_vertices)
+    return tuple(None if m is None else torch.as_tensor(m) for m in masks)
 
 
 def load_system(path: str | Path) -> MeshTalkModel:

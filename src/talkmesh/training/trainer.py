@@ -177,6 +177,7 @@ class DatasetInfo:
     motion_fps: float
     train_subjects: tuple[str, ...]
     faces: np.ndarray | None = None
+    regions: Any = None  # talkmesh.datasets.reader.DatasetRegions of the training data
 
 
 @dataclass(frozen=True)
@@ -311,6 +312,7 @@ def dataset_info(dataset) -> DatasetInfo:
         motion_fps=float(dataset.spec.motion_fps),
         train_subjects=tuple(dataset.spec.train_subjects),
         faces=getattr(dataset, "faces", None),
+        regions=getattr(dataset, "regions", None),
     )
 
 
@@ -434,6 +436,7 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     )
     if len(train_set) == 0:
         raise TalkmeshError(f"{recipe.data.root}: the {recipe.data.train_split} split is empty")
+    train_set.drop_unloadable()  # a bad file is skipped (and counted), never fatal
     info = dataset_info(train_set)
     init = Path(recipe.init) if recipe.init else None
     if init is not None and not init.is_file():
