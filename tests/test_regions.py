@@ -128,7 +128,8 @@ def test_meshtalk_trains_on_vocaset_with_flame_masks_and_skips_a_bad_file(tmp_pa
     args = [f"data.root={root}", "data.kind=vocaset", f"train.out_dir={out}", "train.epochs=1",
             "data.batch_size=1", "data.max_seconds=0", "train.accelerator=cpu",
             "model.expression_widths=[16,16]", "model.decoder_widths=[16,16]",
-            "model.fusion_width=16"]  # fmt: skip
+            "model.fusion_width=16", "train.lr_step_size=1", "train.lr_step_unit=step",
+            "train.lr_gamma=0.5"]  # fmt: skip
     res = subprocess.run(
         [sys.executable, "-m", "talkmesh", "train", str(RECIPE), *args, "-q"],
         capture_output=True,

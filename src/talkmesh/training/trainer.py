@@ -70,6 +70,9 @@ class TrainConfig:
     lr: float = 1e-4
     weight_decay: float = 0.0
     optimizer: Literal["adam", "adamw"] = "adamw"
+    lr_step_size: int = 0  # multiply the lr by lr_gamma every this many lr_step_unit (0: constant)
+    lr_step_unit: Literal["epoch", "step"] = "epoch"
+    lr_gamma: float = 0.5
     epochs: int = 10
     max_steps: int = -1  # stop after this many optimiser steps (-1: no limit)
     seed: int = 0
@@ -90,6 +93,8 @@ class TrainConfig:
             raise ValueError("train.epochs must be at least 1")
         if self.devices < 1 or self.num_nodes < 1:
             raise ValueError("train.devices and train.num_nodes must be at least 1")
+        if self.lr_step_size < 0 or not 0 < self.lr_gamma <= 1:
+            raise ValueError("train.lr_step_size must be >= 0 and train.lr_gamma in (0, 1]")
 
 
 @dataclass(frozen=True)
@@ -364,7 +369,16 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
         def configure_optimizers(self):
             params = [p for p in task.parameters(self.model) if p.requires_grad]
             opt = torch.optim.AdamW if recipe.train.optimizer == "adamw" else torch.optim.Adam
-            return opt(params, lr=recipe.train.lr, weight_decay=recipe.train.weight_decay)
+            optimizer = opt(params, lr=recipe.train.lr, weight_decay=recipe.train.weight_decay)
+            t = recipe.train
+            if not t.lr_step_size:
+                return optimizer
+            # CodeTalker's StepLR (per epoch), MeshTalk's x0.1 at an iteration (per step)
+            decay = torch.optim.lr_scheduler.StepLR(optimizer, t.lr_step_size, t.lr_gamma)
+            return {
+                "optimizer": optimizer,
+                "lr_scheduler": {"scheduler": decay, "interval": t.lr_step_unit},
+            }
 
         def on_train_epoch_start(self) -> None:
             loader = self.trainer.train_dataloader
