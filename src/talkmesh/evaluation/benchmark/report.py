@@ -9,6 +9,7 @@ import numpy as np
 
 from talkmesh.evaluation.benchmark.claims import mean_std
 from talkmesh.evaluation.benchmark.config import METRICS
+from talkmesh.evaluation.scope import scope_lines
 
 # (metric, scale, unit) per protocol: the units of ``talkmesh evaluate``'s tables
 UNITS: dict[str, dict[str, tuple[float, str]]] = {
@@ -57,6 +58,7 @@ def fmt_seconds(s: float | None) -> str:
 def render_markdown(report: dict[str, Any]) -> str:
     """The benchmark's markdown page from its JSON report."""
     out = _header(report)
+    out += scope_lines(report)  # the data, variants and budgets behind every number below
     for protocol in ("codetalker", "physical"):
         out += _scores(report, protocol)
     out += _claims(report)
