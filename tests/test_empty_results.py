@@ -24,7 +24,7 @@ def test_two_subjects_leave_an_empty_test_split_and_baseline_says_so(tmp_path):
     if res.returncode != 0 and "no synthetic voices" in res.stderr:
         pytest.fail("synth needs the voices of `make setup`")
     assert res.returncode == 0, res.stderr
-    assert "talkmesh: warning: with 2 subject(s) the val and test splits are empty" in res.stderr
+    assert "talkmesh: warning: with 2 subject(s) the test split is empty" in res.stderr
     proc = tmp_path / "proc"
     res = talkmesh("baseline", "--dataset", "synth", "--data", str(corpus), "--method", "static",
                    "-o", str(proc))  # fmt: skip

@@ -159,14 +159,20 @@ def make_corpus(
     rng = np.random.default_rng(seed)
     texts = generate_sentences(subjects * sentences, seed)
     n_train, n_val, n_test = split_subjects(subjects)
-    if not n_val or not n_test:
+    if not n_test:
         warnings.warn(
-            f"with {subjects} subject(s) the val and test splits are empty, so evaluate, "
-            "baseline and predict have nothing to score: use --subjects 3 or more",
+            f"with {subjects} subject(s) the test split is empty, so evaluate, baseline and "
+            "predict have nothing to score on it: use --subjects 3 or more",
             TalkmeshWarning,
             stacklevel=2,
         )
-
+    elif not n_val:
+        warnings.warn(
+            f"with {subjects} subjects the val split is empty (training runs without "
+            "validation): use --subjects 5 or more for one",
+            TalkmeshWarning,
+            stacklevel=2,
+        )
     for sub in ("wav", "vertices_npy", "arkit", "regions"):
         (root / sub).mkdir(parents=True, exist_ok=True)
     jobs, manifest_subjects, sentence_text = [], {}, {}
