@@ -77,3 +77,20 @@ def test_one_bad_sequence_is_skipped_counted_and_the_run_goes_on(tmp_path):
     assert "1 sequences skipped by baseline" in res.stderr
     assert "wrote 1 predictions" in res.stdout
     assert sorted(p.name for p in out.iterdir()) == ["alice_s01.npy"]
+
+
+def test_evaluation_skips_a_bad_ground_truth_file_and_counts_it(tmp_path):
+    root = folder(tmp_path / "data")
+    (root / "regions").mkdir()
+    (root / "regions" / "lve.txt").write_text("0,1,2")
+    (root / "regions" / "fdd.txt").write_text("3,4,5")
+    out = tmp_path / "pred"
+    res = talkmesh("baseline", "--dataset", "folder", "--data", str(root), "--method", "static",
+                   "-o", str(out), "-q")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    np.save(root / "vertices_npy" / "alice_s02.npy", np.full((6, 30), np.inf, np.float32))
+    res = talkmesh("evaluate", "--dataset", "folder", "--data", str(root), "--pred", str(out),
+                   "--protocol", "physical")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "skipped alice_s02" in res.stderr and "1 sequences skipped by evaluation" in res.stderr
+    assert "| 1 |" in res.stdout  # one sequence scored
