@@ -1,5 +1,5 @@
 """The recipes under configs/ against the official configs (configs/official_hparams.json) and
-the docs table (docs/recipes.md) rendered from that file."""
+the docs table (docs/guide/recipes.md) rendered from that file."""
 
 from __future__ import annotations
 
@@ -84,7 +84,7 @@ def render_table(rows: list[dict]) -> str:
 
 
 def test_docs_table_is_rendered_from_the_data():
-    docs = (ROOT / "docs" / "recipes.md").read_text()
+    docs = (ROOT / "docs" / "guide" / "recipes.md").read_text()
     assert render_table(TABLE) in docs, (
-        "re-render docs/recipes.md from configs/official_hparams.json"
+        "re-render docs/guide/recipes.md from configs/official_hparams.json"
     )

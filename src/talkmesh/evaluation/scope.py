@@ -67,7 +67,7 @@ def scope_lines(report: dict[str, Any]) -> list[str]:
     out += [
         "",
         "Variants and budgets: each method is the recipe named below (not the papers' "
-        "configurations unless the recipe says so; docs/recipes.md lists those), trained for the "
+        "configurations unless the recipe says so; docs/guide/recipes.md lists those), trained for the "
         "epochs shown out of the recipe's own.",
         "",
         "| method | recipe | stage: epochs trained / recipe's epochs |",
