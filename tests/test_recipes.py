@@ -30,7 +30,8 @@ def model_config(task: str, model: dict, info: DatasetInfo) -> dict:
         from talkmesh.training.faceformer import build_config
 
         return to_dict(build_config(model, info))
-    from talkmesh.models.meshtalk import MeshTalkConfig, PriorConfig, meshtalk_config, prior_config
+    from talkmesh.models.meshtalk import MeshTalkConfig, meshtalk_config
+    from talkmesh.models.meshtalk_prior import PriorConfig, prior_config
     from talkmesh.training.meshtalk import _config
 
     if task == "meshtalk":
