@@ -36,16 +36,18 @@ from typing import NamedTuple
 
 import numpy as np
 
+from talkmesh.datasets.pickles import safe_load_pickle
+from talkmesh.datasets.regions import (
+    FLAME_MASKS_FILE,
+    DatasetRegions,
+    load_regions,
+)
 from talkmesh.errors import TalkmeshError, TalkmeshWarning
 
 WAV_DIR = "wav"
 VERTICES_DIR = "vertices_npy"
 TEMPLATES_FILE = "templates.pkl"
 REGIONS_DIR = "regions"
-LVE_FILE = "lve.txt"
-FDD_FILE = "fdd.txt"
-EYELIDS_FILE = "eyelids.txt"
-FLAME_MASKS_FILE = "FLAME_masks.pkl"  # FLAME's vertex masks, where users of VOCASET keep them
 MANIFEST_FILE = "manifest.json"
 SPLITS_FILE = "splits.json"
 AUDIO_TOLERANCE_FRAMES = 2  # a wav may end this many motion frames before the motion does
@@ -162,59 +164,6 @@ READERS: dict[str, Callable[[Path], DatasetSpec]] = {
 # Safe file readers
 
 
-class _SafeUnpickler(pickle.Unpickler):
-    """Only what dicts of numpy arrays need: no code can run while loading a template file."""
-
-    ALLOWED = {
-        ("numpy.core.multiarray", "_reconstruct"),
-        ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy.core.multiarray", "scalar"),
-        ("numpy._core.multiarray", "scalar"),
-        ("numpy", "ndarray"),
-        ("numpy", "dtype"),
-        ("copyreg", "_reconstructor"),
-        ("builtins", "object"),
-        ("__builtin__", "object"),
-        ("collections", "OrderedDict"),
-        ("_codecs", "encode"),  # how Python 3 writes bytes (array data) into protocol-2 pickles
-    }
-
-    def find_class(self, module: str, name: str):
-        if (module, name) in self.ALLOWED:
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"refusing to load {module}.{name}")
-
-
-def safe_load_pickle(path: str | Path) -> object:
-    """Load a (Python 2 or 3) pickle that may only hold dicts, lists, strings, numbers and arrays."""
-    path = Path(path)
-    if not path.is_file():
-        raise TalkmeshError(f"{path} is missing")
-    try:
-        with path.open("rb") as f:
-            obj = _SafeUnpickler(f, encoding="latin1").load()
-    except pickle.UnpicklingError as e:
-        raise TalkmeshError(
-            f"{path}: unsafe or corrupt pickle ({e}); templates may hold only arrays"
-        ) from None
-    except (EOFError, ValueError, TypeError, AttributeError, ImportError, IndexError) as e:
-        raise TalkmeshError(f"{path}: corrupt pickle ({type(e).__name__})") from None
-    _check_plain(obj, path)
-    return obj
-
-
-def _check_plain(obj: object, path: Path) -> None:
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            _check_plain(k, path)
-            _check_plain(v, path)
-    elif isinstance(obj, (list, tuple)):
-        for v in obj:
-            _check_plain(v, path)
-    elif not isinstance(obj, (str, bytes, int, float, bool, np.ndarray, np.generic, type(None))):
-        raise TalkmeshError(f"{path}: unexpected {type(obj).__name__} in a template pickle")
-
-
 def load_templates(path: str | Path) -> dict[str, np.ndarray]:
     """templates.pkl -> subject -> (V, 3) float32."""
     path = Path(path)
@@ -268,49 +217,6 @@ def parse_name(stem: str) -> tuple[str, str]:
     if not sep or not subject:
         raise TalkmeshError(f"{stem}: file names must be <SUBJECT>_<SENTENCE>")
     return subject, sentence
-
-
-@dataclass(frozen=True)
-class DatasetRegions:
-    """Region vertex ids: lve (lips, for lip vertex error), fdd (upper face), eyelids (MeshTalk's
-    eyelid loss); None if absent. See :mod:`talkmesh.datasets.regions` for FLAME's and BIWI's."""
-
-    lve: np.ndarray | None = None
-    fdd: np.ndarray | None = None
-    eyelids: np.ndarray | None = None
-
-
-def _read_ids(path: Path) -> np.ndarray:
-    text = path.read_text().replace("\n", ",").replace(" ", ",")
-    try:
-        ids = np.array([int(t) for t in text.split(",") if t.strip()], dtype=np.int64)
-    except ValueError:
-        raise TalkmeshError(f"{path}: expected comma-separated vertex ids") from None
-    if len(ids) == 0 or ids.min() < 0:
-        raise TalkmeshError(f"{path}: expected non-negative vertex ids")
-    return ids
-
-
-def load_regions(
-    directory: str | Path | None, template: np.ndarray | None = None
-) -> DatasetRegions:
-    """``DIR/lve.txt``, ``DIR/fdd.txt`` and ``DIR/eyelids.txt`` -> :class:`DatasetRegions`
-    (missing files give None), or FLAME's ``FLAME_masks.pkl`` (eyelids need the ``template``)."""
-    if directory is None:
-        return DatasetRegions()
-    directory = Path(directory)
-    if directory.is_file() and directory.suffix == ".pkl":
-        from talkmesh.datasets.regions import load_flame_masks
-
-        return load_flame_masks(directory, template)
-    if not directory.is_dir():
-        raise TalkmeshError(f"regions directory not found: {directory}")
-    lve, fdd, lids = directory / LVE_FILE, directory / FDD_FILE, directory / EYELIDS_FILE
-    return DatasetRegions(
-        _read_ids(lve) if lve.is_file() else None,
-        _read_ids(fdd) if fdd.is_file() else None,
-        _read_ids(lids) if lids.is_file() else None,
-    )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,21 +19,65 @@ and eyelid ids (binary, as MeshTalk's released masks are).
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from talkmesh.datasets.reader import DatasetRegions, safe_load_pickle
+from talkmesh.datasets.pickles import safe_load_pickle
 from talkmesh.errors import TalkmeshError, TalkmeshWarning
 
-FLAME_MASKS_FILE = "FLAME_masks.pkl"
+LVE_FILE = "lve.txt"
+FDD_FILE = "fdd.txt"
+EYELIDS_FILE = "eyelids.txt"
+FLAME_MASKS_FILE = "FLAME_masks.pkl"  # FLAME's vertex masks, where users of VOCASET keep them
 FLAME_VERTICES = 5023
 FLAME_UPPER = ("forehead", "eye_region", "nose")
 FLAME_EYES = ("eye_region",)
 FLAME_EYEBALLS = ("left_eyeball", "right_eyeball")
 EYELID_FRACTION = 0.25  # of eye_region, nearest the eyeballs
-EYELIDS_FILE = "eyelids.txt"
+
+
+@dataclass(frozen=True)
+class DatasetRegions:
+    """Region vertex ids: lve (lips, for lip vertex error), fdd (upper face), eyelids (MeshTalk's
+    eyelid loss); None if absent. See :mod:`talkmesh.datasets.regions` for FLAME's and BIWI's."""
+
+    lve: np.ndarray | None = None
+    fdd: np.ndarray | None = None
+    eyelids: np.ndarray | None = None
+
+
+def _read_ids(path: Path) -> np.ndarray:
+    text = path.read_text().replace("\n", ",").replace(" ", ",")
+    try:
+        ids = np.array([int(t) for t in text.split(",") if t.strip()], dtype=np.int64)
+    except ValueError:
+        raise TalkmeshError(f"{path}: expected comma-separated vertex ids") from None
+    if len(ids) == 0 or ids.min() < 0:
+        raise TalkmeshError(f"{path}: expected non-negative vertex ids")
+    return ids
+
+
+def load_regions(
+    directory: str | Path | None, template: np.ndarray | None = None
+) -> DatasetRegions:
+    """``DIR/lve.txt``, ``DIR/fdd.txt`` and ``DIR/eyelids.txt`` -> :class:`DatasetRegions`
+    (missing files give None), or FLAME's ``FLAME_masks.pkl`` (eyelids need the ``template``)."""
+    if directory is None:
+        return DatasetRegions()
+    directory = Path(directory)
+    if directory.is_file() and directory.suffix == ".pkl":
+        return load_flame_masks(directory, template)
+    if not directory.is_dir():
+        raise TalkmeshError(f"regions directory not found: {directory}")
+    lve, fdd, lids = directory / LVE_FILE, directory / FDD_FILE, directory / EYELIDS_FILE
+    return DatasetRegions(
+        _read_ids(lve) if lve.is_file() else None,
+        _read_ids(fdd) if fdd.is_file() else None,
+        _read_ids(lids) if lids.is_file() else None,
+    )
 
 
 def load_flame_masks(path: str | Path, template: np.ndarray | None = None) -> DatasetRegions:
