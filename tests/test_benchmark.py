@@ -327,3 +327,26 @@ def test_report_renders_one_seed_no_claims_and_a_discussion_link():
     assert "- no video: the dataset has no faces (.ply) to render" in lines
     assert not any(line.startswith(("## Ablation", "## Speed", "![")) for line in lines)
     assert "| voca | voca | voca | 3 | 2 | 1.0 | 1m15s (resumed) | 40 | 4s |" in lines
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_before_resuming(bench_root, tmp_path):
+    import torch
+
+    from talkmesh.evaluation.benchmark.steps import train_stage
+
+    marker = tmp_path / "pwned"
+
+    class Payload:
+        def __reduce__(self):  # unpickling calls open(marker, "w"): a file appears if it runs
+            return (open, (str(marker), "w"))
+
+    work = {"work_dir": str(tmp_path / "work"), "docs_dir": str(tmp_path / "docs")}
+    (tmp_path / "b.yaml").write_text(benchmark_yaml(bench_root, ablation=None, **work))
+    (plan,) = method_stages(load_benchmark(tmp_path / "b.yaml"), "voca", 0)
+    plan.out_dir.mkdir(parents=True)
+    torch.save({"epoch": 3, "state_dict": {}, "payload": Payload()}, plan.out_dir / "last.ckpt")
+    with pytest.raises(TalkmeshError, match="last.ckpt: refused") as err:
+        train_stage(plan, keep_checkpoints=True, progress=False)
+    assert "\n" not in str(err.value) and "delete it" in str(err.value)
+    assert not marker.exists()
+    assert not plan.release.exists() and not (plan.out_dir / "timing.json").exists()

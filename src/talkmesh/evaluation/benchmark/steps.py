@@ -58,10 +58,19 @@ def _epoch_frames(recipe) -> tuple[int, int]:
 
 
 def _checkpoint_epochs(last: Path) -> int:
-    """Epochs already completed by the run that wrote ``last``."""
+    """Epochs already completed by the run that wrote ``last``, read with ``weights_only``: a
+    checkpoint that would run code when unpickled is refused before training resumes from it."""
+    import pickle
+
     import torch
 
-    ckpt = torch.load(last, map_location="cpu", weights_only=False, mmap=True)
+    try:
+        ckpt = torch.load(last, map_location="cpu", weights_only=True, mmap=True)
+    except (pickle.UnpicklingError, RuntimeError, OSError, EOFError, ValueError) as e:
+        raise TalkmeshError(
+            f"{last}: refused, not a training checkpoint that loads without running code "
+            f"({type(e).__name__}): delete it to train the stage from scratch"
+        ) from None
     return int(ckpt.get("epoch", -1)) + 1
 
 
