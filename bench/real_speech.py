@@ -55,7 +55,7 @@ def table(rows, med, methods, conditions) -> str:
     lines = [
         "| clip | condition | method | " + " | ".join(METRICS) + " |",
         "|---|---|---|" + "---|" * len(METRICS),
-    ]  # fmt: skip -- header and rule together
+    ]
     for r in rows:
         vals = " | ".join(_fmt(getattr(r, m)) for m in METRICS)
         lines.append(f"| {r.clip} | {r.condition} | {r.method} | {vals} |")
@@ -65,7 +65,7 @@ def table(rows, med, methods, conditions) -> str:
         "",
         "| condition | method | " + " | ".join(METRICS) + " |",
         "|---|---|" + "---|" * len(METRICS),
-    ]  # fmt: skip -- header and rule together
+    ]
     for c in conditions:
         for m in methods:
             if (m, c) in med:
@@ -134,7 +134,7 @@ def main() -> None:
                             degraded,
                             FPS,
                         )
-                    )  # fmt: skip -- one call
+                    )
                     bar.update()
     med = medians(rows)
     print(table(rows, med, methods, conditions))

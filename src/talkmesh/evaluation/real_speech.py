@@ -61,7 +61,7 @@ _ALSA_PROMPTS = (
     "Rear_Right",
     "Side_Left",
     "Side_Right",
-)  # fmt: skip -- one tuple, as listed
+)
 # pocketsphinx-testdata's raw clips (16 kHz 16-bit mono) with the words its tests expect
 _RAW_CLIPS = {"goforward": "go forward ten meters"}
 
@@ -149,7 +149,7 @@ def add_reverb(wave: np.ndarray, rt60: float = 0.5, seed: int = 0) -> np.ndarray
     absorption, max_order = pra.inverse_sabine(rt60, room_dim)
     room = pra.ShoeBox(
         room_dim, fs=SAMPLE_RATE, materials=pra.Material(absorption), max_order=min(max_order, 17)
-    )  # fmt: skip -- keyword pairs on one line
+    )
     rng = np.random.default_rng(seed)
     room.add_source([1.5 + rng.uniform(0, 0.5), 2.0, 1.6], signal=wave)
     room.add_microphone([4.0, 3.0, 1.2])
