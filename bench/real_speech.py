@@ -1,6 +1,6 @@
 """Lip sync on real recordings, clean, under noise and under reverb: procedural vs bundled models.
 
-    python bench/real_speech.py [--methods procedural,codetalker-synth] [--conditions clean,snr10]
+    python bench/real_speech.py [--methods procedural,codetalker-synth,codetalker-synth-nogate] [--conditions clean,snr10]
         [--clips cards,librivox] [--out docs/results]
 
 Every real recording with a transcript that Debian packages put on the machine
@@ -40,9 +40,17 @@ from talkmesh.pipeline import animate, available_models
 FPS = 30.0
 
 
+GATE_OFF = "-nogate"  # method suffix: a learned model without the pause gate
+
+
 def _animator(method: str, head):
+    model = method.removesuffix(GATE_OFF)
+    gate = not method.endswith(GATE_OFF)
+
     def run(wave: np.ndarray) -> np.ndarray:
-        return animate(wave, head=head, model=method, fps=FPS, seed=0).vertices
+        if model == "procedural":
+            return animate(wave, head=head, model=model, fps=FPS, seed=0).vertices
+        return animate(wave, head=head, model=model, fps=FPS, seed=0, pause_gate=gate).vertices
 
     return run
 
@@ -102,7 +110,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--methods", default=",".join(available_models()))
+    learned = [m for m in available_models() if m != "procedural"]
+    default = ["procedural", *learned, *(m + GATE_OFF for m in learned)]
+    ap.add_argument(
+        "--methods",
+        default=",".join(default),
+        help=f"procedural, bundled models (with the pause gate), MODEL{GATE_OFF} (without it)",
+    )
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--clips", default="", help="comma-separated name prefixes (default: all)")
     ap.add_argument("--out", type=Path, default=None, help="folder for real-speech.json/.png")

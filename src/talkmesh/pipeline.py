@@ -19,6 +19,7 @@ from talkmesh.face.lipsync import (
     phones_to_weights,
     replace_eye_motion,
 )
+from talkmesh.face.pauses import gate_mouth, speech_gate
 
 DEFAULT_FPS = MOTION_FPS
 MAX_FPS = 240.0
@@ -67,6 +68,7 @@ def animate(
     style_mix: dict[str, float] | None = None,
     blinks: bool = True,
     int8: str | None = None,
+    pause_gate: bool = True,
 ) -> Animation:
     """Animate a face from speech.
 
@@ -89,6 +91,9 @@ def animate(
         int8: CodeTalker models: run these layers in int8 on the CPU (``speech``: the speech
             encoder, ``decoders``: the per-frame decoder layers, ``all``: both); faster, not
             exact (its effect on accuracy: docs/results/codetalker.md).
+        pause_gate: learned models: close the mouth in the pauses that the phone recogniser
+            finds (:mod:`talkmesh.face.pauses`); real recordings' noisy pauses otherwise keep it
+            open (docs/results/real-speech.md).
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
@@ -114,6 +119,9 @@ def animate(
         anim = animate_learned(
             wave, head, model, fps=fps, style_mix=style_mix, seed=seed, int8=int8
         )
+        if pause_gate:
+            gate = speech_gate(recognize_phones(wave, SAMPLE_RATE), len(anim.vertices), fps)
+            gate_mouth(anim.vertices, head.template, head.regions.mouth_weight, gate)
         # ARKit weights that best explain the motion, so ARKit exports work for learned models
         anim.weights = fit_weights(anim.vertices, head.blendshapes, head.template)
         if blinks:  # the model's own eye motion becomes procedural blinks and gaze

@@ -66,6 +66,12 @@ def add_animate(sub: Subparsers) -> None:
         "gaze (speech cannot predict them)",
     )
     a.add_argument(
+        "--no-pause-gate",
+        action="store_true",
+        help="learned models: keep the model's mouth in pauses instead of closing it where the "
+        "phone recogniser finds no speech",
+    )
+    a.add_argument(
         "--int8",
         choices=INT8_LAYERS,
         help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
@@ -107,6 +113,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
                 model=args.model,
                 style_mix=parse_style(args.style),
                 blinks=not args.no_blinks,
+                pause_gate=not args.no_pause_gate,
                 int8=args.int8,
             )
             for p in paths:
