@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from talkmesh.audio.loading import load_audio
+from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+from talkmesh.audio.phonemes import recognize_phones
 from talkmesh.evaluation.real_speech import (
     BETTER,
     CONDITIONS,
@@ -35,6 +36,7 @@ from talkmesh.evaluation.real_speech import (
     truth_phones,
 )
 from talkmesh.face.assets import load_head
+from talkmesh.face.pauses import gate_mouth, speech_gate
 from talkmesh.pipeline import animate, available_models
 
 FPS = 30.0
@@ -43,16 +45,28 @@ FPS = 30.0
 GATE_OFF = "-nogate"  # method suffix: a learned model without the pause gate
 
 
-def _animator(method: str, head):
-    model = method.removesuffix(GATE_OFF)
-    gate = not method.endswith(GATE_OFF)
-
-    def run(wave: np.ndarray) -> np.ndarray:
+def _animate_condition(wave, methods, head) -> dict[str, np.ndarray]:
+    """method -> (T, V, 3). The phones are recognised once: the procedural animator is driven by
+    them and the pause gate uses them; a learned model runs once, gated and ungated (the gate
+    moves the mouth only, so this equals ``animate(pause_gate=True)`` on the lips)."""
+    phones = recognize_phones(wave, SAMPLE_RATE)
+    gate = None
+    out = {}
+    for method in methods:
+        model = method.removesuffix(GATE_OFF)
         if model == "procedural":
-            return animate(wave, head=head, model=model, fps=FPS, seed=0).vertices
-        return animate(wave, head=head, model=model, fps=FPS, seed=0, pause_gate=gate).vertices
-
-    return run
+            out[method] = animate(wave, head=head, phones=phones, fps=FPS, seed=0).vertices
+            continue
+        key = model + GATE_OFF
+        if key not in out:
+            out[key] = animate(wave, head=head, model=model, fps=FPS, pause_gate=False).vertices
+        if not method.endswith(GATE_OFF):
+            if gate is None:
+                gate = speech_gate(phones, len(out[key]), FPS)
+            out[method] = gate_mouth(
+                out[key].copy(), head.template, head.regions.mouth_weight, gate
+            )
+    return {m: out[m] for m in methods}
 
 
 def _fmt(v: float) -> str:
@@ -136,13 +150,15 @@ def main() -> None:
             phones = truth_phones(clip, wave)
             for condition in conditions:
                 degraded = degrade(wave, condition, noise, seed=0)
+                animated = _animate_condition(degraded, methods, head)
                 for method in methods:
+                    vertices = animated[method]
                     rows.append(
                         score_clip(
                             clip,
                             method,
                             condition,
-                            _animator(method, head),
+                            vertices,
                             head,
                             phones,
                             degraded,

@@ -105,8 +105,6 @@ def test_truth_of_a_real_clip_has_its_words_phones_and_the_procedural_mouth_clos
     assert "M" in labels and "F" in labels and "SIL" in labels
     head = load_head()
 
-    def procedural(w):
-        return animate(w, head=head, model="procedural", fps=FPS).vertices
-
-    s = rs.score_clip(go, "procedural", "clean", procedural, head, phones, wave, FPS)
+    vertices = animate(wave, head=head, model="procedural", fps=FPS).vertices
+    s = rs.score_clip(go, "procedural", "clean", vertices, head, phones, wave, FPS)
     assert s.pauses >= 1 and s.pause_mm < 1.0 and s.speed_ratio > 2.0

@@ -261,14 +261,13 @@ def score_clip(
     clip: Clip,
     method: str,
     condition: str,
-    animate: Callable[[np.ndarray], np.ndarray],
+    vertices: np.ndarray,
     head: Head,
     phones: list[Phone],
     wave: np.ndarray,
     fps: float,
 ) -> ClipScores:
-    """Animate ``wave`` (already degraded) with ``animate`` -> (T, V, 3) and score it."""
-    vertices = animate(wave)
+    """Score (T, V, 3) ``vertices`` animated from ``wave`` (the clip under ``condition``)."""
     opening = lip_opening(vertices, head.regions) * 1000.0
     rest = float(lip_opening(head.template[None], head.regions)[0]) * 1000.0
     m = score_opening(opening, rest, phones, wave, fps)
