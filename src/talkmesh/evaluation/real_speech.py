@@ -9,7 +9,7 @@ is scored on the lip opening (inner lips at the midline, :func:`talkmesh.face.as
 * ``pause_mm``: mean opening above rest in pauses of ``MIN_PAUSE_S`` or more, less
   ``PAUSE_MARGIN_S`` at each end where the mouth closes and opens (want about 0);
 * ``speed_ratio``: mean lip speed in speech / in pauses (a mouth that moves when nobody speaks
-  scores near 1);
+  scores near 1; pause speeds under ``SPEED_FLOOR_MM_S`` count as that floor);
 * ``bilabial``: share of /p b m/ whose lips come within ``CLOSED_MM`` of closed during the phone;
 * ``vowel_mm``: mean peak opening above rest on open vowels;
 * ``loudness_r``: correlation of the opening with the smoothed log loudness.
@@ -44,7 +44,7 @@ CLOSED_MM = 1.5  # lips this close count as closed for /p b m/
 BILABIALS = frozenset({"P", "B", "M"})
 OPEN_VOWELS = frozenset({"AA", "AE", "AH", "AO", "AW", "AY"})
 LOUDNESS_SMOOTH_S = 0.1  # moving-average window of the log loudness
-SPEED_FLOOR_MM_S = 0.01  # pause lip speed below this counts as this (a still mouth, no inf)
+SPEED_FLOOR_MM_S = 1.0  # lips moving slower than this in pauses count as still (no inf ratios)
 SNRS_DB = (20, 10, 5)
 CONDITIONS = ("clean", *(f"snr{s}" for s in SNRS_DB), "reverb")
 METRICS = ("pause_mm", "speed_ratio", "bilabial", "vowel_mm", "loudness_r")
@@ -208,6 +208,8 @@ class ClipScores:
     bilabial: float
     vowel_mm: float
     loudness_r: float
+    speech_speed: float  # mm/s
+    pause_speed: float  # mm/s
     pauses: int
     bilabials: int
 
@@ -224,7 +226,8 @@ def score_opening(
     pause = _frames(phones, is_pause, fps, n, margin=PAUSE_MARGIN_S)
     speech = _frames(phones, lambda p: p.label != SILENCE, fps, n)
     speed = np.abs(np.diff(opening_mm, prepend=opening_mm[:1])) * fps
-    pause_speed = max(float(speed[pause].mean()) if pause.any() else math.nan, SPEED_FLOOR_MM_S)
+    pause_speed = float(speed[pause].mean()) if pause.any() else math.nan
+    speech_speed = float(speed[speech].mean()) if speech.any() else math.nan
     closed, peaks = [], []
     for p in phones:
         lo, hi = max(0, int(p.start * fps) - 1), min(n, int(math.ceil(p.end * fps)) + 1)
@@ -238,7 +241,9 @@ def score_opening(
     r = np.corrcoef(opening_mm, loud)[0, 1] if opening_mm.std() > 0 and loud.std() > 0 else math.nan
     return {
         "pause_mm": float(opening_mm[pause].mean() - rest_mm) if pause.any() else math.nan,
-        "speed_ratio": float(speed[speech].mean()) / pause_speed if speech.any() else math.nan,
+        "speed_ratio": speech_speed / max(pause_speed, SPEED_FLOOR_MM_S),
+        "speech_speed": speech_speed,
+        "pause_speed": pause_speed,
         "bilabial": float(np.mean(closed)) if closed else math.nan,
         "vowel_mm": float(np.mean(peaks)) if peaks else math.nan,
         "loudness_r": float(r),
