@@ -135,6 +135,11 @@ def add_predict(sub: Subparsers) -> None:
         action="store_true",
         help="replace the model's eye motion with procedural blinks and gaze, as animate does",
     )
+    pr.add_argument(
+        "--pause-gate",
+        action="store_true",
+        help="close the mouth in the pauses the phone recogniser finds, as animate does",
+    )
     pr.add_argument("-o", "--out", required=True, help="output directory")
     add_quiet(pr)
     pr.set_defaults(func=cmd_predict)
@@ -152,6 +157,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
         conditions=args.conditions,
         mode=args.mode,
         blinks=args.blinks,
+        pause_gate=args.pause_gate,
         progress=not args.quiet,
     )
     if not args.quiet:

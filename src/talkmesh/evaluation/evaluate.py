@@ -286,9 +286,13 @@ def write_model_predictions(
     conditions: bool = False,
     mode: str = "fast",
     blinks: bool = False,
+    pause_gate: bool = False,
     progress: bool = True,
 ) -> int:
     """Predictions of a learned model (a release file or bundled name) for a split.
+
+    With ``pause_gate``, the mouth is closed in the pauses the phone recogniser finds, as
+    ``talkmesh animate`` does (:mod:`talkmesh.face.pauses`; bundled head topology only).
 
     With ``blinks``, the model's own eye motion is replaced by the procedural animator's blinks
     and gaze (seeded by the sequence index), through the bundled head's blendshapes, as
@@ -322,6 +326,15 @@ def write_model_predictions(
         if head.num_vertices != net.num_vertices:
             raise TalkmeshError("blinks need the bundled head's topology (its blendshapes)")
         basis = head.blendshapes.reshape(len(head.blendshape_names), -1)
+    if pause_gate:
+        from talkmesh.audio.loading import SAMPLE_RATE
+        from talkmesh.audio.phonemes import recognize_phones
+        from talkmesh.face.assets import load_head
+        from talkmesh.face.pauses import gate_mouth, speech_gate
+
+        mouth = load_head().regions.mouth_weight
+        if len(mouth) != net.num_vertices:
+            raise TalkmeshError("the pause gate needs the bundled head's topology (its mouth map)")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = 0
@@ -350,6 +363,10 @@ def write_model_predictions(
                         seed=index,
                         mode=mode,
                     )[0].numpy()
+            if pause_gate:  # as animate: the mouth shuts in the recognised pauses
+                phones = recognize_phones(sample.audio, SAMPLE_RATE)
+                gate = speech_gate(phones, len(verts), dataset.spec.motion_fps)
+                gate_mouth(verts, sample.template, mouth, gate)
             if blinks:  # as animate: the model's own eye motion becomes procedural eyes
                 eyes = blink_gaze_weights(len(verts), dataset.spec.motion_fps, seed=index)
                 fitted = fit_weights(verts, head.blendshapes, sample.template)
