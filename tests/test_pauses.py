@@ -7,7 +7,7 @@ import pytest
 
 from talkmesh.audio.phonemes import Phone
 from talkmesh.face.assets import lip_opening, load_head
-from talkmesh.face.pauses import gate_mouth, speech_gate
+from talkmesh.face.pauses import CLOSE_S, OPEN_S, gate_mouth, speech_gate
 
 FPS = 30.0
 
@@ -23,10 +23,12 @@ def test_gate_is_one_in_speech_zero_inside_long_pauses_and_ramps_between():
     gate = speech_gate(phones, 60, FPS)
     t = (np.arange(60) + 0.5) / FPS
     assert np.all(gate[(t >= 0.5) & (t < 1.2)] == 1.0)  # speech and a 100 ms gap: untouched
-    assert np.all(gate[t < 0.4] == 0.0)  # leading pause: shut up to its ramp
     assert np.all(gate[(t > 1.3) & (t < 2.0)] == 0.0)  # trailing pause: no ramp at the clip's end
-    ramp = gate[(t >= 1.2) & (t < 1.28)]
-    assert np.all(np.diff(ramp) < 0) and ramp[0] < 1.0 and ramp[-1] > 0.0
+    closing = gate[(t >= 1.2) & (t < 1.2 + CLOSE_S)]
+    assert np.all(np.diff(closing) < 0) and closing[0] < 1.0 and closing[-1] > 0.0
+    opening = gate[(t >= 0.5 - OPEN_S) & (t < 0.5)]  # before the speech after the first pause
+    assert np.all(gate[t < 0.5 - OPEN_S] == 0.0)
+    assert np.all(np.diff(opening) > 0) and opening[0] < 0.1 and opening[-1] > 0.9
     assert gate.min() >= 0.0 and gate.max() <= 1.0
 
 
