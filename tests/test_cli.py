@@ -295,15 +295,18 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
 COMMANDS = {
     "animate": (
         ["audio"],
-        "--avatar --fps --identity --int8 --model --no-blinks --output --overwrite "
-        "--quiet --seed --size --style --template --text",
+        "--avatar --fps --identity --int8 --model --no-blinks --no-pause-gate --output "
+        "--overwrite --quiet --seed --size --style --template --text",
     ),
     "render": (["anim"], "--audio --fps --labels --output --overwrite --quiet --size"),
     "export": (["anim"], "--fps --output --overwrite --quiet --size"),
     "synth": ([], "--out --overwrite --quiet --seed --sentences --subjects --workers"),
     "evaluate": ([], "--data --dataset --json --overwrite --pred --protocol --regions --split"),
     "baseline": ([], "--data --dataset --method --out --quiet --split"),
-    "predict": ([], "--blinks --conditions --data --dataset --mode --model --out --quiet --split"),
+    "predict": (
+        [],
+        "--blinks --conditions --data --dataset --mode --model --out --pause-gate --quiet --split",
+    ),
     "prepare-biwi": (["raw", "out"], "--quiet --regions --subset"),
     "prepare-vocaset": (["raw", "out"], "--quiet"),
     "convert-whisper": (["source"], "--out --overwrite --quiet"),
