@@ -302,7 +302,6 @@ def write_model_predictions(
     styles (``SUBJECT_SENTENCE.npy``) or, with ``conditions``, one prediction per training style
     (``SUBJECT_SENTENCE_condition_STYLE.npy``), as the anchors evaluate them.
     """
-    import torch
     from tqdm import tqdm
 
     from talkmesh.models.release import load_model
@@ -317,24 +316,7 @@ def write_model_predictions(
     note = net.mode_note(mode)
     if progress and note:
         print(f"talkmesh: note: {note}", file=sys.stderr)
-    if blinks:
-        from talkmesh.face.arkit import fit_weights
-        from talkmesh.face.assets import load_head
-        from talkmesh.face.lipsync import blink_gaze_weights, replace_eye_motion
-
-        head = load_head()
-        if head.num_vertices != net.num_vertices:
-            raise TalkmeshError("blinks need the bundled head's topology (its blendshapes)")
-        basis = head.blendshapes.reshape(len(head.blendshape_names), -1)
-    if pause_gate:
-        from talkmesh.audio.loading import SAMPLE_RATE
-        from talkmesh.audio.phonemes import recognize_phones
-        from talkmesh.face.assets import load_head
-        from talkmesh.face.pauses import gate_mouth, speech_gate
-
-        mouth = load_head().regions.mouth_weight
-        if len(mouth) != net.num_vertices:
-            raise TalkmeshError("the pause gate needs the bundled head's topology (its mouth map)")
+    finish = _finisher(net.num_vertices, dataset.spec.motion_fps, blinks, pause_gate)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = 0
@@ -349,31 +331,66 @@ def write_model_predictions(
             path = out / filename
             if path.exists():
                 raise TalkmeshError(f"{path} already exists: choose an empty output directory")
-            with torch.inference_mode():
-                template = torch.from_numpy(sample.template)[None]
-                if mode == RECONSTRUCT:  # the motion autoencoder alone: what its codes keep
-                    vertices = torch.tensor(sample.vertices)[None]
-                    verts = net.reconstruct(vertices, template)[0].numpy()
-                else:
-                    verts = net.generate(
-                        torch.from_numpy(sample.audio)[None],
-                        template,
-                        style_weights=None if weights is None else weights[None],
-                        num_frames=len(sample.vertices),
-                        seed=index,
-                        mode=mode,
-                    )[0].numpy()
-            if pause_gate:  # as animate: the mouth shuts in the recognised pauses
-                phones = recognize_phones(sample.audio, SAMPLE_RATE)
-                gate = speech_gate(phones, len(verts), dataset.spec.motion_fps)
-                gate_mouth(verts, sample.template, mouth, gate)
-            if blinks:  # as animate: the model's own eye motion becomes procedural eyes
-                eyes = blink_gaze_weights(len(verts), dataset.spec.motion_fps, seed=index)
-                fitted = fit_weights(verts, head.blendshapes, sample.template)
-                replace_eye_motion(verts, fitted, eyes, basis)
+            verts = _generate(net, sample, weights, index, mode)
+            finish(verts, sample, index)
             np.save(path, verts.reshape(len(verts), -1).astype(np.float32))
             written += 1
     return _written(written, dataset, "predict")
+
+
+def _generate(net, sample, weights, seed: int, mode: str) -> np.ndarray:
+    """One prediction (T, V, 3) of ``sample``: generated from its audio, or with
+    :data:`RECONSTRUCT` its motion through the model's autoencoder."""
+    import torch
+
+    with torch.inference_mode():
+        template = torch.from_numpy(sample.template)[None]
+        if mode == RECONSTRUCT:  # the motion autoencoder alone: what its codes keep
+            vertices = torch.tensor(sample.vertices)[None]
+            return net.reconstruct(vertices, template)[0].numpy()
+        return net.generate(
+            torch.from_numpy(sample.audio)[None],
+            template,
+            style_weights=None if weights is None else weights[None],
+            num_frames=len(sample.vertices),
+            seed=seed,
+            mode=mode,
+        )[0].numpy()
+
+
+def _finisher(num_vertices: int, fps: float, blinks: bool, pause_gate: bool):
+    """``finish(verts, sample, index)``, changing a prediction in place as ``talkmesh animate``
+    does: the mouth shut in the recognised pauses, the model's eye motion replaced by
+    procedural blinks and gaze. Both need the bundled head's topology (a one-line error now)."""
+    from talkmesh.face.assets import load_head
+
+    if blinks:
+        from talkmesh.face.arkit import fit_weights
+        from talkmesh.face.lipsync import blink_gaze_weights, replace_eye_motion
+
+        head = load_head()
+        if head.num_vertices != num_vertices:
+            raise TalkmeshError("blinks need the bundled head's topology (its blendshapes)")
+        basis = head.blendshapes.reshape(len(head.blendshape_names), -1)
+    if pause_gate:
+        from talkmesh.audio.loading import SAMPLE_RATE
+        from talkmesh.audio.phonemes import recognize_phones
+        from talkmesh.face.pauses import gate_mouth, speech_gate
+
+        mouth = load_head().regions.mouth_weight
+        if len(mouth) != num_vertices:
+            raise TalkmeshError("the pause gate needs the bundled head's topology (its mouth map)")
+
+    def finish(verts: np.ndarray, sample, index: int) -> None:
+        if pause_gate:  # as animate: the mouth shuts in the recognised pauses
+            phones = recognize_phones(sample.audio, SAMPLE_RATE)
+            gate_mouth(verts, sample.template, mouth, speech_gate(phones, len(verts), fps))
+        if blinks:  # as animate: the model's own eye motion becomes procedural eyes
+            eyes = blink_gaze_weights(len(verts), fps, seed=index)
+            fitted = fit_weights(verts, head.blendshapes, sample.template)
+            replace_eye_motion(verts, fitted, eyes, basis)
+
+    return finish
 
 
 def _written(written: int, dataset: MotionDataset, action: str) -> int:
