@@ -108,3 +108,13 @@ def test_truth_of_a_real_clip_has_its_words_phones_and_the_procedural_mouth_clos
     vertices = animate(wave, head=head, model="procedural", fps=FPS).vertices
     s = rs.score_clip(go, "procedural", "clean", vertices, head, phones, wave, FPS)
     assert s.pauses >= 1 and s.pause_mm < 1.0 and s.speed_ratio > 2.0
+
+
+def test_reverb_keeps_length_and_level_and_smears_the_pauses():
+    wave = _wave()
+    wet = rs.add_reverb(wave, rt60=0.5)
+    assert len(wet) == len(wave)
+    assert rs._rms(wet) == pytest.approx(rs._rms(wave), rel=1e-3)
+    t = np.arange(len(wave)) / rs.SAMPLE_RATE
+    after = (t > 0.95) & (t < 1.1)  # just after the speech ends: the room's tail
+    assert rs._rms(wet[after]) > 10 * rs._rms(wave[after])

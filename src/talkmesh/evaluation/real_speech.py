@@ -144,7 +144,7 @@ def add_reverb(wave: np.ndarray, rt60: float = 0.5, seed: int = 0) -> np.ndarray
     try:
         import pyroomacoustics as pra
     except ImportError:
-        raise MissingDependencyError("pyroomacoustics", "augment", "reverb") from None
+        raise MissingDependencyError("pyroomacoustics", "benchmark", "reverb") from None
     room_dim = [6.0, 5.0, 3.0]
     absorption, max_order = pra.inverse_sabine(rt60, room_dim)
     room = pra.ShoeBox(
