@@ -26,10 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
+from talkmesh import constants
 from talkmesh.errors import TalkmeshError, TalkmeshWarning
 
-DISK_FPS = 60  # VOCASET stores 60 fps; readers take every second frame
-MOTION_FPS = 30
+MOTION_FPS = int(constants.MOTION_FPS)  # written into the manifest as an int, as before
+DISK_FPS = 2 * MOTION_FPS  # VOCASET stores 60 fps; readers take every second frame
 FORMAT = "talkmesh-synth"
 FORMAT_VERSION = 1
 FACES_FILE = "head.ply"
@@ -97,9 +98,9 @@ def _subject_job(job: dict) -> list[dict]:
         if file_sr != sr:
             sr = file_sr
         # Keep the native rate on disk (like VOCASET's 22 kHz); the 32 kHz HTS voice is halved.
-        if sr > 16_000:
-            audio = resample(audio, sr, 16_000).astype(np.float32)
-            sr = 16_000
+        if sr > SAMPLE_RATE:  # store what the readers use: 16 kHz
+            audio = resample(audio, sr, SAMPLE_RATE).astype(np.float32)
+            sr = SAMPLE_RATE
         peak = float(np.abs(audio).max()) or 1.0
         audio = (audio / peak * 0.9).astype(np.float32)  # the same loudness for every voice
         os.unlink(tmp)
@@ -124,57 +125,48 @@ def _subject_job(job: dict) -> list[dict]:
     return rows
 
 
-def make_corpus(
-    out: str | Path,
-    *,
-    subjects: int = 12,
-    sentences: int = 40,
-    seed: int = 0,
-    workers: int | None = None,
-    progress: bool = True,
-    overwrite: bool = False,
-) -> CorpusInfo:
-    """Write a synthetic corpus to ``out`` (see the module docstring); returns a summary."""
-    from tqdm import tqdm
-
-    from talkmesh.audio.voices import available_voices
-    from talkmesh.datasets.reader import write_templates
-    from talkmesh.datasets.sentences import generate_sentences
-    from talkmesh.face.assets import list_identities, load_head
-    from talkmesh.face.lipsync import SpeakingStyle
-
+def _check_request(root: Path, subjects: int, sentences: int, overwrite: bool) -> None:
     if subjects < 1 or sentences < 1:
         raise TalkmeshError("--subjects and --sentences must be at least 1")
     if subjects > 99 or sentences > 999:
         raise TalkmeshError("at most 99 subjects and 999 sentences per subject")
-    root = Path(out)
     if root.exists() and not root.is_dir():
         raise TalkmeshError(f"{root} is a file: choose a directory for --out")
     if root.is_dir() and any(root.iterdir()) and not overwrite:
         raise TalkmeshError(f"{root} is not empty: choose a new --out or pass --overwrite")
-    voices = available_voices()
-    if not voices:
-        raise TalkmeshError("no synthetic voices installed: run `make setup` (mbrola, festival)")
-    identities = list_identities()
-    rng = np.random.default_rng(seed)
-    texts = generate_sentences(subjects * sentences, seed)
-    n_train, n_val, n_test = split_subjects(subjects)
+
+
+def _warn_empty_splits(subjects: int, n_val: int, n_test: int) -> None:
     if not n_test:
         warnings.warn(
             f"with {subjects} subject(s) the test split is empty, so evaluate, baseline and "
             "predict have nothing to score on it: use --subjects 3 or more",
             TalkmeshWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
     elif not n_val:
         warnings.warn(
             f"with {subjects} subjects the val split is empty (training runs without "
             "validation): use --subjects 5 or more for one",
             TalkmeshWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
-    for sub in ("wav", "vertices_npy", "arkit", "regions"):
-        (root / sub).mkdir(parents=True, exist_ok=True)
+
+
+def _plan(root: Path, subjects: int, sentences: int, seed: int) -> tuple[list, dict, dict, list]:
+    """One job per subject (identity, voice, style, sentences), the manifest's subject and
+    sentence tables, and the sentence ids."""
+    from talkmesh.audio.voices import available_voices
+    from talkmesh.datasets.sentences import generate_sentences
+    from talkmesh.face.assets import list_identities
+    from talkmesh.face.lipsync import SpeakingStyle
+
+    voices = available_voices()
+    if not voices:
+        raise TalkmeshError("no synthetic voices installed: run `make setup` (mbrola, festival)")
+    identities = list_identities()
+    rng = np.random.default_rng(seed)
+    texts = generate_sentences(subjects * sentences, seed)
     jobs, manifest_subjects, sentence_text = [], {}, {}
     sentence_ids = [f"sentence{k + 1:02d}" for k in range(sentences)]
     for s in range(subjects):
@@ -203,19 +195,18 @@ def make_corpus(
                 "seed": seed * 100 + s,
             }
         )
-    names = list(manifest_subjects)
-    half = sentence_ids[sentences // 2 :] if sentences > 1 else sentence_ids
-    splits = {
-        "train": {n: sentence_ids for n in names[:n_train]},
-        "val": {n: half for n in names[n_train : n_train + n_val]},
-        "test": {n: half for n in names[n_train + n_val :]},
-    }
+    return jobs, manifest_subjects, sentence_text, sentence_ids
+
+
+def _run_jobs(jobs: list, total: int, workers: int | None, progress: bool) -> float:
+    """Synthesise every subject (in processes when ``workers`` > 1); the seconds of speech."""
+    from tqdm import tqdm
 
     total_s = 0.0
     workers = workers or os.cpu_count() or 1
-    bar = tqdm(total=subjects * sentences, unit="seq", desc="synth", disable=not progress)
-    if workers > 1 and subjects > 1:
-        with ProcessPoolExecutor(max_workers=min(workers, subjects)) as pool:
+    bar = tqdm(total=total, unit="seq", desc="synth", disable=not progress)
+    if workers > 1 and len(jobs) > 1:
+        with ProcessPoolExecutor(max_workers=min(workers, len(jobs))) as pool:
             for rows in pool.map(_subject_job, jobs):
                 total_s += sum(r["seconds"] for r in rows)
                 bar.update(len(rows))
@@ -225,6 +216,13 @@ def make_corpus(
             total_s += sum(r["seconds"] for r in rows)
             bar.update(len(rows))
     bar.close()
+    return total_s
+
+
+def _write_shared(root: Path, manifest_subjects: dict) -> int:
+    """Templates, the faces file and the region lists; returns the vertex count."""
+    from talkmesh.datasets.reader import write_templates
+    from talkmesh.face.assets import load_head
 
     head = load_head()
     write_templates(
@@ -237,13 +235,43 @@ def make_corpus(
     _atomic_write(
         root / "regions" / "fdd.txt", (",".join(map(str, regions.upper_face)) + "\n").encode()
     )
+    return head.num_vertices
+
+
+def make_corpus(
+    out: str | Path,
+    *,
+    subjects: int = 12,
+    sentences: int = 40,
+    seed: int = 0,
+    workers: int | None = None,
+    progress: bool = True,
+    overwrite: bool = False,
+) -> CorpusInfo:
+    """Write a synthetic corpus to ``out`` (see the module docstring); returns a summary."""
+    root = Path(out)
+    _check_request(root, subjects, sentences, overwrite)
+    jobs, manifest_subjects, sentence_text, sentence_ids = _plan(root, subjects, sentences, seed)
+    n_train, n_val, n_test = split_subjects(subjects)
+    _warn_empty_splits(subjects, n_val, n_test)
+    for sub in ("wav", "vertices_npy", "arkit", "regions"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    names = list(manifest_subjects)
+    half = sentence_ids[sentences // 2 :] if sentences > 1 else sentence_ids
+    splits = {
+        "train": {n: sentence_ids for n in names[:n_train]},
+        "val": {n: half for n in names[n_train : n_train + n_val]},
+        "test": {n: half for n in names[n_train + n_val :]},
+    }
+    total_s = _run_jobs(jobs, subjects * sentences, workers, progress)
+    num_vertices = _write_shared(root, manifest_subjects)
     manifest = {
         "format": FORMAT,
         "version": FORMAT_VERSION,
         "seed": seed,
         "fps": DISK_FPS,
         "motion_fps": MOTION_FPS,
-        "num_vertices": head.num_vertices,
+        "num_vertices": num_vertices,
         "faces_file": FACES_FILE,
         "train_subjects": names[:n_train],
         "splits": splits,
