@@ -9,7 +9,7 @@ from scipy.signal import resample_poly
 
 from talkmesh.audio import loading as audio_module
 from talkmesh.audio.loading import SAMPLE_RATE, audio_duration, load_audio, resample, save_wav
-from talkmesh.errors import TalkmeshError
+from talkmesh.errors import TalkmeshError, TalkmeshWarning
 
 ALSA_CLIP = Path("/usr/share/sounds/alsa/Front_Center.wav")  # alsa-utils, 48 kHz mono speech
 
@@ -180,6 +180,37 @@ def test_overlong_file_is_refused(tmp_path, monkeypatch, ext):
     else:
         ffmpeg("-f", "lavfi", "-i", "sine=frequency=440:duration=2", str(path))
     monkeypatch.setattr(audio_module, "MAX_DURATION_S", 1.0)
-    with pytest.raises(TalkmeshError, match="hours long") as e:
+    with pytest.raises(TalkmeshError, match="long, more than the 1.0 s accepted") as e:
         load_audio(path)
     assert_one_line_error(e, path)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_float_wav_with_nan_or_inf_samples_is_refused(tmp_path, bad):
+    path = tmp_path / "broken.wav"
+    wave = sine(220, 0.5, 16_000)
+    wave[1000:1003] = bad
+    sf.write(path, wave, 16_000, subtype="FLOAT")
+    with pytest.raises(TalkmeshError, match="NaN or infinite") as e:
+        load_audio(path)
+    assert_one_line_error(e, path)
+
+
+def test_wav_cut_short_warns_with_both_durations(tmp_path):
+    path = tmp_path / "cut.wav"
+    sf.write(path, sine(220, 3.17, 16_000), 16_000, subtype="PCM_16")
+    data = path.read_bytes()
+    path.write_bytes(data[: 44 + 2 * int(1.6 * 16_000)])  # the header still says 3.17 s
+    with pytest.warns(TalkmeshWarning) as caught:
+        audio = load_audio(path)
+    assert len(audio) == int(1.6 * 16_000)
+    (message,) = [str(w.message) for w in caught]
+    assert "3.17 s" in message and "1.60 s" in message and str(path) in message
+
+
+def test_duration_limit_is_the_callers(tmp_path):
+    path = tmp_path / "two.wav"
+    sf.write(path, sine(220, 2.0, 16_000), 16_000)
+    assert len(load_audio(path, max_seconds=2.5)) == 32_000
+    with pytest.raises(TalkmeshError, match="2.0 s long, more than the 1.5 s accepted"):
+        load_audio(path, max_seconds=1.5)

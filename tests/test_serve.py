@@ -210,12 +210,9 @@ def test_bad_sessions_do_not_disturb_a_good_one(client, pcm, alone):
 def test_one_session_too_many_is_refused_until_one_ends(client):
     health = client.get("/health").json()
     assert health == {
-        "status": "ok",
-        "sessions": 0,
-        "max_sessions": 4,
-        "models": ["procedural"],
-        "avatar": None,
-    }
+        "status": "ok", "sessions": 0, "max_sessions": 4, "jobs": 0, "queued": 0,
+        "models": ["procedural"], "avatar": None,
+    }  # fmt: skip
     with (
         client.websocket_connect("/ws/stream") as a,
         client.websocket_connect("/ws/stream") as b,
@@ -224,6 +221,7 @@ def test_one_session_too_many_is_refused_until_one_ends(client):
     ):
         for ws in (a, b, c, d):
             assert ws.receive_json()["type"] == "hello"
+            ws.send_bytes(bytes(CHUNK))  # a first message: past the first-message timeout
         assert client.get("/health").json()["sessions"] == 4
         with client.websocket_connect("/ws/stream") as fifth:
             assert_error(read_until_close(fifth), CLOSE_BUSY, "busy", "4")

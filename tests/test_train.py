@@ -122,3 +122,33 @@ def test_refuses_to_clobber_a_run(corpus, tmp_path):
     assert proc.wait(timeout=300) == 2
     assert "--resume" in proc.stderr.read()
     assert (out / "last.ckpt").read_bytes() == b"mine"
+
+
+def test_resume_takes_the_newest_checkpoint_and_checks_the_recipe_first(corpus, tmp_path):
+    from talkmesh.training.checkpoints import newest_checkpoint
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out, epochs in ((a, 1), (b, 2)):
+        proc = train_cli(*common(corpus, out, epochs))
+        assert proc.wait(timeout=600) == 0, proc.stderr.read()
+    # a moved run folder: Lightning's versioned name holds the newest work, and a truncated copy
+    (a / "last-v1.ckpt").write_bytes((b / "last.ckpt").read_bytes())
+    whole = (b / "last.ckpt").read_bytes()
+    (a / "last-v2.ckpt").write_bytes(whole[: len(whole) // 2])
+    recipe_json = (a / "recipe.json").read_bytes()
+    done = newest_checkpoint(b)
+
+    bad = train_cli(*common(corpus, a, 3), "model.fusion_width=16", "--resume")
+    assert bad.wait(timeout=600) == 2
+    errors = [line for line in bad.stderr.read().splitlines() if "error" in line]
+    assert len(errors) == 1 and "model.fusion_width (32 -> 16)" in errors[0], errors
+    assert (a / "recipe.json").read_bytes() == recipe_json
+
+    again = train_cli(*common(corpus, a, 3), "train.lr=1.0e-4", "--resume")
+    assert again.wait(timeout=600) == 0
+    err = again.stderr.read()
+    assert f"resuming from {a / 'last-v1.ckpt'}" in err, err
+    assert "last-v2.ckpt: truncated or corrupt" in err
+    assert "train.lr 0.0005 -> 0.0001" in err and "train.epochs 2 -> 3" in err
+    final = newest_checkpoint(a)
+    assert final.epoch == 2 and final.step == done.step * 3 // 2  # one more epoch, not two

@@ -1,9 +1,11 @@
-"""User-facing errors.
+"""User-facing errors and warnings.
 
 Anything the user can fix (a missing file, a wrong sample rate, a mesh with the wrong vertex count)
 raises :class:`TalkmeshError` with one line that says what is wrong and what to do. The CLI prints
 that line and exits non-zero; it never shows a traceback for these.
 """
+
+import errno
 
 
 class TalkmeshError(Exception):
@@ -22,3 +24,39 @@ class MissingDependencyError(TalkmeshError):
 
 class TalkmeshWarning(UserWarning):
     """Something was skipped or approximated; the run goes on (the CLI prints one line)."""
+
+
+def os_error_message(e: OSError, path: object = None, action: str = "write") -> str:
+    """One line for an OSError: the path it concerns, the system's reason and what to do."""
+    where = path if path is not None else (e.filename if e.filename is not None else "")
+    reason = e.strerror or str(e) or type(e).__name__
+    hint = {
+        "ENOSPC": "free some space or write elsewhere",
+        "EACCES": "check the folder's permissions or write elsewhere",
+        "EPERM": "check the folder's permissions or write elsewhere",
+        "EROFS": "the file system is read-only: write elsewhere",
+        "ENOTDIR": "a part of the path is a file, not a folder: choose another path",
+        "EEXIST": "a part of the path is a file, not a folder: choose another path",
+    }.get(errno.errorcode.get(e.errno or 0, ""), "check the path")
+    return f"{where}: cannot {action} it ({reason}): {hint}" if where else f"{reason}: {hint}"
+
+
+def show_warnings() -> None:
+    """Print :class:`TalkmeshWarning` s as one ``talkmesh: warning:`` line each, whatever the
+    Python warning filters say (they are part of the answer, not noise)."""
+    import sys
+    import warnings
+
+    warnings.filterwarnings("always", category=TalkmeshWarning)
+    previous = warnings.showwarning
+    if getattr(previous, "talkmesh", False):
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, TalkmeshWarning):
+            print(f"talkmesh: warning: {message}", file=sys.stderr, flush=True)
+        else:
+            previous(message, category, filename, lineno, file, line)
+
+    show.talkmesh = True
+    warnings.showwarning = show

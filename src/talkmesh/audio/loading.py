@@ -13,6 +13,7 @@ import math
 import re
 import subprocess
 import tempfile
+import warnings
 from collections.abc import Iterator
 from fractions import Fraction
 from pathlib import Path
@@ -22,13 +23,14 @@ import soundfile as sf
 from scipy.signal import resample_poly
 
 from talkmesh.constants import SAMPLE_RATE
-from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.errors import MissingDependencyError, TalkmeshError, TalkmeshWarning
 
 MAX_DURATION_S = 3 * 60 * 60  # longer inputs are almost certainly a mistake: refuse them
 BLOCK_S = 30.0  # seconds of input decoded and resampled at a time
 INT16_SCALE = 32_768.0  # s16 PCM -> [-1, 1)
 BYTES_PER_SAMPLE = 2  # s16le from ffmpeg
 PIPE_CHUNK_BYTES = 1 << 20  # read from ffmpeg's stdout at a time
+RIFF_SCAN_BYTES = 1 << 16  # of a WAV's start searched for its data chunk's header
 
 # Decoded by libsndfile; anything else is handed to ffmpeg.
 SOUNDFILE_EXTENSIONS = frozenset(
@@ -36,35 +38,50 @@ SOUNDFILE_EXTENSIONS = frozenset(
 )
 
 
-def load_audio(path: str | Path, sr: int = SAMPLE_RATE) -> np.ndarray:
+def load_audio(
+    path: str | Path, sr: int = SAMPLE_RATE, *, max_seconds: float | None = None
+) -> np.ndarray:
     """Read an audio file as a mono waveform.
 
     Args:
         path: any audio file: wav/flac/ogg are read with soundfile, everything else (mp3, m4a,
             video files) with ffmpeg. Any sample rate and channel count.
         sr: target sample rate in Hz.
+        max_seconds: longer files are refused (default ``MAX_DURATION_S``): from the header,
+            before anything is decoded, when it states the length, else as soon as the decoded
+            audio passes it.
 
     Returns:
         (S,) float32 waveform in [-1, 1] at ``sr``; channels are averaged.
 
     Raises:
-        TalkmeshError: the file is missing, empty, not audio, has no samples or is longer than
-            ``MAX_DURATION_S``.
+        TalkmeshError: the file is missing, empty, not audio, has no samples, is longer than
+            ``max_seconds`` or holds NaN or infinite samples (float WAVs can).
+
+    A file whose data ends before the length its header states is read as far as it goes, with a
+    :class:`TalkmeshWarning` giving both durations.
     """
     path = _check_file(path)
     if sr <= 0:
         raise TalkmeshError(f"sample rate must be positive, got {sr}")
+    max_seconds = MAX_DURATION_S if max_seconds is None else max_seconds
     if path.suffix.lower() in SOUNDFILE_EXTENSIONS:
         try:
-            audio = _load_soundfile(path, sr)
+            audio = _load_soundfile(path, sr, max_seconds)
         except sf.LibsndfileError as e:
             # libsndfile cannot read some codecs inside WAV (e.g. GSM, MP3-in-RIFF): try ffmpeg.
-            audio = _load_ffmpeg_fallback(path, sr, reason=_one_line(str(e)))
+            audio = _load_ffmpeg_fallback(path, sr, _one_line(str(e)), max_seconds)
     else:
-        audio = _load_ffmpeg(path, sr)
+        audio = _load_ffmpeg(path, sr, max_seconds=max_seconds)
     assert audio.ndim == 1 and audio.dtype == np.float32
     if not len(audio):
         raise TalkmeshError(f"{path} contains no audio samples: re-export or re-record it")
+    bad = np.count_nonzero(~np.isfinite(audio))
+    if bad:
+        raise TalkmeshError(
+            f"{path} holds {bad} NaN or infinite samples (a broken float WAV): re-export it as "
+            "16-bit PCM or repair the samples"
+        )
     return audio
 
 
@@ -109,12 +126,28 @@ def _check_file(path: str | Path) -> Path:
     return path
 
 
-def _check_duration(path: Path, seconds: float) -> None:
-    if seconds > MAX_DURATION_S:
-        raise TalkmeshError(
-            f"{path} is {seconds / 3600:.1f} hours long, more than the "
-            f"{MAX_DURATION_S / 3600:g} hours talkmesh accepts: split it into shorter files"
+def _check_duration(path: Path, seconds: float, max_seconds: float | None = None) -> None:
+    if max_seconds is None:
+        max_seconds = MAX_DURATION_S
+    if seconds > max_seconds:
+        raise AudioTooLong(path, seconds, max_seconds)
+
+
+class AudioTooLong(TalkmeshError):
+    """The audio is longer than the caller accepts (``seconds`` and ``limit`` say by how much)."""
+
+    def __init__(self, path: Path, seconds: float, limit: float):
+        self.seconds, self.limit = seconds, limit
+        super().__init__(
+            f"{path} is {_span(seconds)} long, more than the {_span(limit)} accepted: split it "
+            "into shorter files"
         )
+
+
+def _span(seconds: float) -> str:
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} hours"
+    return f"{seconds / 60:.1f} minutes" if seconds >= 120 else f"{seconds:.1f} s"
 
 
 def _one_line(message: str) -> str:
@@ -131,17 +164,45 @@ def _unreadable(path: Path, reason: str) -> TalkmeshError:
 # --- soundfile path -------------------------------------------------------------------------
 
 
-def _load_soundfile(path: Path, sr: int) -> np.ndarray:
+def _load_soundfile(path: Path, sr: int, max_seconds: float | None = None) -> np.ndarray:
     with sf.SoundFile(str(path)) as f:
         if f.frames <= 0:
             raise TalkmeshError(f"{path} contains no audio samples: re-export or re-record it")
-        _check_duration(path, f.frames / f.samplerate)
+        _check_duration(path, f.frames / f.samplerate, max_seconds)
         block = max(1, int(BLOCK_S * f.samplerate))
         blocks = (
             b[:, 0] if b.shape[1] == 1 else b.mean(axis=1, dtype=np.float32)
             for b in f.blocks(blocksize=block, dtype="float32", always_2d=True)
         )
-        return _resample_blocks(blocks, f.frames, f.samplerate, sr)
+        audio = _resample_blocks(blocks, f.frames, f.samplerate, sr)
+        # libsndfile trims a WAV's frame count to the bytes present: ask the header itself
+        stated = _riff_stated_seconds(path) or f.frames / f.samplerate
+    if len(audio) / sr < stated - 2 / sr:
+        warnings.warn(
+            f"{path}: the header says {stated:.2f} s but only {len(audio) / sr:.2f} s of audio is "
+            "present (a cut-off file?): animating what is there",
+            TalkmeshWarning,
+            stacklevel=3,
+        )
+    return audio
+
+
+def _riff_stated_seconds(path: Path) -> float | None:
+    """The duration a RIFF WAV's ``data`` chunk header states (None: not RIFF or no such chunk)."""
+    with open(path, "rb") as f:
+        head = f.read(RIFF_SCAN_BYTES)
+    if head[:4] != b"RIFF" or head[8:12] != b"WAVE":
+        return None
+    pos, rate, align = 12, 0, 0
+    while pos + 8 <= len(head):
+        kind, size = head[pos : pos + 4], int.from_bytes(head[pos + 4 : pos + 8], "little")
+        if kind == b"fmt " and pos + 24 <= len(head):
+            rate = int.from_bytes(head[pos + 12 : pos + 16], "little")
+            align = int.from_bytes(head[pos + 20 : pos + 22], "little")
+        elif kind == b"data":
+            return size / align / rate if rate and align and size < 0xFFFFFFFF else None
+        pos += 8 + size + (size & 1)
+    return None
 
 
 def _resample_blocks(blocks: Iterator[np.ndarray], n_in: int, orig_sr: int, sr: int) -> np.ndarray:
@@ -203,21 +264,24 @@ def _ffmpeg_exe() -> str:
     return imageio_ffmpeg.get_ffmpeg_exe()
 
 
-def _load_ffmpeg_fallback(path: Path, sr: int, reason: str) -> np.ndarray:
+def _load_ffmpeg_fallback(path: Path, sr: int, reason: str, max_seconds: float) -> np.ndarray:
     try:
         exe = _ffmpeg_exe()
     except MissingDependencyError:
         raise _unreadable(path, reason) from None
-    return _load_ffmpeg(path, sr, exe)
+    return _load_ffmpeg(path, sr, exe, max_seconds)
 
 
-def _load_ffmpeg(path: Path, sr: int, exe: str | None = None) -> np.ndarray:
+def _load_ffmpeg(
+    path: Path, sr: int, exe: str | None = None, max_seconds: float | None = None
+) -> np.ndarray:
     """Decode with ffmpeg to s16le mono at ``sr`` through a pipe, refusing overlong streams."""
     exe = exe or _ffmpeg_exe()
+    max_seconds = MAX_DURATION_S if max_seconds is None else max_seconds
     seconds, _ = _ffmpeg_probe(path, exe)
     if seconds is not None:  # else no duration in the header: the decoded length tells
-        _check_duration(path, seconds)
-    max_bytes = int(MAX_DURATION_S * sr) * BYTES_PER_SAMPLE
+        _check_duration(path, seconds, max_seconds)
+    max_bytes = int(max_seconds * sr) * BYTES_PER_SAMPLE
     cmd = [exe, "-nostdin", "-v", "error", "-i", str(path), "-vn", "-sn", "-dn"]
     cmd += ["-ac", "1", "-ar", str(sr), "-f", "s16le", "-acodec", "pcm_s16le", "-"]
     data = bytearray()
@@ -229,7 +293,7 @@ def _load_ffmpeg(path: Path, sr: int, exe: str | None = None) -> np.ndarray:
                 data += chunk
                 if len(data) > max_bytes:
                     proc.kill()
-                    _check_duration(path, len(data) / BYTES_PER_SAMPLE / sr)
+                    _check_duration(path, len(data) / BYTES_PER_SAMPLE / sr, max_seconds)
             returncode = proc.wait()
         log.seek(0)
         errors = log.read().decode(errors="replace").strip()

@@ -32,7 +32,7 @@ from talkmesh.cli.models import (
     add_train,
 )
 from talkmesh.cli.serve import add_info, add_serve
-from talkmesh.errors import TalkmeshError, TalkmeshWarning
+from talkmesh.errors import TalkmeshError, TalkmeshWarning, os_error_message, show_warnings
 from talkmesh.version import __version__
 
 COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
@@ -80,12 +80,18 @@ def main(argv: list[str] | None = None) -> int:
     warnings.formatwarning = _format_warning
     parser = build_parser()
     args = parser.parse_args(argv)
+    show_warnings()
     try:
         return int(args.func(args) or 0)
     except TalkmeshError as e:
         if args.debug:
             raise
         print(f"talkmesh: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the machine's answer (disk full, permission denied): not a bug
+        if args.debug:
+            raise
+        print(f"talkmesh: error: {os_error_message(e, action='use')}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("talkmesh: interrupted", file=sys.stderr)

@@ -17,7 +17,7 @@ from talkmesh.cli.common import (
     parse_outputs,
 )
 from talkmesh.constants import INT8_LAYERS, MOTION_FPS
-from talkmesh.errors import TalkmeshError
+from talkmesh.errors import TalkmeshError, os_error_message
 from talkmesh.output import write_animation
 
 
@@ -125,6 +125,8 @@ def cmd_animate(args: argparse.Namespace) -> int:
                     tqdm.write(f"wrote {p} ({anim.num_frames} frames, {anim.duration:.2f} s)")
         except TalkmeshError as e:
             failures.append(str(e) if str(audio) in str(e) else f"{audio}: {e}")
+        except OSError as e:  # e.g. the input went away: this file's failure, not the batch's
+            failures.append(f"{audio}: {os_error_message(e, action='use')}")
         bar.update()
     bar.close()
     for f in failures:
@@ -155,6 +157,7 @@ def add_render(sub: Subparsers) -> None:
 
 def cmd_render(args: argparse.Namespace) -> int:
     from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+    from talkmesh.output.atomic import remove_stale_temps, writing
     from talkmesh.output.render import render_side_by_side, render_video
 
     out = Path(args.output)
@@ -163,7 +166,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     anims = [load_input(a, args.fps) for a in args.anim]
     if args.audio:
         anims[0].audio, anims[0].sample_rate = load_audio(args.audio), SAMPLE_RATE
-    out.parent.mkdir(parents=True, exist_ok=True)
+    with writing(out):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(out.parent)
     if len(anims) == 1:
         render_video(anims[0], out, size=args.size, progress=not args.quiet)
     else:

@@ -50,6 +50,15 @@ def add_serve(sub: Subparsers) -> None:
         help="a .glb/.vrm with ARKit-named morph targets for the viewer to show instead of the "
         "bundled head",
     )
+    limits = (
+        ("--max-seconds", float, 300.0, "longest audio POST /animate accepts, from its header"),
+        ("--jobs", int, 2, "POST /animate jobs computing at once"),
+        ("--max-queue", int, 8, "jobs waiting for a slot; more get 503 + Retry-After"),
+        ("--request-timeout", float, 30.0, "seconds to send a request head, then its body"),
+        ("--first-message-timeout", float, 2.0, "seconds from a stream's hello to its first message"),
+    )  # docs/security.md
+    for flag, kind, default, what in limits:
+        sv.add_argument(flag, type=kind, default=default, help=f"{what} (default {default:g})")
     add_quiet(sv, "log only warnings and errors")
     sv.set_defaults(func=cmd_serve)
 
@@ -73,6 +82,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
         max_upload_bytes=int(args.max_upload_mb * 2**20),
         idle_timeout=args.idle_timeout,
         avatar=args.avatar,
+        max_seconds=args.max_seconds,
+        jobs=args.jobs,
+        max_queue=args.max_queue,
+        request_timeout=args.request_timeout,
+        first_message_timeout=args.first_message_timeout,
     )
     return 0
 

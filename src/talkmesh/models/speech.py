@@ -16,7 +16,9 @@ A model built from ``source`` records the encoder's full config in ``hf_config``
 from __future__ import annotations
 
 import math
+import pickle
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -70,6 +72,12 @@ class SpeechEncoderConfig:
             raise ValueError("speech.lookahead_max_ms needs kind mel and >= speech.lookahead_ms")
 
 
+def _weights_file(source: str) -> str:
+    """The pickled weights file of a local model folder (else the source as given)."""
+    folder = Path(source).expanduser()
+    return str(folder / "pytorch_model.bin") if folder.is_dir() else source
+
+
 class Wav2Vec2Encoder(nn.Module):
     def __init__(self, cfg: SpeechEncoderConfig) -> None:
         super().__init__()
@@ -80,10 +88,16 @@ class Wav2Vec2Encoder(nn.Module):
                 "transformers", "models", "the wav2vec2 speech encoder"
             ) from None
         if cfg.source:
-            try:
+            try:  # transformers reads pytorch_model.bin with torch.load(weights_only=True)
                 self.model = Wav2Vec2Model.from_pretrained(cfg.source)
+            except pickle.UnpicklingError:
+                raise TalkmeshError(
+                    f"{_weights_file(cfg.source)}: refusing to load these wav2vec2 weights: the "
+                    "file holds objects other than tensors; use a model.safetensors you trust"
+                ) from None
             except OSError as e:
-                raise TalkmeshError(f"cannot load wav2vec2 from {cfg.source}: {e}") from None
+                first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                raise TalkmeshError(f"cannot load wav2vec2 from {cfg.source}: {first}") from None
         else:
             self.model = Wav2Vec2Model(Wav2Vec2Config(**cfg.hf_config))
         if cfg.freeze_cnn:

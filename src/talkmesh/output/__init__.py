@@ -14,8 +14,20 @@ __all__ = ["VIDEO_SIZE", "VIDEO_SUFFIXES", "write_animation"]
 
 
 def write_animation(anim, path: Path, *, overwrite: bool, size: int = VIDEO_SIZE) -> None:
-    """Write ``anim`` to ``path``: a video for ``VIDEO_SUFFIXES``, else the extension's exporter."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write ``anim`` to ``path``: a video for ``VIDEO_SUFFIXES``, else the extension's exporter.
+
+    Any OSError (parent is a file, permission denied, disk full, read-only folder) is a one-line
+    :class:`TalkmeshError` naming ``path``; temporaries left in the folder by killed writers go.
+    """
+    from talkmesh.output.atomic import remove_stale_temps, writing
+
+    with writing(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(path.parent)
+        _write(anim, path, overwrite=overwrite, size=size)
+
+
+def _write(anim, path: Path, *, overwrite: bool, size: int) -> None:
     if path.suffix.lower() in VIDEO_SUFFIXES:
         from talkmesh.output.render import render_video
 

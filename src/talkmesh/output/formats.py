@@ -48,6 +48,7 @@ from talkmesh.output.arkit_files import (
     import_weights_on_head,
     load_arkit_weights,
 )
+from talkmesh.output.atomic import temp_prefix
 from talkmesh.output.files import check_readable, exists_error, file_extension, move_file, reading
 from talkmesh.output.gltf import export_glb, import_glb
 from talkmesh.output.morph import MorphRig, morph_rig, principal_components
@@ -105,7 +106,7 @@ def save_animation(
         path.parent.mkdir(parents=True, exist_ok=True)
         # Write into a private directory beside the target, then rename: readers never see a
         # half-written file and a failed export leaves nothing behind.
-        with tempfile.TemporaryDirectory(dir=path.parent, prefix=".talkmesh-") as tmp:
+        with tempfile.TemporaryDirectory(dir=path.parent, prefix=temp_prefix()) as tmp:
             exporter(anim, Path(tmp) / path.name)
             written = sorted(Path(tmp).iterdir())
             targets = [path.parent / p.name for p in written]

@@ -20,6 +20,7 @@ import soundfile
 from tqdm import tqdm
 
 from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.output.atomic import temp_prefix
 from talkmesh.output.media import VIDEO_SUFFIXES, video_size
 
 VIDEO_CRF = 18  # visually lossless H.264
@@ -65,7 +66,7 @@ def atomic_output(
     path = check_output(path, suffixes, inputs)
     mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
     fd, name = tempfile.mkstemp(
-        prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent
+        prefix=f"{temp_prefix()}{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent
     )
     os.close(fd)
     tmp = Path(name)

@@ -43,14 +43,22 @@ HTTP
 ====
 
 * ``GET /``: the browser viewer (``talkmesh/serve/static``), or a 503 page where it is not installed.
-* ``GET /health``: ``{"status": "ok", "sessions": n, "max_sessions": m, "models": [...]}``.
+* ``GET /health``: ``{"status": "ok", "sessions": n, "max_sessions": m, "jobs": running /animate
+  jobs, "queued": waiting ones, "models": [...]}``.
 * ``GET /head.glb``: the bundled head with its 52 ARKit morph targets (named in
   ``meshes[0].extras.targetNames``), a one-frame neutral animation.
 * ``GET /avatar.glb``: the ``--avatar`` file as it is (.glb or .vrm), 404 without one; ``/health``
   names it (``"avatar": "my.vrm"``, else null) and the viewer then shows it instead of the head.
 * ``POST /animate?format=glb|mp4&model=NAME`` with a wav/flac/mp3/ogg file as the raw body: the
-  animated file. 413 for a body over ``--max-upload-mb``, 400 with ``{"type": "error", "message"}``
-  for anything wrong with the request or the audio.
+  animated file. 413 for a body over ``--max-upload-mb`` or audio longer than ``--max-seconds``
+  (default 300; from the file's header, before anything is decoded), 503 with ``Retry-After``
+  when ``--jobs`` slots are busy and ``--max-queue`` jobs wait, 400 with
+  ``{"type": "error", "message"}`` for anything wrong with the request or the audio.
+
+Limits on clients (:mod:`talkmesh.serve.limits`, docs/security.md): a request head and then its
+body must each arrive within ``--request-timeout`` seconds (default 30) or the connection is dropped
+with one log line; a client that leaves mid-upload is one log line; a WebSocket session must send
+its first message within ``--first-message-timeout`` seconds (default 2) of the hello.
 
 Each session runs its ``push``/``flush`` in a worker thread, one call at a time, so one session's
 computing never holds up another's socket, and a misbehaving client only ends its own session.
@@ -72,16 +80,18 @@ from pathlib import Path
 import anyio
 import numpy as np
 from starlette.applications import Starlette
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import HTMLResponse, JSONResponse, Response
 from starlette.routing import Mount, Route, WebSocketRoute
 from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.audio.loading import SAMPLE_RATE, AudioTooLong, audio_duration
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
+from talkmesh.serve import limits as lim
+from talkmesh.serve.limits import JobQueue, QueueFull
 from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, StreamFrame, open_stream
 
 log = logging.getLogger(__name__)
@@ -107,7 +117,6 @@ DEFAULT_MAX_UPLOAD_BYTES = 20 * 2**20
 DEFAULT_IDLE_TIMEOUT_S = 10.0
 WS_FRAME_LIMIT = 16 * 2**20  # uvicorn drops (1009, no message) what is far over the limit unread
 SHUTDOWN_WAIT_S = 3.0  # sessions get this long to close with 1001 before uvicorn takes over
-ANIMATE_JOBS = 1  # offline /animate jobs at a time; more wait (they would starve the streams)
 UPLOAD_CHUNK = 1 << 16
 
 ANIMATE_FORMATS = {"glb": "model/gltf-binary", "mp4": "video/mp4"}
@@ -230,6 +239,11 @@ class Limits:
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES
     idle_timeout: float = DEFAULT_IDLE_TIMEOUT_S
+    max_seconds: float = lim.DEFAULT_MAX_SECONDS
+    jobs: int = lim.DEFAULT_JOBS
+    max_queue: int = lim.DEFAULT_MAX_QUEUE
+    request_timeout: float = lim.DEFAULT_REQUEST_TIMEOUT_S
+    first_message_timeout: float = lim.DEFAULT_FIRST_MESSAGE_TIMEOUT_S
 
     def __post_init__(self) -> None:
         if self.max_sessions < 1:
@@ -240,8 +254,13 @@ class Limits:
             )
         if self.max_upload_bytes < 1:
             raise TalkmeshError("--max-upload-mb must be positive")
-        if not self.idle_timeout > 0:
-            raise TalkmeshError(f"--idle-timeout must be positive, got {self.idle_timeout:g}")
+        for flag, value in (("--idle-timeout", self.idle_timeout), ("--max-seconds", self.max_seconds),
+                            ("--request-timeout", self.request_timeout),
+                            ("--first-message-timeout", self.first_message_timeout)):  # fmt: skip
+            if not value > 0:
+                raise TalkmeshError(f"{flag} must be positive, got {value:g}")
+        if self.jobs < 1 or self.max_queue < 0:
+            raise TalkmeshError("--jobs must be at least 1 and --max-queue at least 0")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -263,7 +282,7 @@ class Service:
         self.limits = limits
         self.sessions = Sessions(limits.max_sessions)
         self.head = load_head()
-        self.jobs = anyio.CapacityLimiter(ANIMATE_JOBS)
+        self.queue = JobQueue(limits.jobs, limits.max_queue, lim.DEFAULT_SHORT_SECONDS)
         self._head_glb: bytes | None = None
         self._head_lock = anyio.Lock()
 
@@ -317,9 +336,10 @@ class Service:
             "names": list(stream.names),
         }
         await ws.send_json(hello)
-        sent = 0
+        sent, timeout = 0, self.limits.first_message_timeout  # a silent client frees its slot soon
         while True:
-            pcm = await self._receive_audio(ws)
+            pcm = await self._receive_audio(ws, timeout)
+            timeout = self.limits.idle_timeout
             # one call at a time per session, in a worker thread: the event loop stays free
             if pcm is None:
                 frames = await anyio.to_thread.run_sync(stream.flush)
@@ -333,20 +353,20 @@ class Service:
                 await ws.close(CLOSE_NORMAL)
                 return
 
-    async def _receive_audio(self, ws: WebSocket) -> np.ndarray | None:
+    async def _receive_audio(self, ws: WebSocket, timeout: float) -> np.ndarray | None:
         """The next message: (S,) float32 audio, or None for the end message.
 
         Raises:
-            ClientError: the message breaks the protocol, or none came for ``idle_timeout``.
+            ClientError: the message breaks the protocol, or none came for ``timeout`` seconds.
             WebSocketDisconnect: the client left.
         """
         try:
-            with anyio.fail_after(self.limits.idle_timeout):
+            with anyio.fail_after(timeout):
                 message = await ws.receive()
         except TimeoutError:
             raise ClientError(
                 CLOSE_POLICY,
-                f"no message for {self.limits.idle_timeout:g} s: send audio as it is recorded "
+                f"no message for {timeout:g} s: send audio as it is recorded "
                 'and {"type": "end"} when it stops',
             ) from None
         if message["type"] == "websocket.disconnect":
@@ -399,6 +419,8 @@ class Service:
                 "status": "ok",
                 "sessions": len(self.sessions),
                 "max_sessions": self.limits.max_sessions,
+                "jobs": len(self.queue.running),
+                "queued": len(self.queue.waiting),
                 "models": list(self.models),
                 "avatar": self.avatar_name,
             }  # fmt: skip
@@ -427,31 +449,36 @@ class Service:
             return _error(
                 400, f"unknown model '{name[:80]}': this server has {', '.join(self.models)}"
             )
-        limit = self.limits.max_upload_bytes
-        too_big = _error(413, f"the audio is over the upload limit of {limit / 2**20:g} MB")
         declared = request.headers.get("content-length", "")
-        if declared.isdigit() and int(declared) > limit:
-            return too_big  # without reading the body
+        if declared.isdigit() and int(declared) > self.limits.max_upload_bytes:
+            return self._too_big()  # without reading the body
         with tempfile.TemporaryDirectory(prefix="talkmesh-serve-") as tmp:
             upload = Path(tmp) / "upload"
-            received = 0
-            with open(upload, "wb") as f:
-                async for chunk in request.stream():
-                    received += len(chunk)
-                    if received > limit:
-                        return too_big
-                    f.write(chunk)
+            refused = await self._receive_upload(request, upload)
+            if refused is not None:
+                return refused
             with open(upload, "rb") as f:
                 suffix = audio_suffix(f.read(16))
             if suffix is None:
                 return _error(400, "the request body is not wav, flac, mp3 or ogg audio: send the "
                                    "audio file's bytes as the body")  # fmt: skip
             audio = upload.rename(upload.with_suffix(suffix))
+            try:  # priced from the header: nothing is decoded yet
+                seconds = await anyio.to_thread.run_sync(audio_duration, audio)
+            except TalkmeshError as e:
+                return _error(400, str(e).replace(str(audio), "the audio"))
+            if seconds > self.limits.max_seconds:
+                return lim.too_long(seconds, self.limits.max_seconds)
             out = Path(tmp) / f"talk.{fmt}"
             try:
-                await anyio.to_thread.run_sync(
-                    animate_file, audio, out, self.models[name], limiter=self.jobs
-                )
+                async with self.queue.slot(seconds):
+                    await anyio.to_thread.run_sync(
+                        animate_file, audio, out, self.models[name], self.limits.max_seconds
+                    )
+            except QueueFull as e:
+                return lim.busy(e.retry_after, self.limits.jobs, self.limits.max_queue)
+            except AudioTooLong as e:  # the header understated the length
+                return lim.too_long(e.seconds, e.limit)
             except TalkmeshError as e:
                 return _error(400, str(e).replace(str(audio), "the audio"))
             except RenderError as e:
@@ -461,6 +488,30 @@ class Service:
                 media_type=ANIMATE_FORMATS[fmt],
                 headers={"Content-Disposition": f'attachment; filename="talk.{fmt}"'},
             )
+
+    def _too_big(self) -> JSONResponse:
+        limit = self.limits.max_upload_bytes
+        return _error(413, f"the audio is over the upload limit of {limit / 2**20:g} MB")
+
+    async def _receive_upload(self, request: Request, path: Path) -> Response | None:
+        """Write the body to ``path``; a response instead when it is too big, too slow or cut off."""
+        limit, deadline = self.limits.max_upload_bytes, self.limits.request_timeout
+        received = 0
+        try:
+            with anyio.fail_after(deadline), open(path, "wb") as f:
+                async for chunk in request.stream():
+                    received += len(chunk)
+                    if received > limit:
+                        return self._too_big()
+                    f.write(chunk)
+        except TimeoutError:
+            log.warning("dropped %s: upload not complete within %g s (%d bytes)",
+                        lim.client_name(request), deadline, received)  # fmt: skip
+            return _error(408, f"the upload took over {deadline:g} s: send it faster or shorter")
+        except ClientDisconnect:
+            log.warning("%s left during its upload (%d bytes)", lim.client_name(request), received)
+            return Response(status_code=400)  # nobody reads it
+        return None
 
 
 async def _close(ws: WebSocket, code: int, message: str | None) -> None:
@@ -505,12 +556,14 @@ class RenderError(Exception):
     """Writing the result failed: the server's fault (e.g. no renderer), not the upload's."""
 
 
-def animate_file(audio: Path, out: Path, model: str) -> None:
-    """Animate ``audio`` with ``model`` into ``out`` (.glb or .mp4), as ``talkmesh animate``."""
+def animate_file(audio: Path, out: Path, model: str, max_seconds: float | None = None) -> None:
+    """Animate ``audio`` with ``model`` into ``out`` (.glb or .mp4), as ``talkmesh animate``;
+    audio longer than ``max_seconds`` is refused (:class:`AudioTooLong`) while it is decoded."""
+    from talkmesh.audio.loading import load_audio
     from talkmesh.output import write_animation
     from talkmesh.pipeline import animate
 
-    anim = animate(audio, model=model)
+    anim = animate(load_audio(audio, max_seconds=max_seconds), model=model)
     try:
         write_animation(anim, out, overwrite=True)
     except TalkmeshError as e:
@@ -551,10 +604,16 @@ def create_app(
     idle_timeout: float = DEFAULT_IDLE_TIMEOUT_S,
     static_dir: Path | None = STATIC_DIR,
     avatar: str | Path | None = None,
+    **limit_options,
 ) -> Starlette:
-    """The ASGI app. Every model is opened once here, so a bad one fails now, not per client;
-    ``avatar``: a .glb/.vrm with ARKit morph targets that the viewer shows instead of the head."""
-    limits = Limits(max_sessions, max_message_bytes, max_upload_bytes, float(idle_timeout))
+    """The ASGI app. Every model is opened once here, so a bad one fails now, not per client.
+
+    ``avatar``: a .glb/.vrm with ARKit morph targets that the viewer shows instead of the head;
+    ``limit_options``: the other fields of :class:`Limits` (max_seconds, jobs, max_queue,
+    request_timeout, first_message_timeout)."""
+    limits = Limits(
+        max_sessions, max_message_bytes, max_upload_bytes, float(idle_timeout), **limit_options
+    )
     service = Service(resolve_models(models), limits, None if avatar is None else Path(avatar))
     for source in service.models.values():
         open_stream(source, head=service.head)
@@ -621,6 +680,7 @@ def serve(
         lifespan="off",
         log_level="warning" if quiet else "info",
         ws_max_size=max(WS_FRAME_LIMIT, 4 * service.limits.max_message_bytes),
+        http=lim.head_timeout_protocol(service.limits.request_timeout),
         timeout_graceful_shutdown=SHUTDOWN_WAIT_S,
     )
     sock = _listen(host, port)

@@ -30,6 +30,7 @@ import numpy as np
 
 from talkmesh.config import apply_overrides, from_dict, load_config, merge, read_yaml, to_dict
 from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.training import checkpoints
 
 try:
     import torch
@@ -409,6 +410,10 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
                 name, keys, pos, has_gauss, cached = rng["numpy"]
                 np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
                 random.setstate(rng["python"])
+            for state in checkpoint.get("optimizer_states", []):  # changed settings apply
+                for group in state.get("param_groups", []):
+                    group["lr"] = recipe.train.lr
+                    group["weight_decay"] = recipe.train.weight_decay
 
     return MotionSystem()
 
@@ -416,8 +421,9 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
 def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Path:
     """Train ``recipe`` and write ``<out_dir>/model.safetensors``; returns that path.
 
-    ``resume=True`` continues from ``<out_dir>/last.ckpt`` (the same loss curve as an
-    uninterrupted run). Logs go to ``<out_dir>/logs`` as CSV (and TensorBoard if installed).
+    ``resume=True`` continues from the newest loadable checkpoint in ``out_dir`` (the same loss
+    curve as an uninterrupted run); a recipe whose model differs from it is refused before anything
+    is written, changed settings are warned about and apply from there on. Logs go to ``<out_dir>/logs`` as CSV (and TensorBoard if installed).
     """
     _require_torch()
     L = _lightning()
@@ -434,15 +440,13 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     from talkmesh.datasets.reader import open_dataset, report_skipped
 
     out = Path(recipe.train.out_dir)
-    last = out / "last.ckpt"
-    if resume and not last.is_file():
-        raise TalkmeshError(f"nothing to resume: {last} does not exist (drop --resume to start)")
-    if not resume and last.exists():
+    ckpt = checkpoints.newest_checkpoint(out) if resume else None
+    if ckpt is not None:
+        checkpoints.check_resume(ckpt, to_dict(recipe))
+    elif checkpoints.checkpoint_files(out):
         raise TalkmeshError(
             f"{out} already holds a run: pass --resume to continue it or choose train.out_dir"
         )
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "recipe.json").write_text(json.dumps(to_dict(recipe), indent=2, sort_keys=True))
 
     seed_everything(recipe.train.seed)
     train_set = open_dataset(
@@ -456,6 +460,11 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     if init is not None and not init.is_file():
         raise TalkmeshError(f"init checkpoint not found: {init} (train the earlier stage first)")
     system = build_system(recipe, info, init)
+    if ckpt is not None:  # every check before the first write into the run folder
+        checkpoints.check_state_shapes(ckpt, system.state_dict())
+        checkpoints.announce(ckpt)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "recipe.json").write_text(json.dumps(to_dict(recipe), indent=2, sort_keys=True))
     task = task_spec(recipe.task)
     if task.prepare is not None and not resume:  # a resumed run restores them from the checkpoint
         task.prepare(system.model, train_set)
@@ -522,7 +531,13 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
         num_sanity_val_steps=0,
         deterministic=False,
     )
-    trainer.fit(system, train_loader, val_loader, ckpt_path=str(last) if resume else None)
+    trainer.fit(
+        system,
+        train_loader,
+        val_loader,
+        ckpt_path=str(ckpt.path) if ckpt is not None else None,
+        weights_only=True,
+    )
 
     if recipe.train.record_batches:
         rank = trainer.global_rank
@@ -540,7 +555,9 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
 
 def recipe_from_checkpoint(path: str | Path) -> Recipe:
     """The recipe stored in a Lightning checkpoint written by :func:`train`."""
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    ckpt = checkpoints.read_checkpoint(path)
+    if not isinstance(ckpt.get("talkmesh_recipe"), dict):
+        raise TalkmeshError(f"{path}: not written by talkmesh train (no recipe inside)")
     return from_dict(Recipe, ckpt["talkmesh_recipe"])
 
 

@@ -58,20 +58,12 @@ def _epoch_frames(recipe) -> tuple[int, int]:
 
 
 def _checkpoint_epochs(last: Path) -> int:
-    """Epochs already completed by the run that wrote ``last``, read with ``weights_only``: a
-    checkpoint that would run code when unpickled is refused before training resumes from it."""
-    import pickle
+    """Epochs already completed by the run in ``last``'s folder: the newest checkpoint there that
+    loads with ``weights_only`` (one that would run code is refused, never unpickled), the one
+    ``train(resume=True)`` continues."""
+    from talkmesh.training.checkpoints import newest_checkpoint
 
-    import torch
-
-    try:
-        ckpt = torch.load(last, map_location="cpu", weights_only=True, mmap=True)
-    except (pickle.UnpicklingError, RuntimeError, OSError, EOFError, ValueError) as e:
-        raise TalkmeshError(
-            f"{last}: refused, not a training checkpoint that loads without running code "
-            f"({type(e).__name__}): delete it to train the stage from scratch"
-        ) from None
-    return int(ckpt.get("epoch", -1)) + 1
+    return newest_checkpoint(last.parent).epoch + 1
 
 
 def train_stage(plan: StagePlan, *, keep_checkpoints: bool, progress: bool) -> dict[str, Any]:
