@@ -55,7 +55,12 @@ def add_serve(sub: Subparsers) -> None:
         ("--jobs", int, 2, "POST /animate jobs computing at once"),
         ("--max-queue", int, 8, "jobs waiting for a slot; more get 503 + Retry-After"),
         ("--request-timeout", float, 30.0, "seconds to send a request head, then its body"),
-        ("--first-message-timeout", float, 2.0, "seconds from a stream's hello to its first message"),
+        (
+            "--first-message-timeout",
+            float,
+            2.0,
+            "seconds from a stream's hello to its first message",
+        ),
     )  # docs/security.md
     for flag, kind, default, what in limits:
         sv.add_argument(flag, type=kind, default=default, help=f"{what} (default {default:g})")
