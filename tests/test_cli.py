@@ -321,8 +321,9 @@ COMMANDS = {
     "rig": (["mesh"], "--output --overwrite --quiet"),
     "serve": (
         [],
-        "--avatar --host --idle-timeout --max-message-bytes --max-sessions --max-upload-mb "
-        "--model --port --quiet",
+        "--avatar --first-message-timeout --host --idle-timeout --jobs --max-message-bytes "
+        "--max-queue --max-seconds --max-sessions --max-upload-mb --model --port --quiet "
+        "--request-timeout",
     ),
     "info": ([], ""),
 }
