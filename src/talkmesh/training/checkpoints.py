@@ -12,6 +12,7 @@ from elsewhere); files that do not load (truncated by a kill, refused) are skipp
 from __future__ import annotations
 
 import pickle
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -52,8 +53,8 @@ def read_checkpoint(path: str | Path, *, mmap: bool = True) -> dict[str, Any]:
         if "Weights only load failed" in reason or "Unsupported" in str(e):
             reason = _refused_global(str(e))
         raise TalkmeshError(
-            f"{path}: refusing to load this checkpoint: it holds objects other than tensors and "
-            f"plain data ({reason}); only load checkpoints written by talkmesh train"
+            f"{path}: refused: this checkpoint holds objects other than tensors and plain data "
+            f"({reason}); delete it (only checkpoints written by talkmesh train load)"
         ) from None
     except (RuntimeError, EOFError, OSError, ValueError, AttributeError, IndexError) as e:
         raise TalkmeshError(
@@ -66,11 +67,13 @@ def read_checkpoint(path: str | Path, *, mmap: bool = True) -> dict[str, Any]:
 
 
 def _refused_global(message: str) -> str:
-    """The global torch's unpickler refused, from its (multi-line) message."""
+    """What torch's safe unpickler refused, from its (multi-line) message."""
+    found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", message)
+    if found:
+        return f"it asks for {found.group(1)}"
     for line in message.splitlines():
-        line = line.strip()
-        if line.startswith(("Unsupported global", "Unsupported operand", "Trying to")):
-            return line.split(". ")[0].rstrip(".")
+        if "WeightsUnpickler error:" in line:
+            return line.split("WeightsUnpickler error:")[-1].strip().split(". ")[0][:120]
     return "unsupported pickle content"
 
 
