@@ -418,56 +418,9 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
     return MotionSystem()
 
 
-def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Path:
-    """Train ``recipe`` and write ``<out_dir>/model.safetensors``; returns that path.
-
-    ``resume=True`` continues from the newest loadable checkpoint in ``out_dir`` (the same loss
-    curve as an uninterrupted run); a recipe whose model differs from it is refused before anything
-    is written, changed settings are warned about and apply from there on. Logs go to ``<out_dir>/logs`` as CSV (and TensorBoard if installed).
-    """
-    _require_torch()
-    L = _lightning()
-    import warnings
-
-    # Lightning's own deprecation and sizing chatter is not the user's business
-    warnings.filterwarnings("ignore", module=r"lightning(\.|$)")
-    warnings.filterwarnings(
-        "ignore", message=".*(treespec|logging interval|does not have many workers).*"
-    )
-    from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.loggers import CSVLogger
-
-    from talkmesh.datasets.reader import open_dataset, report_skipped
-
-    out = Path(recipe.train.out_dir)
-    ckpt = checkpoints.newest_checkpoint(out) if resume else None
-    if ckpt is not None:
-        checkpoints.check_resume(ckpt, to_dict(recipe))
-    elif checkpoints.checkpoint_files(out):
-        raise TalkmeshError(
-            f"{out} already holds a run: pass --resume to continue it or choose train.out_dir"
-        )
-
-    seed_everything(recipe.train.seed)
-    train_set = open_dataset(
-        recipe.data.kind, recipe.data.root, recipe.data.train_split, regions=recipe.data.regions
-    )
-    if len(train_set) == 0:
-        raise TalkmeshError(f"{recipe.data.root}: the {recipe.data.train_split} split is empty")
-    train_set.drop_unloadable()  # a bad file is skipped (and counted), never fatal
-    info = dataset_info(train_set)
-    init = Path(recipe.init) if recipe.init else None
-    if init is not None and not init.is_file():
-        raise TalkmeshError(f"init checkpoint not found: {init} (train the earlier stage first)")
-    system = build_system(recipe, info, init)
-    if ckpt is not None:  # every check before the first write into the run folder
-        checkpoints.check_state_shapes(ckpt, system.state_dict())
-        checkpoints.announce(ckpt)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "recipe.json").write_text(json.dumps(to_dict(recipe), indent=2, sort_keys=True))
-    task = task_spec(recipe.task)
-    if task.prepare is not None and not resume:  # a resumed run restores them from the checkpoint
-        task.prepare(system.model, train_set)
+def _loaders(recipe: Recipe, train_set):
+    """The training loader (crops, epoch shuffle) and the validation loader (None without one)."""
+    from talkmesh.datasets.reader import open_dataset
 
     loader_args = dict(
         batch_size=recipe.data.batch_size,
@@ -494,6 +447,14 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
                 shuffle=False,
                 **loader_args,
             )
+
+    return train_loader, val_loader
+
+
+def _lightning_trainer(L, recipe: Recipe, out: Path, progress: bool):
+    """A Lightning Trainer: CSV (and TensorBoard) logs and a checkpoint per epoch in ``out``."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.loggers import CSVLogger
 
     loggers = [CSVLogger(out, name="logs", version="")]
     try:
@@ -531,6 +492,68 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
         num_sanity_val_steps=0,
         deterministic=False,
     )
+    return trainer
+
+
+def _record_run(out: Path, rank: int, system) -> None:
+    """The batches this rank saw and a digest of its weights (for determinism checks)."""
+    (out / f"batches_rank{rank}.txt").write_text("\n".join(system.recorded) + "\n")
+    digest = hashlib.sha256()
+    for p in system.model.state_dict().values():
+        digest.update(p.detach().cpu().numpy().tobytes())
+    (out / f"weights_rank{rank}.sha256").write_text(digest.hexdigest() + "\n")
+
+
+def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Path:
+    """Train ``recipe`` and write ``<out_dir>/model.safetensors``; returns that path.
+
+    ``resume=True`` continues from the newest loadable checkpoint in ``out_dir`` (the same loss
+    curve as an uninterrupted run); a recipe whose model differs from it is refused before anything
+    is written, changed settings are warned about and apply from there on. Logs go to ``<out_dir>/logs`` as CSV (and TensorBoard if installed).
+    """
+    _require_torch()
+    L = _lightning()
+    import warnings
+
+    # Lightning's own deprecation and sizing chatter is not the user's business
+    warnings.filterwarnings("ignore", module=r"lightning(\.|$)")
+    warnings.filterwarnings(
+        "ignore", message=".*(treespec|logging interval|does not have many workers).*"
+    )
+    from talkmesh.datasets.reader import open_dataset, report_skipped
+
+    out = Path(recipe.train.out_dir)
+    ckpt = checkpoints.newest_checkpoint(out) if resume else None
+    if ckpt is not None:
+        checkpoints.check_resume(ckpt, to_dict(recipe))
+    elif checkpoints.checkpoint_files(out):
+        raise TalkmeshError(
+            f"{out} already holds a run: pass --resume to continue it or choose train.out_dir"
+        )
+
+    seed_everything(recipe.train.seed)
+    train_set = open_dataset(
+        recipe.data.kind, recipe.data.root, recipe.data.train_split, regions=recipe.data.regions
+    )
+    if len(train_set) == 0:
+        raise TalkmeshError(f"{recipe.data.root}: the {recipe.data.train_split} split is empty")
+    train_set.drop_unloadable()  # a bad file is skipped (and counted), never fatal
+    info = dataset_info(train_set)
+    init = Path(recipe.init) if recipe.init else None
+    if init is not None and not init.is_file():
+        raise TalkmeshError(f"init checkpoint not found: {init} (train the earlier stage first)")
+    system = build_system(recipe, info, init)
+    if ckpt is not None:  # every check before the first write into the run folder
+        checkpoints.check_state_shapes(ckpt, system.state_dict())
+        checkpoints.announce(ckpt)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "recipe.json").write_text(json.dumps(to_dict(recipe), indent=2, sort_keys=True))
+    task = task_spec(recipe.task)
+    if task.prepare is not None and not resume:  # a resumed run restores them from the checkpoint
+        task.prepare(system.model, train_set)
+
+    train_loader, val_loader = _loaders(recipe, train_set)
+    trainer = _lightning_trainer(L, recipe, out, progress)
     trainer.fit(
         system,
         train_loader,
@@ -540,12 +563,7 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     )
 
     if recipe.train.record_batches:
-        rank = trainer.global_rank
-        (out / f"batches_rank{rank}.txt").write_text("\n".join(system.recorded) + "\n")
-        digest = hashlib.sha256()
-        for p in system.model.state_dict().values():
-            digest.update(p.detach().cpu().numpy().tobytes())
-        (out / f"weights_rank{rank}.sha256").write_text(digest.hexdigest() + "\n")
+        _record_run(out, trainer.global_rank, system)
     release = out / "model.safetensors"
     if trainer.is_global_zero:
         task_spec(recipe.task).save(system.model, release)
