@@ -168,3 +168,42 @@ def test_checker_finds_a_planted_cycle_and_a_wrong_way_import(tmp_path):
     assert any(
         "models may not import training" in v for v in direction_violations(import_graph(copy))
     )
+
+
+MAX_MODULE_LINES = 700
+MAX_FUNCTION_LINES = 80
+LONG_REASON = "long because"  # a longer function's docstring says why, with these words
+
+
+def size_violations(src: Path) -> list[str]:
+    """Modules over MAX_MODULE_LINES lines; functions over MAX_FUNCTION_LINES lines whose
+    docstring does not say why ("... long because ...")."""
+    bad = []
+    for path in sorted((src / "talkmesh").rglob("*.py")):
+        text = path.read_text()
+        rel = path.relative_to(src)
+        if (n := len(text.splitlines())) > MAX_MODULE_LINES:
+            bad.append(f"{rel}: {n} lines")
+        for node in ast.walk(ast.parse(text, str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                doc = (ast.get_docstring(node) or "").lower()
+                if n > MAX_FUNCTION_LINES and LONG_REASON not in doc:
+                    bad.append(f"{rel}:{node.lineno} {node.name}(): {n} lines")
+    return bad
+
+
+def test_modules_and_functions_are_short():
+    assert size_violations(SRC) == []
+
+
+def test_size_check_can_fail(tmp_path):
+    pkg = tmp_path / "talkmesh"
+    pkg.mkdir()
+    body = "\n".join(f"    x{i} = {i}" for i in range(MAX_FUNCTION_LINES))
+    (pkg / "long.py").write_text(
+        f"def f():\n{body}\n\n\ndef g():\n    '''Long because: a table.'''\n{body}\n"
+    )
+    assert size_violations(tmp_path) == [f"talkmesh/long.py:1 f(): {MAX_FUNCTION_LINES + 1} lines"]
+    (pkg / "big.py").write_text("x = 1\n" * (MAX_MODULE_LINES + 1))
+    assert f"talkmesh/big.py: {MAX_MODULE_LINES + 1} lines" in size_violations(tmp_path)
