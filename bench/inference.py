@@ -96,8 +96,13 @@ def row(config: str, mode: str, seconds: float, threads: int) -> dict:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     per_pass = out.shape[1] / len(passes) if passes else None
     wall = sorted(walls)[len(walls) // 2]
-    return {"wall": wall, "walls": walls, "frames": out.shape[1], "peak_mb": peak,
-            "per_pass": per_pass}  # fmt: skip
+    return {
+        "wall": wall,
+        "walls": walls,
+        "frames": out.shape[1],
+        "peak_mb": peak,
+        "per_pass": per_pass,
+    }
 
 
 def count_passes() -> list[int]:
@@ -148,8 +153,10 @@ def main() -> None:
                 else mode.removesuffix("-steps")
             )
             if base not in MODES or not sec.replace(".", "", 1).isdigit() or float(sec) <= 0:
-                p.error(f"--rows: {r!r} is not MODE:SECONDS with MODE one of {', '.join(MODES)} "
-                        "(any fast mode may end in -steps)")  # fmt: skip
+                p.error(
+                    f"--rows: {r!r} is not MODE:SECONDS with MODE one of {', '.join(MODES)} "
+                    "(any fast mode may end in -steps)"
+                )
             rows.append((mode, float(sec)))
     params = sum(p.numel() for p in build(args.config).parameters()) / 1e6
     print(
@@ -159,18 +166,32 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     results, runs = {}, {}
     for mode, seconds in rows:
-        cmd = [sys.executable, __file__, "--config", args.config, "--threads", str(args.threads),
-               "--row", f"{mode},{seconds}"]  # fmt: skip
+        cmd = [
+            sys.executable,
+            __file__,
+            "--config",
+            args.config,
+            "--threads",
+            str(args.threads),
+            "--row",
+            f"{mode},{seconds}",
+        ]
         r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
         results[(mode, seconds)] = r["wall"]
         runs[(mode, seconds)] = r["walls"]
         per_pass = "" if r["per_pass"] is None else f"{r['per_pass']:.1f}"
-        print(f"| {mode} | {seconds:g} s | {r['frames']} | {per_pass} | {r['wall']:.2f} | "
-              f"{r['wall'] / seconds:.3f} | {r['peak_mb']:.0f} |", flush=True)  # fmt: skip
+        print(
+            f"| {mode} | {seconds:g} s | {r['frames']} | {per_pass} | {r['wall']:.2f} | "
+            f"{r['wall'] / seconds:.3f} | {r['peak_mb']:.0f} |",
+            flush=True,
+        )
     naive = results.get(("naive", 4.0))
     if naive:
-        ratios = [f"{m}: {naive / t:.1f}x" for (m, sec), t in results.items()
-                  if sec == 4.0 and m != "naive"]  # fmt: skip
+        ratios = [
+            f"{m}: {naive / t:.1f}x"
+            for (m, sec), t in results.items()
+            if sec == 4.0 and m != "naive"
+        ]
         print("\nnaive / each mode at 4 s: " + ", ".join(ratios))
     for (mode, sec), walls in runs.items():
         if len(walls) > 1:

@@ -56,8 +56,10 @@ def main() -> None:
     pairs = pairs[: args.limit]
     import json
 
-    ids = {s: m["identity"] for s, m in
-           json.loads((Path(args.data) / "manifest.json").read_text())["subjects"].items()}  # fmt: skip
+    ids = {
+        s: m["identity"]
+        for s, m in json.loads((Path(args.data) / "manifest.json").read_text())["subjects"].items()
+    }
     rows: dict[str, list[tuple[float, float]]] = {}
 
     def add(name: str, pred: np.ndarray, orig: np.ndarray, new: np.ndarray) -> None:
@@ -79,8 +81,9 @@ def main() -> None:
         add("original animation i, undubbed", orig, orig, new)
         add("MeshTalk reconstruction of j (its motion and audio)", recon, orig, new)
         head = load_head(ids[sb.subject]).with_template(sb.template, sb.subject)
-        weights = phones_to_weights(recognize_phones(sb.audio[:S]), T, ds.spec.motion_fps,
-                                    audio=sb.audio[:S], seed=b)  # fmt: skip
+        weights = phones_to_weights(
+            recognize_phones(sb.audio[:S]), T, ds.spec.motion_fps, audio=sb.audio[:S], seed=b
+        )
         add("procedural, audio j", head.vertices_from_weights(weights), orig, new)
         if system.prior is not None:  # MeshTalk animating the new audio alone (prior sampling)
             verts = system.generate(audio_b, template, num_frames=T, seed=b)[0].numpy()
@@ -88,8 +91,9 @@ def main() -> None:
         if ct is not None:
             with torch.inference_mode():
                 n = len(ct.cfg.stage2.styles)
-                verts = ct.generate(audio_b, template, style_weights=torch.full((1, n), 1 / n),
-                                    num_frames=T)[0].numpy()  # fmt: skip
+                verts = ct.generate(
+                    audio_b, template, style_weights=torch.full((1, n), 1 / n), num_frames=T
+                )[0].numpy()
             add(f"{args.codetalker}, audio j", verts, orig, new)
 
     print(f"\n{len(pairs)} sentence pairs of the synthetic test speakers\n")

@@ -195,8 +195,16 @@ def diversity(args) -> None:
         truth = (
             np.sqrt((np.linalg.norm(s.vertices - s.vertices.mean(0), axis=-1) ** 2).mean(0)) * MM
         )
-        rows.append((s.name, per_vertex[lips].mean(), per_vertex[upper].mean(),
-                     per_vertex[eyelids].mean(), truth[lips].mean(), truth[upper].mean()))  # fmt: skip
+        rows.append(
+            (
+                s.name,
+                per_vertex[lips].mean(),
+                per_vertex[upper].mean(),
+                per_vertex[eyelids].mean(),
+                truth[lips].mean(),
+                truth[upper].mean(),
+            )
+        )
     print(f"MeshTalk diversity: {args.seeds} seeds per sentence, {len(rows)} test sentences")
     print(f"model: {args.model}\n")
     print("Spread across seeds (mm), and relative to the region's own motion in the truth (its")
@@ -207,8 +215,10 @@ def diversity(args) -> None:
     print("|---|---|---|---|---|---|---|")
 
     def line(name, lip, up, eye, t_lip, t_up):
-        print(f"| {name} | {lip:.3f} | {up:.3f} | {eye:.3f} | {up / max(lip, 1e-9):.2f} | "
-              f"{lip / t_lip:.2f} | {up / t_up:.2f} |")  # fmt: skip
+        print(
+            f"| {name} | {lip:.3f} | {up:.3f} | {eye:.3f} | {up / max(lip, 1e-9):.2f} | "
+            f"{lip / t_lip:.2f} | {up / t_up:.2f} |"
+        )
 
     for row in rows:
         line(*row)
@@ -222,8 +232,10 @@ def speed(args) -> None:
     template = torch.from_numpy(net.model.template_mean.numpy())[None]
     rng = np.random.default_rng(0)
     print(f"MeshTalk generation speed, model {args.model}")
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
-          f"{args.threads} threads\n")  # fmt: skip
+    print(
+        f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
+        f"{args.threads} threads\n"
+    )
     print(
         "| audio | frames | cached s | cached RTF | whole-history s | whole-history RTF | speed-up |"
     )
@@ -268,7 +280,7 @@ def retarget_video(args) -> None:
             fps=net.motion_fps,
             audio=s.audio,
             sample_rate=SAMPLE_RATE,
-        )  # fmt: skip
+        )
         for v in (s.vertices, recon, moved)
     ]
     labels = [f"{s.subject}: truth", "MeshTalk codes, own face", f"same codes on {args.target}"]
@@ -305,8 +317,13 @@ def main() -> None:
     args = p.parse_args()
     if args.command != "speed":
         torch.set_num_threads(2)
-    commands = {"table1": table1, "disentangle": disentangle, "diversity": diversity,
-                "speed": speed, "retarget-video": retarget_video}  # fmt: skip
+    commands = {
+        "table1": table1,
+        "disentangle": disentangle,
+        "diversity": diversity,
+        "speed": speed,
+        "retarget-video": retarget_video,
+    }
     commands[args.command](args)
 
 

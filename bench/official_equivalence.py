@@ -42,8 +42,9 @@ def main() -> None:
             scale = np.abs(ref - template).max()
             style = torch.tensor([list(model.styles).index(condition)])
             for mode in model.generation_modes:
-                out = model.generate(audio, torch.from_numpy(template)[None], styles=style,
-                                     mode=mode)[0].numpy()  # fmt: skip
+                out = model.generate(
+                    audio, torch.from_numpy(template)[None], styles=style, mode=mode
+                )[0].numpy()
                 n = min(len(out), len(ref))
                 diff = np.abs(out[:n] - ref[:n]).max() / scale
                 print(f"| {family} | {dataset} | {mode} | {len(ref)} | {len(out)} | {diff:.1e} |")

@@ -63,8 +63,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.parse_args()
     head = load_head()
-    print("| case | vertices | units | up | mean err mm | worst shape mm | mean % | worst % | "
-          "jaw gap mm true/ours | close+jaw gap mm true/ours | s |")  # fmt: skip
+    print(
+        "| case | vertices | units | up | mean err mm | worst shape mm | mean % | worst % | "
+        "jaw gap mm true/ours | close+jaw gap mm true/ours | s |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, v, f, truth, unit, pair in cases(head):
         t = time.perf_counter()
@@ -79,10 +81,13 @@ def main() -> None:
             for w in ({JAW: 1.0}, {JAW: 1.0, CLOSE: 1.0})
             for o in (truth, rig.blendshapes)
         ]
-        print(f"| {name} | {len(v)} | {rig.units} | {rig.up_axis} | {err.mean():.3f} | "
-              f"{err.max():.3f} ({ARKIT_NAMES[int(err.argmax())]}) | {pct.mean():.1f} | "
-              f"{pct.max():.1f} | {gaps[0]:.1f}/{gaps[1]:.1f} | {gaps[2]:.1f}/{gaps[3]:.1f} | "
-              f"{seconds:.1f} |", flush=True)  # fmt: skip
+        print(
+            f"| {name} | {len(v)} | {rig.units} | {rig.up_axis} | {err.mean():.3f} | "
+            f"{err.max():.3f} ({ARKIT_NAMES[int(err.argmax())]}) | {pct.mean():.1f} | "
+            f"{pct.max():.1f} | {gaps[0]:.1f}/{gaps[1]:.1f} | {gaps[2]:.1f}/{gaps[3]:.1f} | "
+            f"{seconds:.1f} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -69,8 +69,10 @@ def main() -> None:
                 break
             except httpx.TransportError:
                 time.sleep(0.2)
-        print(f"{'audio':>8} {'upload kB':>10} {'status':>6} {'answer s':>9} {'RSS MB':>15} "
-              f"{'peak MB':>15} {'peak growth':>12}")  # fmt: skip
+        print(
+            f"{'audio':>8} {'upload kB':>10} {'status':>6} {'answer s':>9} {'RSS MB':>15} "
+            f"{'peak MB':>15} {'peak growth':>12}"
+        )
         for minutes in (float(m) for m in args.minutes.split(",")):
             body = silent_flac(minutes)
             before = memory_mb(proc.pid)

@@ -76,10 +76,21 @@ def free_port() -> int:
 
 def start_server(port: int, model: str, max_sessions: int) -> subprocess.Popen:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "talkmesh", "serve", "--port", str(port), "-q", "--model", model,
-         "--max-sessions", str(max_sessions)],
+        [
+            sys.executable,
+            "-m",
+            "talkmesh",
+            "serve",
+            "--port",
+            str(port),
+            "-q",
+            "--model",
+            model,
+            "--max-sessions",
+            str(max_sessions),
+        ],
         env=dict(os.environ, HF_HUB_OFFLINE="1"),
-    )  # fmt: skip
+    )
     import httpx
 
     deadline = time.monotonic() + 120
@@ -181,10 +192,14 @@ def main() -> None:
     finally:
         proc.terminate()
         proc.wait(timeout=30)
-    print(f"\n{args.model}, {args.seconds:g} s per stream in {args.chunk_ms:g} ms chunks, "
-          f"{os.cpu_count()} CPU cores\n")  # fmt: skip
-    print("| streams | frames expected / received | dropped | median latency (ms) "
-          "| p95 latency (ms) | worst drift end-start (ms) | kept up |")  # fmt: skip
+    print(
+        f"\n{args.model}, {args.seconds:g} s per stream in {args.chunk_ms:g} ms chunks, "
+        f"{os.cpu_count()} CPU cores\n"
+    )
+    print(
+        "| streams | frames expected / received | dropped | median latency (ms) "
+        "| p95 latency (ms) | worst drift end-start (ms) | kept up |"
+    )
     print("|---|---|---|---|---|---|---|")
     print("\n".join(rows))
 

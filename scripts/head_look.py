@@ -39,8 +39,11 @@ def main() -> None:
     )
     plain = PART_SRGB[np.clip(head.regions.vertex_part, 0, len(PART_SRGB) - 1)]
     panels = []
-    for colors, verts in ((plain, vertices), (head_colors(head), vertices),
-                          (head_colors(head), vertices @ turn.T.astype(np.float32))):  # fmt: skip
+    for colors, verts in (
+        (plain, vertices),
+        (head_colors(head), vertices),
+        (head_colors(head), vertices @ turn.T.astype(np.float32)),
+    ):
         with Renderer(head.faces, SIZE, vertex_colors=colors, reference=vertices) as renderer:
             panels.append(renderer.render(verts))
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)

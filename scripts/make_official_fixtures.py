@@ -114,8 +114,14 @@ def faceformer(checkout: Path, wav: Path) -> None:
         ("BIWI", BIWI_SUBJECTS, 32, 25),  # official 128
     ):
         torch.manual_seed(SEED)
-        args = SimpleNamespace(dataset=dataset, vertice_dim=NUM_VERTICES * 3, feature_dim=d,
-                               period=period, train_subjects=subjects, device="cpu")  # fmt: skip
+        args = SimpleNamespace(
+            dataset=dataset,
+            vertice_dim=NUM_VERTICES * 3,
+            feature_dim=d,
+            period=period,
+            train_subjects=subjects,
+            device="cpu",
+        )
         model = official.Faceformer(args)
         # the official motion decoder starts at zero: give it weights so the output moves
         torch.nn.init.normal_(model.vertice_map_r.weight, std=0.05)
@@ -164,13 +170,31 @@ def codetalker(checkout: Path, wav: Path) -> None:
     ):
         torch.manual_seed(SEED)
         args = SimpleNamespace(
-            dataset=dataset, train_subjects=subjects, in_dim=NUM_VERTICES * 3,
-            hidden_size=hidden, num_hidden_layers=1, num_attention_heads=8, intermediate_size=24,
-            window_size=1, quant_factor=0, face_quan_num=H, neg=0.2, INaffine=False,
-            n_embed=16, zquant_dim=C, autoencoder=f"stage1_{dataset}", feature_dim=32,
-            vertice_dim=NUM_VERTICES * 3, device="cpu", period=period, n_head=4, num_layers=2,
-            wav2vec2model_path="(tiny)", motion_weight=1.0, reg_weight=1.0,
-        )  # fmt: skip
+            dataset=dataset,
+            train_subjects=subjects,
+            in_dim=NUM_VERTICES * 3,
+            hidden_size=hidden,
+            num_hidden_layers=1,
+            num_attention_heads=8,
+            intermediate_size=24,
+            window_size=1,
+            quant_factor=0,
+            face_quan_num=H,
+            neg=0.2,
+            INaffine=False,
+            n_embed=16,
+            zquant_dim=C,
+            autoencoder=f"stage1_{dataset}",
+            feature_dim=32,
+            vertice_dim=NUM_VERTICES * 3,
+            device="cpu",
+            period=period,
+            n_head=4,
+            num_layers=2,
+            wav2vec2model_path="(tiny)",
+            motion_weight=1.0,
+            reg_weight=1.0,
+        )
         stage1_module = __import__(f"models.stage1_{dataset}", fromlist=["VQAutoEncoder"])
         vq = stage1_module.VQAutoEncoder(args)
         # a trained codebook is spread like the encoder's outputs, not the tiny uniform init
@@ -182,8 +206,9 @@ def codetalker(checkout: Path, wav: Path) -> None:
         torch.nn.init.normal_(model.feat_map.weight, std=0.5)  # zero-initialised officially
         model.eval()
         patch_encoder(model.audio_encoder)
-        save_checkpoint(model, {"epoch": 100}, sav_path=str(OUT),
-                        filename=f"{name}_stage2.pth.tar", stage=2)  # fmt: skip
+        save_checkpoint(
+            model, {"epoch": 100}, sav_path=str(OUT), filename=f"{name}_stage2.pth.tar", stage=2
+        )
         names = subjects.split()
         condition = len(names) // 2
         one_hot = torch.zeros(1, len(names))
@@ -213,8 +238,13 @@ def detect(checkout: Path) -> str:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--official", type=Path, action="append", required=True,
-                   help="a local checkout of the official code (repeatable)")  # fmt: skip
+    p.add_argument(
+        "--official",
+        type=Path,
+        action="append",
+        required=True,
+        help="a local checkout of the official code (repeatable)",
+    )
     p.add_argument("--wav", type=Path, default=OUT / "speech.wav")
     args = p.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)

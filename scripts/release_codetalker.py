@@ -30,8 +30,14 @@ def scores(data: str, pred: Path) -> dict:
     out = {}
     for protocol in ("physical", "codetalker"):
         s = evaluate("synth", data, pred, protocol=protocol)
-        out[protocol] = {"lve": s.lve, "fdd": s.fdd, "mve": s.mve, "lip_sync": s.lip_sync,
-                         "n_sequences": s.n_sequences, "n_frames": s.n_frames}  # fmt: skip
+        out[protocol] = {
+            "lve": s.lve,
+            "fdd": s.fdd,
+            "mve": s.mve,
+            "lip_sync": s.lip_sync,
+            "n_sequences": s.n_sequences,
+            "n_frames": s.n_frames,
+        }
     return out
 
 
@@ -59,8 +65,10 @@ def run_minutes(run: Path) -> float:
 def row(label: str, s: dict) -> str:
     ph, an = s["physical"], s["codetalker"]
     r = ph["lip_sync"]
-    return (f"| {label} | {ph['lve'] * 1e3:.3f} | {ph['fdd'] * 1e3:.3f} | {ph['mve'] * 1e3:.3f} | "
-            f"{'-' if r != r else f'{r:.3f}'} | {an['lve'] * 1e4:.4f} | {an['fdd'] * 1e5:.4f} |")  # fmt: skip
+    return (
+        f"| {label} | {ph['lve'] * 1e3:.3f} | {ph['fdd'] * 1e3:.3f} | {ph['mve'] * 1e3:.3f} | "
+        f"{'-' if r != r else f'{r:.3f}'} | {an['lve'] * 1e4:.4f} | {an['fdd'] * 1e5:.4f} |"
+    )
 
 
 def main() -> None:
@@ -73,16 +81,25 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(2)
     MODELS_DIR.mkdir(parents=True, exist_ok=True)
-    release = save_model(load_model(args.stage2 / "model.safetensors"),
-                         MODELS_DIR / f"{args.name}.safetensors", dtype=torch.float16)  # fmt: skip
+    release = save_model(
+        load_model(args.stage2 / "model.safetensors"),
+        MODELS_DIR / f"{args.name}.safetensors",
+        dtype=torch.float16,
+    )
     size_mb = release.stat().st_size / 1e6
     net = load_model(release)
     params = sum(t.numel() for t in net.parameters()) / 1e6
     results: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        write_model_predictions("synth", args.data, tmp / "recon", str(args.stage1 / "model.safetensors"),
-                                mode="reconstruct", progress=False)  # fmt: skip
+        write_model_predictions(
+            "synth",
+            args.data,
+            tmp / "recon",
+            str(args.stage1 / "model.safetensors"),
+            mode="reconstruct",
+            progress=False,
+        )
         results["stage 1 reconstruction"] = scores(args.data, tmp / "recon")
         for method in ("static", "procedural"):
             write_baseline("synth", args.data, tmp / method, method=method, progress=False)
@@ -91,8 +108,9 @@ def main() -> None:
         write_model_predictions("synth", args.data, tmp / "model", str(release), progress=False)
         seconds = time.perf_counter() - start
         results[args.name] = scores(args.data, tmp / "model")
-        write_model_predictions("synth", args.data, tmp / "blinks", str(release), blinks=True,
-                                progress=False)  # fmt: skip
+        write_model_predictions(
+            "synth", args.data, tmp / "blinks", str(release), blinks=True, progress=False
+        )
         results[f"{args.name} + procedural blinks/gaze"] = scores(args.data, tmp / "blinks")
     used, size, perplexity = codebook_usage(args.stage1, args.data)
     test = open_dataset("synth", args.data, "test")
@@ -162,9 +180,17 @@ def main() -> None:
         "gaze (`--no-blinks` turns that off), shown as a separate row above.",
     ]
     (MODELS_DIR / f"{args.name}.md").write_text("\n".join(card) + "\n")
-    (MODELS_DIR / f"{args.name}.json").write_text(json.dumps(
-        {"results": results, "codebook": {"used": used, "size": size, "perplexity": perplexity},
-         "generation_seconds": seconds, "audio_seconds": audio_s}, indent=1))  # fmt: skip
+    (MODELS_DIR / f"{args.name}.json").write_text(
+        json.dumps(
+            {
+                "results": results,
+                "codebook": {"used": used, "size": size, "perplexity": perplexity},
+                "generation_seconds": seconds,
+                "audio_seconds": audio_s,
+            },
+            indent=1,
+        )
+    )
     print("\n".join(card))
 
 

@@ -14,14 +14,34 @@ from pathlib import Path
 
 import numpy as np
 
-HEAD_NAMES = ["blendShape1.jawOpen", "blendShape1.eyeBlinkLeft", "blendShape1.eyeBlinkRight",
-              "blendShape1.mouthSmileLeft", "blendShape1.mouthFunnel", "blendShape1.browInnerUp"]  # fmt: skip
+HEAD_NAMES = [
+    "blendShape1.jawOpen",
+    "blendShape1.eyeBlinkLeft",
+    "blendShape1.eyeBlinkRight",
+    "blendShape1.mouthSmileLeft",
+    "blendShape1.mouthFunnel",
+    "blendShape1.browInnerUp",
+]
 TEETH_NAMES = ["JawOpen", "MouthFunnel", "CustomSculpt"]
 TONGUE_NAMES = ["jaw_open", "tongue_out"]
-VISEME_NAMES = ["viseme_sil", "viseme_PP", "viseme_aa", "viseme_O", "viseme_U", "eyeBlinkLeft",
-                "eyeBlinkRight"]  # fmt: skip
-HEAD_DRIVEN = {"jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "mouthSmileLeft", "mouthFunnel",
-               "browInnerUp", "tongueOut"}  # fmt: skip
+VISEME_NAMES = [
+    "viseme_sil",
+    "viseme_PP",
+    "viseme_aa",
+    "viseme_O",
+    "viseme_U",
+    "eyeBlinkLeft",
+    "eyeBlinkRight",
+]
+HEAD_DRIVEN = {
+    "jawOpen",
+    "eyeBlinkLeft",
+    "eyeBlinkRight",
+    "mouthSmileLeft",
+    "mouthFunnel",
+    "browInnerUp",
+    "tongueOut",
+}
 
 
 def png_bytes(size: int = 4) -> bytes:
@@ -66,8 +86,12 @@ class _Builder:
     ) -> int:
         array = np.ascontiguousarray(array)
         code = {np.float32: 5126, np.uint16: 5123, np.uint8: 5121}[array.dtype.type]
-        acc = {"bufferView": self.view(array.tobytes(), target), "componentType": code,
-               "count": int(array.shape[0]), "type": kind}  # fmt: skip
+        acc = {
+            "bufferView": self.view(array.tobytes(), target),
+            "componentType": code,
+            "count": int(array.shape[0]),
+            "type": kind,
+        }
         if bounds:
             flat = array.reshape(len(array), -1)
             acc["min"], acc["max"] = flat.min(0).tolist(), flat.max(0).tolist()
@@ -86,8 +110,18 @@ def _box(center, size) -> tuple[np.ndarray, np.ndarray]:
     return v, np.array(f, np.uint16).ravel()
 
 
-def _mesh(b: _Builder, name, center, size, names, *, skinned=False, material=None, uv=False,
-          names_on_primitive=False) -> dict:  # fmt: skip
+def _mesh(
+    b: _Builder,
+    name,
+    center,
+    size,
+    names,
+    *,
+    skinned=False,
+    material=None,
+    uv=False,
+    names_on_primitive=False,
+) -> dict:
     v, f = _box(center, size)
     attributes = {"POSITION": b.accessor(v, "VEC3", 34962, bounds=True)}
     if uv:
@@ -100,8 +134,14 @@ def _mesh(b: _Builder, name, center, size, names, *, skinned=False, material=Non
             np.tile([[1, 0, 0, 0]], (len(v), 1)).astype(np.float32), "VEC4", 34962
         )
     rng = np.random.default_rng(len(names))
-    targets = [{"POSITION": b.accessor(rng.normal(0, 0.004, v.shape).astype(np.float32), "VEC3", 34962, bounds=True)}
-               for _ in names]  # fmt: skip
+    targets = [
+        {
+            "POSITION": b.accessor(
+                rng.normal(0, 0.004, v.shape).astype(np.float32), "VEC3", 34962, bounds=True
+            )
+        }
+        for _ in names
+    ]
     primitive = {
         "attributes": attributes,
         "indices": b.accessor(f, "SCALAR", 34963),
@@ -121,8 +161,11 @@ def make_avatar(path: Path, *, vrm: bool = False, visemes: bool = False) -> Path
     """Write a test avatar to ``path`` (.glb, or .vrm with the VRM 0.x extension)."""
     b = _Builder()
     image = b.view(png_bytes())
-    names = [VISEME_NAMES, ["viseme_aa", "viseme_O"], ["viseme_TH"]] if visemes else [
-        HEAD_NAMES, TEETH_NAMES, TONGUE_NAMES]  # fmt: skip
+    names = (
+        [VISEME_NAMES, ["viseme_aa", "viseme_O"], ["viseme_TH"]]
+        if visemes
+        else [HEAD_NAMES, TEETH_NAMES, TONGUE_NAMES]
+    )
     meshes = [
         _mesh(
             b, "Head", (0, 1.6, 0), (0.16, 0.22, 0.18), names[0], skinned=True, material=0, uv=True
@@ -139,9 +182,18 @@ def make_avatar(path: Path, *, vrm: bool = False, visemes: bool = False) -> Path
         _mesh(b, "Tongue", (0, 1.54, 0.05), (0.03, 0.01, 0.04), names[2], material=1),
     ]
     hat_v, hat_f = _box((0, 1.75, 0), (0.2, 0.05, 0.2))
-    meshes.append({"name": "Hat", "primitives": [{"attributes": {
-        "POSITION": b.accessor(hat_v, "VEC3", 34962, bounds=True)},
-        "indices": b.accessor(hat_f, "SCALAR", 34963), "material": 1}]})  # fmt: skip
+    meshes.append(
+        {
+            "name": "Hat",
+            "primitives": [
+                {
+                    "attributes": {"POSITION": b.accessor(hat_v, "VEC3", 34962, bounds=True)},
+                    "indices": b.accessor(hat_f, "SCALAR", 34963),
+                    "material": 1,
+                }
+            ],
+        }
+    )
     inverse = np.tile(np.eye(4, dtype=np.float32).ravel(), (2, 1))
     inverse[1, 13] = -1.5  # the neck joint sits at y = 1.5 m
     ibm = b.accessor(inverse, "MAT4")
@@ -178,21 +230,38 @@ def make_avatar(path: Path, *, vrm: bool = False, visemes: bool = False) -> Path
                 "samplers": [{"input": times, "output": rotations, "interpolation": "LINEAR"}],
                 "channels": [{"sampler": 0, "target": {"node": 1, "path": "rotation"}}],
             }
-        ],  # fmt: skip
+        ],
         "buffers": [{"byteLength": len(b.data)}],
         "bufferViews": b.views,
         "accessors": b.accessors,
     }
     if vrm:
         gltf["extensionsUsed"] = ["VRM"]
-        gltf["extensions"] = {"VRM": {
-            "exporterVersion": "talkmesh-tests", "specVersion": "0.0",
-            "meta": {"title": "Test avatar", "version": "1", "author": "talkmesh tests",
-                     "allowedUserName": "Everyone", "licenseName": "CC0"},
-            "humanoid": {"humanBones": [{"bone": "neck", "node": 1}, {"bone": "hips", "node": 0}]},
-            "blendShapeMaster": {"blendShapeGroups": [
-                {"name": "A", "presetName": "a", "binds": [{"mesh": 0, "index": 0, "weight": 100}]}]},
-        }}  # fmt: skip
+        gltf["extensions"] = {
+            "VRM": {
+                "exporterVersion": "talkmesh-tests",
+                "specVersion": "0.0",
+                "meta": {
+                    "title": "Test avatar",
+                    "version": "1",
+                    "author": "talkmesh tests",
+                    "allowedUserName": "Everyone",
+                    "licenseName": "CC0",
+                },
+                "humanoid": {
+                    "humanBones": [{"bone": "neck", "node": 1}, {"bone": "hips", "node": 0}]
+                },
+                "blendShapeMaster": {
+                    "blendShapeGroups": [
+                        {
+                            "name": "A",
+                            "presetName": "a",
+                            "binds": [{"mesh": 0, "index": 0, "weight": 100}],
+                        }
+                    ]
+                },
+            }
+        }
     text = json.dumps(gltf).encode()
     text += b" " * (-len(text) % 4)
     binary = bytes(b.data) + b"\0" * (-len(b.data) % 4)

@@ -19,16 +19,32 @@ def write_wav(path: Path, seconds: float, sr: int) -> None:
 def write_ply(path: Path, num_vertices: int) -> None:
     """An ASCII PLY with a triangle fan over the vertices."""
     faces = [(0, k, k + 1) for k in range(1, num_vertices - 1)]
-    lines = ["ply", "format ascii 1.0", f"element vertex {num_vertices}", "property float x",
-             "property float y", "property float z", f"element face {len(faces)}",
-             "property list uchar int vertex_indices", "end_header"]  # fmt: skip
+    lines = [
+        "ply",
+        "format ascii 1.0",
+        f"element vertex {num_vertices}",
+        "property float x",
+        "property float y",
+        "property float z",
+        f"element face {len(faces)}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
     lines += [f"{k * 0.01} {np.sin(k)} {np.cos(k)}" for k in range(num_vertices)]
     lines += [f"3 {a} {b} {c}" for a, b, c in faces]
     path.write_text("\n".join(lines) + "\n")
 
 
-def make_dataset(root: Path, spec, names: list[str], frames: int, disk_fps: float, sr: int,
-                 dtype=np.float32, python2_pickle: bool = False) -> dict[str, np.ndarray]:  # fmt: skip
+def make_dataset(
+    root: Path,
+    spec,
+    names: list[str],
+    frames: int,
+    disk_fps: float,
+    sr: int,
+    dtype=np.float32,
+    python2_pickle: bool = False,
+) -> dict[str, np.ndarray]:
     """Write sequences for ``names`` (<SUBJECT>_<SENTENCE>) in the contract layout."""
     v = spec.num_vertices
     (root / "wav").mkdir(parents=True, exist_ok=True)

@@ -47,13 +47,21 @@ def clip_values(gltf: dict, binary: bytes, node: int) -> np.ndarray:
 @pytest.mark.parametrize(
     "name, expected",
     [
-        ("jawOpen", "jawOpen"), ("JawOpen", "jawOpen"), ("jaw_open", "jawOpen"),
-        ("Jaw-Open", "jawOpen"), ("blendShape1.jawOpen", "jawOpen"), ("Head|mouthSmile_L", "mouthSmileLeft"),
-        ("mesh:eyeBlink_R", "eyeBlinkRight"), ("ARKit_tongueOut", "tongueOut"),
-        ("CC_Base_mouthRight", "mouthRight"), ("EYE_LOOK_IN_LEFT", "eyeLookInLeft"),
-        ("Fcl_MTH_A", None), ("viseme_O", None), ("smile", None),
+        ("jawOpen", "jawOpen"),
+        ("JawOpen", "jawOpen"),
+        ("jaw_open", "jawOpen"),
+        ("Jaw-Open", "jawOpen"),
+        ("blendShape1.jawOpen", "jawOpen"),
+        ("Head|mouthSmile_L", "mouthSmileLeft"),
+        ("mesh:eyeBlink_R", "eyeBlinkRight"),
+        ("ARKit_tongueOut", "tongueOut"),
+        ("CC_Base_mouthRight", "mouthRight"),
+        ("EYE_LOOK_IN_LEFT", "eyeLookInLeft"),
+        ("Fcl_MTH_A", None),
+        ("viseme_O", None),
+        ("smile", None),
     ],
-)  # fmt: skip
+)
 def test_arkit_names_in_exporters_spellings(name, expected):
     index = arkit_channel(name)
     assert (ARKIT_NAMES[index] if index >= 0 else None) == expected

@@ -130,8 +130,11 @@ def test_claims_compare_means_against_seed_spread_and_count_seed_pairs():
     def seeds(lves):
         return [{"physical": {"lve": v, "fdd": -v, "mve": v, "lip_sync": 0.5}} for v in lves]
 
-    per_seed = {"codetalker": seeds([1.0, 1.1, 1.2]), "faceformer": seeds([2.0, 1.15, 1.3]),
-                "meshtalk": seeds([5.0, 5.1, 5.2])}  # fmt: skip
+    per_seed = {
+        "codetalker": seeds([1.0, 1.1, 1.2]),
+        "faceformer": seeds([2.0, 1.15, 1.3]),
+        "meshtalk": seeds([5.0, 5.1, 5.2]),
+    }
     agg = {m: aggregate(dict(enumerate(r))) for m, r in per_seed.items()}
     claims = {(c["metric"], c["better"], c["worse"]): c for c in check_claims(agg, per_seed)}
     lve = claims[("lve", "codetalker", "faceformer")]
@@ -221,8 +224,9 @@ def test_end_to_end_then_resume_then_partial(bench_root):
         timing = seeds["1"]["training"][-1]
         assert timing["seconds"] > 0 and timing["frames_per_second"] > 0
         assert timing["batch_size"] == (3 if method == "codetalker" else 2)
-    ct_lve = [report["methods"]["codetalker"]["seeds"][s]["scores"]["physical"]["lve"]
-              for s in ("0", "1")]  # fmt: skip
+    ct_lve = [
+        report["methods"]["codetalker"]["seeds"][s]["scores"]["physical"]["lve"] for s in ("0", "1")
+    ]
     assert ct_lve[0] != ct_lve[1]  # the seeds trained different models
     assert set(report["baselines"]) == {"static", "procedural"}
     verdicts = [c for c in report["claims"] if c["better"] == "codetalker"]
@@ -230,8 +234,13 @@ def test_end_to_end_then_resume_then_partial(bench_root):
     assert verdicts[0]["verdict"] in ("holds", "contradicted", "within seed variance")
     assert verdicts[0]["verdict"] in md
     for c in verdicts:  # every (codetalker seed, voca seed) pair, ordered as claimed or not
-        ct, vo = ([abs(report["methods"][m]["seeds"][s]["scores"][c["protocol"]]["fdd"])
-                   for s in ("0", "1")] for m in ("codetalker", "voca"))  # fmt: skip
+        ct, vo = (
+            [
+                abs(report["methods"][m]["seeds"][s]["scores"][c["protocol"]]["fdd"])
+                for s in ("0", "1")
+            ]
+            for m in ("codetalker", "voca")
+        )
         assert c["seed_pairs"] == 4
         assert c["seed_pairs_holding"] == sum(a < b for a in ct for b in vo)
         assert f"| {c['seed_pairs_holding']} / 4 | **{c['verdict']}** |" in md
@@ -258,8 +267,10 @@ def test_end_to_end_then_resume_then_partial(bench_root):
     # a partial state: voca seed 1 killed after its last checkpoint (resumed), CodeTalker seed 1
     # stage 2 gone with its checkpoints (retrained); nothing else moves
     speech = work / "codetalker" / "seed1" / "speech"
-    releases = {work / "voca" / "seed1": work / "voca" / "seed1" / "voca" / "model.safetensors",
-                work / "codetalker" / "seed1": speech / "model.safetensors"}  # fmt: skip
+    releases = {
+        work / "voca" / "seed1": work / "voca" / "seed1" / "voca" / "model.safetensors",
+        work / "codetalker" / "seed1": speech / "model.safetensors",
+    }
     old_digests = {d: file_digest(r) for d, r in releases.items()}
     for release in releases.values():
         release.unlink()
@@ -299,22 +310,57 @@ def test_end_to_end_then_resume_then_partial(bench_root):
 def test_report_renders_one_seed_no_claims_and_a_discussion_link():
     from talkmesh.evaluation.benchmark import aggregate, render_markdown
 
-    scores = {p: {"lve": 5e-3, "fdd": 4e-4, "mve": 1e-3, "lip_sync": 0.5} for p in ("codetalker", "physical")}  # fmt: skip
-    timing = {"stage": "voca", "task": "voca", "epochs": 3, "batch_size": 2, "max_seconds": 1.0,
-              "seconds": 75.0, "frames_per_second": 40.0, "resumed": True}  # fmt: skip
+    scores = {
+        p: {"lve": 5e-3, "fdd": 4e-4, "mve": 1e-3, "lip_sync": 0.5}
+        for p in ("codetalker", "physical")
+    }
+    timing = {
+        "stage": "voca",
+        "task": "voca",
+        "epochs": 3,
+        "batch_size": 2,
+        "max_seconds": 1.0,
+        "seconds": 75.0,
+        "frames_per_second": 40.0,
+        "resumed": True,
+    }
     seed = {"scores": scores, "training": [timing], "predict": {"seconds": 4.2}}
     report = {
-        "name": "one", "command": "talkmesh benchmark one.yaml", "finished": "now",
-        "talkmesh": "0", "config": {"work_dir": "runs/one"}, "seeds": [0],
-        "machine": {"cpu_model": "cpu", "usable_cpus": 1, "cpu_count": 2, "torch": "2",
-                    "torch_threads": 1, "python": "3", "platform": "os", "load_average": None},
-        "data": {"kind": "synth", "root": "c", "split": "test", "sequences": 2, "frames": 9,
-                 "motion_fps": 30.0},
+        "name": "one",
+        "command": "talkmesh benchmark one.yaml",
+        "finished": "now",
+        "talkmesh": "0",
+        "config": {"work_dir": "runs/one"},
+        "seeds": [0],
+        "machine": {
+            "cpu_model": "cpu",
+            "usable_cpus": 1,
+            "cpu_count": 2,
+            "torch": "2",
+            "torch_threads": 1,
+            "python": "3",
+            "platform": "os",
+            "load_average": None,
+        },
+        "data": {
+            "kind": "synth",
+            "root": "c",
+            "split": "test",
+            "sequences": 2,
+            "frames": 9,
+            "motion_fps": 30.0,
+        },
         "methods": {"voca": {"seeds": {"0": seed}, "aggregate": aggregate({0: scores})}},
-        "baselines": {"static": {"scores": {p: {**s, "lip_sync": None} for p, s in scores.items()}}},
-        "claims": [], "discussion": "docs/why.md#voca", "ablation": None, "speed": None,
-        "samples": ["a"], "figures": {"notes": ["no video: the dataset has no faces (.ply) to render"]},
-    }  # fmt: skip
+        "baselines": {
+            "static": {"scores": {p: {**s, "lip_sync": None} for p, s in scores.items()}}
+        },
+        "claims": [],
+        "discussion": "docs/why.md#voca",
+        "ablation": None,
+        "speed": None,
+        "samples": ["a"],
+        "figures": {"notes": ["no video: the dataset has no faces (.ply) to render"]},
+    }
     lines = render_markdown(report).splitlines()
     assert "| voca | 50.000 | 40.000 | 1.000 | 0.500 | 50.000 |" in lines  # anchor units, one seed
     assert "| voca | 5.000 | 0.400 | 1.000 | 0.500 | 5.000 |" in lines  # physical: mm

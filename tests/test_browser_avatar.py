@@ -51,9 +51,19 @@ def viewer_build(tmp_path_factory) -> Path:
     if not esbuild.is_file():
         pytest.fail("esbuild is missing: run `npm ci` in the repo root")
     out = tmp_path_factory.mktemp("viewer")
-    subprocess.run([str(esbuild), str(ROOT / "web/viewer/main.js"), "--bundle", "--format=esm",
-                    "--target=es2020", f"--outfile={out / 'viewer.js'}", "--log-level=error"],
-                   check=True, timeout=120)  # fmt: skip
+    subprocess.run(
+        [
+            str(esbuild),
+            str(ROOT / "web/viewer/main.js"),
+            "--bundle",
+            "--format=esm",
+            "--target=es2020",
+            f"--outfile={out / 'viewer.js'}",
+            "--log-level=error",
+        ],
+        check=True,
+        timeout=120,
+    )
     for name in ("index.html", "style.css"):
         shutil.copy(ROOT / "web/viewer" / name, out / name)
     return out
@@ -133,9 +143,25 @@ def test_viewer_reads_names_like_python():
     from talkmesh.face.arkit import ARKIT_NAMES
     from talkmesh.face.arkit_names import VISEME_FROM_ARKIT, VISEMES, arkit_channel, viseme_channel
 
-    names = [*ARKIT_NAMES, "blendShape1.jawOpen", "JawOpen", "jaw_open", "Head|mouthSmile_L",
-             "mesh:eyeBlink_R", "ARKit_tongueOut", "CC_Base_mouthRight", "EYE_LOOK_IN_LEFT",
-             "A25_Jaw_Open", "Fcl_MTH_A", "viseme_aa", "viseme_O", "V_PP", "E", "smile", ""]  # fmt: skip
+    names = [
+        *ARKIT_NAMES,
+        "blendShape1.jawOpen",
+        "JawOpen",
+        "jaw_open",
+        "Head|mouthSmile_L",
+        "mesh:eyeBlink_R",
+        "ARKit_tongueOut",
+        "CC_Base_mouthRight",
+        "EYE_LOOK_IN_LEFT",
+        "A25_Jaw_Open",
+        "Fcl_MTH_A",
+        "viseme_aa",
+        "viseme_O",
+        "V_PP",
+        "E",
+        "smile",
+        "",
+    ]
     script = (
         f"import * as n from {json.dumps(str(ROOT / 'web/viewer/arkit_names.js'))};"
         "const names = JSON.parse(process.argv[1]);"
@@ -146,8 +172,11 @@ def test_viewer_reads_names_like_python():
     assert node, "node is not installed (make setup)"
     run = subprocess.run(
         [node, "--input-type=module", "-e", script, json.dumps(names)],
-        capture_output=True, text=True, timeout=60, check=True,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
     js = json.loads(run.stdout)
     assert js["arkit"] == [arkit_channel(n) for n in names]
     assert js["visemes"] == [viseme_channel(n) for n in names]

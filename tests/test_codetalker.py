@@ -23,9 +23,18 @@ FPS = 30
 
 def tiny(vq_layers: int = 1, speech: str = "mel", causal: bool = False) -> CodeTalker:
     torch.manual_seed(0)
-    hf = dict(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, intermediate_size=32,
-              conv_dim=(8, 8), conv_stride=(5, 64), conv_kernel=(10, 64), num_feat_extract_layers=2,
-              num_conv_pos_embeddings=4, num_conv_pos_embedding_groups=2)  # fmt: skip
+    hf = dict(
+        hidden_size=16,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        intermediate_size=32,
+        conv_dim=(8, 8),
+        conv_stride=(5, 64),
+        conv_kernel=(10, 64),
+        num_feat_extract_layers=2,
+        num_conv_pos_embeddings=4,
+        num_conv_pos_embedding_groups=2,
+    )
     cfg = CodeTalkerConfig(
         vq=VQConfig(
             num_vertices=20,
@@ -47,7 +56,7 @@ def tiny(vq_layers: int = 1, speech: str = "mel", causal: bool = False) -> CodeT
             period=5,
             styles=("a", "b"),
             speech=SpeechEncoderConfig(kind=speech, dim=16, hf_config=hf),
-        ),  # fmt: skip
+        ),
     )
     model = CodeTalker(cfg)
     for p in (
@@ -179,8 +188,10 @@ def test_save_load_gives_identical_output(tmp_path):
     assert talkmesh.load_model is load_model  # the package's own entry point
     audio, _ = clip(8)
     templ = torch.zeros(1, 20, 3)
-    torch.testing.assert_close(again.generate(audio, templ, styles=torch.tensor([0])),
-                               model.generate(audio, templ, styles=torch.tensor([0])))  # fmt: skip
+    torch.testing.assert_close(
+        again.generate(audio, templ, styles=torch.tensor([0])),
+        model.generate(audio, templ, styles=torch.tensor([0])),
+    )
     (tmp_path / "bad.safetensors").write_bytes(b"not a model")
     with pytest.raises(TalkmeshError, match="bad.safetensors"):
         load_model(tmp_path / "bad.safetensors")
@@ -418,8 +429,14 @@ def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(t
     transformers = pytest.importorskip("transformers")
     from dataclasses import replace
 
-    tiny_whisper = dict(d_model=16, encoder_layers=1, encoder_attention_heads=2,
-                        encoder_ffn_dim=32, num_mel_bins=80, max_source_positions=1500)  # fmt: skip
+    tiny_whisper = dict(
+        d_model=16,
+        encoder_layers=1,
+        encoder_attention_heads=2,
+        encoder_ffn_dim=32,
+        num_mel_bins=80,
+        max_source_positions=1500,
+    )
     source = tmp_path / "whisper"
     from transformers.models.whisper.modeling_whisper import WhisperEncoder
 
@@ -592,8 +609,15 @@ def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causa
         return any(isinstance(m, Int8Linear) for m in module.modules())
 
     fold = FrameGenerator(small, small.style_vector(style)).fold
-    for part in (small.blocks, small.feat_map, small.vqvae.decoder.blocks, small.vqvae.decoder.inp,
-                 small.vqvae.decoder.mid, small.vqvae.decoder.conv.linear, fold):  # fmt: skip
+    for part in (
+        small.blocks,
+        small.feat_map,
+        small.vqvae.decoder.blocks,
+        small.vqvae.decoder.inp,
+        small.vqvae.decoder.mid,
+        small.vqvae.decoder.conv.linear,
+        fold,
+    ):
         assert quantized(part)
     w2v = tiny(vq_layers=2, speech="wav2vec2", causal=causal)  # a speech encoder with linears
     assert not quantized(quantize_int8(w2v).speech)
@@ -684,6 +708,7 @@ def test_the_folded_feedback_map_is_kept_until_its_weights_change():
     torch.testing.assert_close(again(x), model.motion_map(model.vqvae.decoder.out(x)))
     fast = model.generate(audio, templ, styles=style)
     assert not torch.allclose(fast, first)
-    torch.testing.assert_close(fast, model.generate(audio, templ, styles=style, mode="naive"),
-                               atol=1e-5, rtol=1e-4)  # fmt: skip
+    torch.testing.assert_close(
+        fast, model.generate(audio, templ, styles=style, mode="naive"), atol=1e-5, rtol=1e-4
+    )
     assert "_folded" not in "".join(model.state_dict())

@@ -140,10 +140,16 @@ def small_folder(root: Path, frames: int = 6) -> Path:
         num_vertices, faces_file = 10, "faces.ply"
 
     make_dataset(root, Spec, ["alice_s01", "alice_s02", "bob_s01"], frames, disk_fps=30, sr=16000)
-    (root / "splits.json").write_text(json.dumps({
-        "train_subjects": ["alice"], "fps": 30, "motion_fps": 30,
-        "splits": {"train": {"alice": ["s01", "s02"]}, "test": {"bob": ["s01"]}},
-    }))  # fmt: skip
+    (root / "splits.json").write_text(
+        json.dumps(
+            {
+                "train_subjects": ["alice"],
+                "fps": 30,
+                "motion_fps": 30,
+                "splits": {"train": {"alice": ["s01", "s02"]}, "test": {"bob": ["s01"]}},
+            }
+        )
+    )
     return root
 
 

@@ -111,9 +111,19 @@ def tiny_release(path, causal: bool | None = None):
     from talkmesh.training.codetalker import build_config
     from talkmesh.training.trainer import DatasetInfo
 
-    tiny = {"preset": "small",
-            "vq": {"hidden": 32, "layers": 1, "heads": 2, "ff": 64, "components": 4, "code_dim": 8, "codebook_size": 16},
-            "stage2": {"d_model": 32, "heads": 2, "ff": 64, "layers": 1, "speech": {"dim": 16}}}  # fmt: skip
+    tiny = {
+        "preset": "small",
+        "vq": {
+            "hidden": 32,
+            "layers": 1,
+            "heads": 2,
+            "ff": 64,
+            "components": 4,
+            "code_dim": 8,
+            "codebook_size": 16,
+        },
+        "stage2": {"d_model": 32, "heads": 2, "ff": 64, "layers": 1, "speech": {"dim": 16}},
+    }
     if causal is not None:
         tiny["vq"]["causal"] = causal
     info = DatasetInfo(
@@ -128,8 +138,24 @@ def tiny_release(path, causal: bool | None = None):
 def test_learned_model_predictions_named_like_the_anchors(corpus, tmp_path):
     release = tiny_release(tmp_path / "m.safetensors")
     out = tmp_path / "pred"
-    assert main(["predict", "--model", str(release), "--dataset", "synth", "--data", str(corpus),
-                 "--conditions", "-o", str(out), "-q"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "predict",
+                "--model",
+                str(release),
+                "--dataset",
+                "synth",
+                "--data",
+                str(corpus),
+                "--conditions",
+                "-o",
+                str(out),
+                "-q",
+            ]
+        )
+        == 0
+    )
     names = sorted(p.name for p in out.iterdir())
     assert names == [
         "Synth_03_chidi_sentence02_condition_Synth_01_ada.npy",
@@ -150,16 +176,47 @@ def test_predict_points_to_exact_mode_for_a_bidirectional_vq_decoder(corpus, tmp
     assert main([*args, "--mode", "exact", "-o", str(tmp_path / "exact")]) == 0
     assert "--mode exact" not in capsys.readouterr().err
     causal = tiny_release(tmp_path / "c.safetensors", causal=True)
-    assert main(["predict", "--model", str(causal), "--dataset", "synth", "--data", str(corpus),
-                 "-o", str(tmp_path / "causal")]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "predict",
+                "--model",
+                str(causal),
+                "--dataset",
+                "synth",
+                "--data",
+                str(corpus),
+                "-o",
+                str(tmp_path / "causal"),
+            ]
+        )
+        == 0
+    )
     assert "--mode exact" not in capsys.readouterr().err
 
 
 def test_stage1_reconstructions_are_scored_like_predictions(corpus, tmp_path):
     release = tiny_release(tmp_path / "m.safetensors")
     out = tmp_path / "recon"
-    assert main(["predict", "--model", str(release), "--dataset", "synth", "--data", str(corpus),
-                 "--mode", "reconstruct", "-o", str(out), "-q"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "predict",
+                "--model",
+                str(release),
+                "--dataset",
+                "synth",
+                "--data",
+                str(corpus),
+                "--mode",
+                "reconstruct",
+                "-o",
+                str(out),
+                "-q",
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in out.iterdir()) == ["Synth_03_chidi_sentence02.npy"]
     assert evaluate("synth", corpus, out).n_sequences == 1
 

@@ -254,11 +254,22 @@ def test_train_one_epoch_end_to_end_and_release(tmp_path):
     out = tmp_path / "run"
     recipe = load_recipe(
         CONFIGS / "faceformer_synth.yaml",
-        [f"data.root={corpus}", f"train.out_dir={out}", "train.epochs=1", "data.batch_size=2",
-         "data.max_seconds=1.0", "train.accelerator=cpu", "model.speech.kind=mel",
-         "model.speech.source=null", "model.speech.dim=16", "model.d_model=16", "model.ff=32",
-         "model.layers=1", "model.heads=2"],
-    )  # fmt: skip
+        [
+            f"data.root={corpus}",
+            f"train.out_dir={out}",
+            "train.epochs=1",
+            "data.batch_size=2",
+            "data.max_seconds=1.0",
+            "train.accelerator=cpu",
+            "model.speech.kind=mel",
+            "model.speech.source=null",
+            "model.speech.dim=16",
+            "model.d_model=16",
+            "model.ff=32",
+            "model.layers=1",
+            "model.heads=2",
+        ],
+    )
     path = train(recipe, progress=False)
     assert path == out / "model.safetensors" and path.is_file()
     model = load_model(path)

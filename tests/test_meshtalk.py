@@ -512,8 +512,9 @@ def test_talkmesh_speech_encoder_and_a_prior_on_the_expression_spaces_audio(tmp_
 
     torch.manual_seed(0)
     speech = SpeechEncoderConfig(kind="mel", dim=16, frame_rate=FPS)
-    prior = PriorConfig(num_heads=H, num_classes=C, width=16, audio=TINY_AUDIO, fps=FPS,
-                        audio_source="expression")  # fmt: skip
+    prior = PriorConfig(
+        num_heads=H, num_classes=C, width=16, audio=TINY_AUDIO, fps=FPS, audio_source="expression"
+    )
     net = MeshTalkModel(MeshTalkModelConfig(tiny_config(speech=speech), prior), regions()).eval()
     assert net.prior.audio_encoder is None  # no second audio encoder
     _, templates, audio = tiny_data(B=1, T=15)
@@ -528,8 +529,9 @@ def test_talkmesh_speech_encoder_and_a_prior_on_the_expression_spaces_audio(tmp_
     with pytest.raises(TalkmeshError, match="audio_source"):
         net.prior.audio_features(audio, None, 15)
     with pytest.raises(TalkmeshError, match="out_dim"):
-        MeshTalkModelConfig(tiny_config(), PriorConfig(num_heads=H, num_classes=C,
-                                                       audio_source="expression"))  # fmt: skip
+        MeshTalkModelConfig(
+            tiny_config(), PriorConfig(num_heads=H, num_classes=C, audio_source="expression")
+        )
 
 
 @pytest.mark.parametrize(

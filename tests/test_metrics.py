@@ -42,10 +42,14 @@ def test_lve_anchor_is_pooled_max_squared_error():
     )  # 4.667, where mean of means is (6.5+1)/2=3.75
     assert pooled.n_frames == 3 and pooled.n_sequences == 2
     physical = pool(
-        [score_sequence(pred, gt, gt[0], LIPS, UPPER, "physical"),
-         score_sequence(seq([[1, 0, 0, 0]]), seq([[0, 0, 0, 0]]), gt[0], LIPS, UPPER, "physical")],
+        [
+            score_sequence(pred, gt, gt[0], LIPS, UPPER, "physical"),
+            score_sequence(
+                seq([[1, 0, 0, 0]]), seq([[0, 0, 0, 0]]), gt[0], LIPS, UPPER, "physical"
+            ),
+        ],
         "physical",
-    )  # fmt: skip
+    )
     assert physical.lve == pytest.approx((2 + 3 + 1) / 3)
 
 

@@ -25,10 +25,19 @@ def flame_masks() -> dict[str, np.ndarray]:
     """The structure of FLAME's FLAME_masks.pkl (region -> vertex ids), made-up ids."""
     ids = np.random.default_rng(0).permutation(5023)
     parts = {
-        "lips": 250, "forehead": 300, "left_eye_region": 200, "right_eye_region": 200,
-        "nose": 150, "left_eyeball": 50, "right_eyeball": 50, "neck": 400, "scalp": 600,
-        "left_ear": 100, "right_ear": 100, "boundary": 80,
-    }  # fmt: skip
+        "lips": 250,
+        "forehead": 300,
+        "left_eye_region": 200,
+        "right_eye_region": 200,
+        "nose": 150,
+        "left_eyeball": 50,
+        "right_eyeball": 50,
+        "neck": 400,
+        "scalp": 600,
+        "left_ear": 100,
+        "right_ear": 100,
+        "boundary": 80,
+    }
     out, start = {}, 0
     for name, n in parts.items():
         out[name] = np.sort(ids[start : start + n])
@@ -125,11 +134,21 @@ def test_meshtalk_trains_on_vocaset_with_flame_masks_and_skips_a_bad_file(tmp_pa
     bad[4, 7] = np.nan  # an even row: VOCASET readers take every second frame
     np.save(root / "vertices_npy" / f"{VOCASET.train_subjects[0]}_sentence03.npy", bad)
     out = tmp_path / "run"
-    args = [f"data.root={root}", "data.kind=vocaset", f"train.out_dir={out}", "train.epochs=1",
-            "data.batch_size=1", "data.max_seconds=0", "train.accelerator=cpu",
-            "model.expression_widths=[16,16]", "model.decoder_widths=[16,16]",
-            "model.fusion_width=16", "train.lr_step_size=1", "train.lr_step_unit=step",
-            "train.lr_gamma=0.5"]  # fmt: skip
+    args = [
+        f"data.root={root}",
+        "data.kind=vocaset",
+        f"train.out_dir={out}",
+        "train.epochs=1",
+        "data.batch_size=1",
+        "data.max_seconds=0",
+        "train.accelerator=cpu",
+        "model.expression_widths=[16,16]",
+        "model.decoder_widths=[16,16]",
+        "model.fusion_width=16",
+        "train.lr_step_size=1",
+        "train.lr_step_unit=step",
+        "train.lr_gamma=0.5",
+    ]
     res = subprocess.run(
         [sys.executable, "-m", "talkmesh", "train", str(RECIPE), *args, "-q"],
         capture_output=True,

@@ -34,8 +34,9 @@ def test_denser_mesh_keeps_the_shapes_and_the_lips_apart(head):
     """One midpoint subdivision: the true shapes are the subdivided ones; closed lips touch, and
     the lower lip must still open with the jaw."""
     v, f = trimesh.remesh.subdivide(head.template, head.faces)
-    truth = np.stack([trimesh.remesh.subdivide(head.template + s, head.faces)[0] - v
-                      for s in head.blendshapes])  # fmt: skip
+    truth = np.stack(
+        [trimesh.remesh.subdivide(head.template + s, head.faces)[0] - v for s in head.blendshapes]
+    )
     rig = rig_head(v, f, head)
     error = np.linalg.norm(rig.blendshapes - truth, axis=2).mean(1)
     magnitude = np.linalg.norm(truth, axis=2).mean(1)

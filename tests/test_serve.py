@@ -119,8 +119,14 @@ def test_frame_encoding_round_trip():
 def test_hello(client):
     with client.websocket_connect("/ws/stream?lookahead_ms=50") as ws:
         hello = ws.receive_json()
-    assert hello == {"type": "hello", "fps": FPS, "sample_rate": SAMPLE_RATE,
-                     "lookahead_ms": 50.0, "model": "procedural", "names": list(ARKIT_NAMES)}  # fmt: skip
+    assert hello == {
+        "type": "hello",
+        "fps": FPS,
+        "sample_rate": SAMPLE_RATE,
+        "lookahead_ms": 50.0,
+        "model": "procedural",
+        "names": list(ARKIT_NAMES),
+    }
 
 
 def test_speech_streams_as_consecutive_frames_that_move_the_jaw(alone, pcm):
@@ -210,9 +216,14 @@ def test_bad_sessions_do_not_disturb_a_good_one(client, pcm, alone):
 def test_one_session_too_many_is_refused_until_one_ends(client):
     health = client.get("/health").json()
     assert health == {
-        "status": "ok", "sessions": 0, "max_sessions": 4, "jobs": 0, "queued": 0,
-        "models": ["procedural"], "avatar": None,
-    }  # fmt: skip
+        "status": "ok",
+        "sessions": 0,
+        "max_sessions": 4,
+        "jobs": 0,
+        "queued": 0,
+        "models": ["procedural"],
+        "avatar": None,
+    }
     with (
         client.websocket_connect("/ws/stream") as a,
         client.websocket_connect("/ws/stream") as b,

@@ -41,13 +41,31 @@ def tiny_head() -> Head:
 def tiny_model(tmp_path: Path, causal: bool = True) -> Path:
     torch.manual_seed(0)
     cfg = CodeTalkerConfig(
-        vq=VQConfig(num_vertices=V, hidden=32, layers=1, heads=2, ff=64, components=4,
-                    code_dim=8, codebook_size=16, causal=causal, causal_window=6),
-        stage2=Stage2Config(d_model=32, heads=2, ff=64, layers=2, period=5, styles=("a", "b"),
-                            attention_window=7,
-                            speech=SpeechEncoderConfig(kind="mel", dim=16, lookahead_ms=0.0,
-                                                       lookahead_max_ms=200.0)),
-    )  # fmt: skip
+        vq=VQConfig(
+            num_vertices=V,
+            hidden=32,
+            layers=1,
+            heads=2,
+            ff=64,
+            components=4,
+            code_dim=8,
+            codebook_size=16,
+            causal=causal,
+            causal_window=6,
+        ),
+        stage2=Stage2Config(
+            d_model=32,
+            heads=2,
+            ff=64,
+            layers=2,
+            period=5,
+            styles=("a", "b"),
+            attention_window=7,
+            speech=SpeechEncoderConfig(
+                kind="mel", dim=16, lookahead_ms=0.0, lookahead_max_ms=200.0
+            ),
+        ),
+    )
     model = CodeTalker(cfg)
     torch.nn.init.normal_(model.feat_map.weight, std=0.5)
     torch.nn.init.normal_(model.speech.shift_embedding.weight, std=0.5)
@@ -128,7 +146,10 @@ def test_stream_waits_for_its_lookahead_and_lookahead_changes_the_output(tmp_pat
 
 def test_procedural_stream_follows_the_offline_lip_sync(tmp_path):
     wav = tmp_path / "s.wav"
-    subprocess.run(["espeak-ng", "-v", "en-us", "-w", str(wav), "Bob bought a big blue map above the bay."], check=True)  # fmt: skip
+    subprocess.run(
+        ["espeak-ng", "-v", "en-us", "-w", str(wav), "Bob bought a big blue map above the bay."],
+        check=True,
+    )
     audio = load_audio(tmp_path / "s.wav")
     stream = open_stream("procedural", lookahead_ms=100)
     frames = stream_all(stream, audio, [320])  # 20 ms chunks

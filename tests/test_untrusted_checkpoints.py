@@ -108,9 +108,14 @@ def test_wav2vec2_folder_with_a_planted_pickle_is_refused(tmp_path):
 
     folder = tmp_path / "w2v"
     transformers.Wav2Vec2Config(
-        hidden_size=16, num_hidden_layers=1, num_attention_heads=2, intermediate_size=8,
-        conv_dim=(8, 8), conv_stride=(5, 2), conv_kernel=(10, 3),
-    ).save_pretrained(folder)  # fmt: skip
+        hidden_size=16,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        intermediate_size=8,
+        conv_dim=(8, 8),
+        conv_stride=(5, 2),
+        conv_kernel=(10, 3),
+    ).save_pretrained(folder)
     path = plant(folder / "pytorch_model.bin", tmp_path / "marker")
     with pytest.raises(TalkmeshError, match="refusing") as e:
         Wav2Vec2Encoder(SpeechEncoderConfig(kind="wav2vec2", source=str(folder)))

@@ -24,9 +24,18 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 # a random wav2vec 2.0 small enough for tests; it resamples each sample's features to the frames
-WAV2VEC2 = dict(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, intermediate_size=32,
-                conv_dim=(8, 8), conv_stride=(5, 64), conv_kernel=(10, 64), num_feat_extract_layers=2,
-                num_conv_pos_embeddings=4, num_conv_pos_embedding_groups=2)  # fmt: skip
+WAV2VEC2 = dict(
+    hidden_size=16,
+    num_hidden_layers=1,
+    num_attention_heads=2,
+    intermediate_size=32,
+    conv_dim=(8, 8),
+    conv_stride=(5, 64),
+    conv_kernel=(10, 64),
+    num_feat_extract_layers=2,
+    num_conv_pos_embeddings=4,
+    num_conv_pos_embedding_groups=2,
+)
 
 
 def speech_config(kind: str = "mel") -> SpeechEncoderConfig:
@@ -34,8 +43,14 @@ def speech_config(kind: str = "mel") -> SpeechEncoderConfig:
 
 
 def tiny_config(**overrides) -> VOCAConfig:
-    base = dict(num_vertices=V, styles=("a", "b"), speech=speech_config(),
-                conv_channels=(8, 8, 16, 16), hidden=16, latent=6)  # fmt: skip
+    base = dict(
+        num_vertices=V,
+        styles=("a", "b"),
+        speech=speech_config(),
+        conv_channels=(8, 8, 16, 16),
+        hidden=16,
+        latent=6,
+    )
     return VOCAConfig(**{**base, **overrides})
 
 
@@ -208,8 +223,10 @@ def test_the_speaker_enters_before_and_after_the_convolutions():
                 model.encoder.convs[0].weight[:, D:] = 0
             else:
                 model.encoder.fc.weight[:, -2:] = 0
-        assert not torch.allclose(model.generate(audio, templ, styles=torch.tensor([0])),
-                                  model.generate(audio, templ, styles=torch.tensor([1])))  # fmt: skip
+        assert not torch.allclose(
+            model.generate(audio, templ, styles=torch.tensor([0])),
+            model.generate(audio, templ, styles=torch.tensor([1])),
+        )
 
 
 def test_save_load_gives_identical_output(tmp_path):
@@ -281,21 +298,35 @@ def test_train_one_epoch_end_to_end_and_load_the_release(tmp_path):
     from talkmesh.training.trainer import DataConfig, Recipe, TrainConfig, train
 
     root = tmp_path / "corpus"
-    spec = DatasetSpec(kind="folder", motion_fps=FPS, stride=1, num_vertices=V,
-                       train_subjects=("p", "q"), faces_file="faces.ply")  # fmt: skip
-    templates = make_dataset(root, spec, ["p_s1", "p_s2", "q_s1", "q_s2", "r_s1"], frames=24,
-                             disk_fps=FPS, sr=SR)  # fmt: skip
-    (root / "splits.json").write_text(json.dumps({
-        "train_subjects": ["p", "q"], "fps": FPS, "num_vertices": V, "faces_file": "faces.ply",
-        "splits": {"train": {"p": ["s1", "s2"], "q": ["s1", "s2"]}, "val": {"r": ["s1"]}},
-    }))  # fmt: skip
+    spec = DatasetSpec(
+        kind="folder",
+        motion_fps=FPS,
+        stride=1,
+        num_vertices=V,
+        train_subjects=("p", "q"),
+        faces_file="faces.ply",
+    )
+    templates = make_dataset(
+        root, spec, ["p_s1", "p_s2", "q_s1", "q_s2", "r_s1"], frames=24, disk_fps=FPS, sr=SR
+    )
+    (root / "splits.json").write_text(
+        json.dumps(
+            {
+                "train_subjects": ["p", "q"],
+                "fps": FPS,
+                "num_vertices": V,
+                "faces_file": "faces.ply",
+                "splits": {"train": {"p": ["s1", "s2"], "q": ["s1", "s2"]}, "val": {"r": ["s1"]}},
+            }
+        )
+    )
     recipe = Recipe(
         task="voca",
         model={"speech": {"kind": "mel", "dim": 16}, "latent": 8, "hidden": 16},
         data=DataConfig(kind="folder", root=str(root), batch_size=2, max_seconds=0.5),
         train=TrainConfig(
             lr=1e-3, epochs=1, accelerator="cpu", log_every=1, out_dir=str(tmp_path / "run")
-        ),  # fmt: skip
+        ),
     )
     release = train(recipe, progress=False)
     model = load_model(release)

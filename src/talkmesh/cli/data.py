@@ -224,6 +224,8 @@ def cmd_prepare_vocaset(args: argparse.Namespace) -> int:
         print(f"wrote {written} files to {args.out} ({skipped} already there, skipped)")
         missing = missing_pairs(args.out)
         if missing:
-            print(f"{len(missing)} sequences of the standard splits have no motion or audio "
-                  f"(e.g. {missing[0]}); readers skip them")  # fmt: skip
+            print(
+                f"{len(missing)} sequences of the standard splits have no motion or audio "
+                f"(e.g. {missing[0]}); readers skip them"
+            )
     return 0

@@ -27,8 +27,22 @@ from talkmesh.face.arkit import ARKIT_NAMES, NUM_ARKIT
 
 # The Oculus / OVR LipSync viseme set, in its documented order.
 VISEMES: tuple[str, ...] = (
-    "sil", "PP", "FF", "TH", "DD", "kk", "CH", "SS", "nn", "RR", "aa", "E", "I", "O", "U",
-)  # fmt: skip
+    "sil",
+    "PP",
+    "FF",
+    "TH",
+    "DD",
+    "kk",
+    "CH",
+    "SS",
+    "nn",
+    "RR",
+    "aa",
+    "E",
+    "I",
+    "O",
+    "U",
+)
 
 # viseme -> {ARKit name: coefficient}; weight = clip(sum(coefficient * ARKit weight), 0, 1).
 VISEME_FROM_ARKIT: dict[str, dict[str, float]] = {

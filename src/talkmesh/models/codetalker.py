@@ -142,7 +142,7 @@ def small_synth_config(styles: tuple[str, ...], num_vertices: int = 4766) -> Cod
             components=8,
             code_dim=32,
             codebook_size=256,
-        ),  # fmt: skip
+        ),
         stage2=Stage2Config(
             d_model=256,
             heads=4,
@@ -150,7 +150,7 @@ def small_synth_config(styles: tuple[str, ...], num_vertices: int = 4766) -> Cod
             layers=2,
             styles=styles,
             speech=SpeechEncoderConfig(kind="mel", dim=128),
-        ),  # fmt: skip
+        ),
     )
 
 
@@ -215,11 +215,26 @@ class CodeTalker(MotionModel):
         cls, num_vertices: int = 30, styles: tuple[str, ...] = ("a", "b")
     ) -> CodeTalkerConfig:
         return CodeTalkerConfig(
-            vq=VQConfig(num_vertices=num_vertices, hidden=32, layers=1, heads=2, ff=64,
-                        components=4, code_dim=8, codebook_size=16),
-            stage2=Stage2Config(d_model=32, heads=2, ff=64, layers=2, period=5, styles=styles,
-                                speech=SpeechEncoderConfig(kind="mel", dim=16)),
-        )  # fmt: skip
+            vq=VQConfig(
+                num_vertices=num_vertices,
+                hidden=32,
+                layers=1,
+                heads=2,
+                ff=64,
+                components=4,
+                code_dim=8,
+                codebook_size=16,
+            ),
+            stage2=Stage2Config(
+                d_model=32,
+                heads=2,
+                ff=64,
+                layers=2,
+                period=5,
+                styles=styles,
+                speech=SpeechEncoderConfig(kind="mel", dim=16),
+            ),
+        )
 
     # -- the model interface's optional verbs (talkmesh.models.base) ------------------------------
 

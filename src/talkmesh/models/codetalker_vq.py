@@ -52,8 +52,16 @@ class VQConfig:
     # every frame (folded into ``mid``'s bias on import)
 
     def __post_init__(self) -> None:
-        for name in ("num_vertices", "hidden", "heads", "ff", "components", "code_dim",
-                     "codebook_size", "temporal_unit"):  # fmt: skip
+        for name in (
+            "num_vertices",
+            "hidden",
+            "heads",
+            "ff",
+            "components",
+            "code_dim",
+            "codebook_size",
+            "temporal_unit",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"vq.{name} must be at least 1")
         if self.layers < 0:

@@ -106,8 +106,15 @@ class FaceFormerConfig:
     # in training; the official generation feeds the style vector alone
 
     def __post_init__(self) -> None:
-        for name in ("num_vertices", "d_model", "heads", "ff", "period",
-                     "audio_tokens_per_frame", "attention_window"):  # fmt: skip
+        for name in (
+            "num_vertices",
+            "d_model",
+            "heads",
+            "ff",
+            "period",
+            "audio_tokens_per_frame",
+            "attention_window",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1")
         if self.layers < 0:
@@ -251,9 +258,16 @@ class FaceFormer(MotionModel):
     def tiny_config(
         cls, num_vertices: int = 30, styles: tuple[str, ...] = ("a", "b")
     ) -> FaceFormerConfig:
-        return FaceFormerConfig(num_vertices=num_vertices, styles=styles, d_model=32, heads=2,
-                                ff=64, layers=2, period=5,
-                                speech=SpeechEncoderConfig(kind="mel", dim=16))  # fmt: skip
+        return FaceFormerConfig(
+            num_vertices=num_vertices,
+            styles=styles,
+            d_model=32,
+            heads=2,
+            ff=64,
+            layers=2,
+            period=5,
+            speech=SpeechEncoderConfig(kind="mel", dim=16),
+        )
 
     @torch.no_grad()
     def set_motion_scale(self, motion: Tensor) -> None:

@@ -169,8 +169,13 @@ def folded_linear(
     if key is not None and cached is not None and cached[0] == key:
         return cached[1]
     with torch.inference_mode(False), torch.no_grad():
-        fold = nn.utils.skip_init(nn.Linear, inner.in_features, outer.out_features,
-                                  device=inner.weight.device, dtype=inner.weight.dtype)  # fmt: skip
+        fold = nn.utils.skip_init(
+            nn.Linear,
+            inner.in_features,
+            outer.out_features,
+            device=inner.weight.device,
+            dtype=inner.weight.dtype,
+        )
         fold.weight.copy_(outer.weight @ inner.weight)
         fold.bias.copy_(outer.weight @ inner.bias + outer.bias)
     fold.requires_grad_(False)

@@ -613,11 +613,17 @@ class MeshTalkModel(MotionModel):
     ) -> MeshTalkModelConfig:
         audio = MelConfig(width=16, out_dim=16)
         return MeshTalkModelConfig(
-            MeshTalkConfig(num_vertices, num_heads=4, num_classes=8, audio=audio,
-                           expression_widths=(32, 16, 16), fusion_width=32,
-                           decoder_widths=(32, 16, 16)),
+            MeshTalkConfig(
+                num_vertices,
+                num_heads=4,
+                num_classes=8,
+                audio=audio,
+                expression_widths=(32, 16, 16),
+                fusion_width=32,
+                decoder_widths=(32, 16, 16),
+            ),
             PriorConfig(num_heads=4, num_classes=8, width=16, audio=audio),
-        )  # fmt: skip
+        )
 
     @torch.inference_mode()
     def sample_codes(

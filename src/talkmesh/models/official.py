@@ -30,12 +30,17 @@ DATASETS = ("vocaset", "biwi")
 # the official training subjects, in one-hot order (the columns of the style matrix)
 SUBJECTS = {
     "vocaset": (
-        "FaceTalk_170728_03272_TA", "FaceTalk_170904_00128_TA", "FaceTalk_170725_00137_TA",
-        "FaceTalk_170915_00223_TA", "FaceTalk_170811_03274_TA", "FaceTalk_170913_03279_TA",
-        "FaceTalk_170904_03276_TA", "FaceTalk_170912_03278_TA",
+        "FaceTalk_170728_03272_TA",
+        "FaceTalk_170904_00128_TA",
+        "FaceTalk_170725_00137_TA",
+        "FaceTalk_170915_00223_TA",
+        "FaceTalk_170811_03274_TA",
+        "FaceTalk_170913_03279_TA",
+        "FaceTalk_170904_03276_TA",
+        "FaceTalk_170912_03278_TA",
     ),
     "biwi": ("F2", "F3", "F4", "M3", "M4", "M5"),
-}  # fmt: skip
+}
 FPS = {"vocaset": 30.0, "biwi": 25.0}
 TOKENS_PER_FRAME = {"vocaset": 1, "biwi": 2}  # wav2vec2 features (50 Hz) per motion frame
 MAX_FRAMES = 600  # the official positional encoding and temporal bias length
@@ -165,8 +170,10 @@ def import_faceformer(path: Path, dataset: str) -> nn.Module:
     vertice_map = state.get("vertice_map.weight")
     styles = state.get("obj_vector.weight")
     if feature_map is None or vertice_map is None or styles is None:
-        raise TalkmeshError(f"{path}: not a FaceFormer checkpoint (no audio_feature_map, "
-                            "vertice_map or obj_vector tensors): check --family")  # fmt: skip
+        raise TalkmeshError(
+            f"{path}: not a FaceFormer checkpoint (no audio_feature_map, "
+            "vertice_map or obj_vector tensors): check --family"
+        )
     d, vertex_dims = vertice_map.shape
     names = SUBJECTS[dataset]
     if styles.shape != (d, len(names)):
@@ -209,8 +216,11 @@ def import_faceformer(path: Path, dataset: str) -> nn.Module:
             mapped["speech.model." + key[len("audio_encoder.") :]] = state.pop(key)
         elif key.startswith("transformer_decoder.layers."):
             mapped["blocks." + key[len("transformer_decoder.layers.") :]] = state.pop(key)
-    for ours, theirs in (("audio_map", "audio_feature_map"), ("motion_map", "vertice_map"),
-                         ("out", "vertice_map_r")):  # fmt: skip
+    for ours, theirs in (
+        ("audio_map", "audio_feature_map"),
+        ("motion_map", "vertice_map"),
+        ("out", "vertice_map_r"),
+    ):
         for p in ("weight", "bias"):
             mapped[f"{ours}.{p}"] = _take(state, f"{theirs}.{p}", path)
     mapped["style.weight"] = _take(state, "obj_vector.weight", path).t().contiguous()
@@ -230,8 +240,13 @@ def _blocks_map(state: dict, theirs: str, ours: str, layers: int, heads: int, pa
         qkv[: qkv.shape[0] // 3] *= ((width // heads) / width) ** 0.5
         out[f"{ours}.{i}.attn.qkv.weight"] = qkv
         out[f"{ours}.{i}.attn.qkv.bias"] = torch.zeros(qkv.shape[0])
-        for o, t in (("norm1", f"{attn}.norm"), ("attn.out", f"{attn}.fn.to_out"),
-                     ("norm2", f"{mlp}.norm"), ("mlp.0", f"{mlp}.fn.l1"), ("mlp.2", f"{mlp}.fn.l2")):  # fmt: skip
+        for o, t in (
+            ("norm1", f"{attn}.norm"),
+            ("attn.out", f"{attn}.fn.to_out"),
+            ("norm2", f"{mlp}.norm"),
+            ("mlp.0", f"{mlp}.fn.l1"),
+            ("mlp.2", f"{mlp}.fn.l2"),
+        ):
             for p in ("weight", "bias"):
                 out[f"{ours}.{i}.{o}.{p}"] = _take(state, f"{t}.{p}", path)
     return out
@@ -275,49 +290,78 @@ def _split_codetalker(paths: list[Path]) -> tuple[dict, dict, Path, Path]:
     return stage1[0], stage2[0], stage1[1], stage2[1]
 
 
-def import_codetalker(paths: list[Path], dataset: str) -> nn.Module:
-    """CodeTalker's released stage-1 + stage-2 files -> a :class:`CodeTalker`."""
-    from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
+def _codetalker_vq_config(s1: dict, inp: Tensor, dataset: str, path: Path):
+    """The stage-1 VQConfig read off the official tensors' shapes."""
     from talkmesh.models.codetalker_vq import VQConfig
-    from talkmesh.models.speech import SpeechEncoderConfig
 
-    s1, s2, p1, p2 = _split_codetalker(paths)
-    inp = _take(s1, "encoder.vertice_mapping.0.weight", p1)
     hidden, vertex_dims = inp.shape
     N, C = s1["quantize.embedding.weight"].shape
     post = s1.get("encoder.encoder_linear_embedding_post.net.weight")
     if (post is not None) != (dataset == "biwi"):
-        raise TalkmeshError(f"{p1}: a {'BIWI' if post is not None else 'VOCASET'} stage-1 "
-                            f"model, not {dataset}: is --dataset right?")  # fmt: skip
+        raise TalkmeshError(
+            f"{path}: a {'BIWI' if post is not None else 'VOCASET'} stage-1 "
+            f"model, not {dataset}: is --dataset right?"
+        )
     H = (post.shape[0] if post is not None else hidden) // C
     layers1 = 0
     while f"encoder.encoder_transformer.net.{2 * layers1}.fn.norm.weight" in s1:
         layers1 += 1
     heads1 = 8  # the released configs' num_attention_heads (shapes do not tell it)
-    vq = VQConfig(
-        num_vertices=vertex_dims // 3, hidden=hidden, layers=layers1, heads=heads1,
+    return VQConfig(
+        num_vertices=vertex_dims // 3,
+        hidden=hidden,
+        layers=layers1,
+        heads=heads1,
         ff=s1["encoder.encoder_transformer.net.1.fn.fn.l1.weight"].shape[0] if layers1 else hidden,
-        components=H, code_dim=C, codebook_size=N, instance_norm=True,
-        gelu_tanh=True, final_norm=False, frame_positions=False,
-    )  # fmt: skip
+        components=H,
+        code_dim=C,
+        codebook_size=N,
+        instance_norm=True,
+        gelu_tanh=True,
+        final_norm=False,
+        frame_positions=False,
+    )
+
+
+def import_codetalker(paths: list[Path], dataset: str) -> nn.Module:
+    """CodeTalker's released stage-1 + stage-2 files -> a :class:`CodeTalker`."""
+    from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
+    from talkmesh.models.speech import SpeechEncoderConfig
+
+    s1, s2, p1, p2 = _split_codetalker(paths)
+    inp = _take(s1, "encoder.vertice_mapping.0.weight", p1)
+    vq = _codetalker_vq_config(s1, inp, dataset, p1)
     names = SUBJECTS[dataset]
     style = s2.get("learnable_style_emb.weight")
     if style is None or style.shape[0] != len(names):
-        raise TalkmeshError(f"{p2}: a {dataset} stage 2 has {len(names)} training subjects "
-                            "(learnable_style_emb): is --dataset right?")  # fmt: skip
+        raise TalkmeshError(
+            f"{p2}: a {dataset} stage 2 has {len(names)} training subjects "
+            "(learnable_style_emb): is --dataset right?"
+        )
     d = style.shape[1]
     layers2 = 0
     while f"transformer_decoder.layers.{layers2}.linear1.weight" in s2:
         layers2 += 1
     fps, k = FPS[dataset], TOKENS_PER_FRAME[dataset]
     stage2 = Stage2Config(
-        d_model=d, heads=4, layers=layers2, period=int(fps), audio_tokens_per_frame=k,
+        d_model=d,
+        heads=4,
+        layers=layers2,
+        period=int(fps),
+        audio_tokens_per_frame=k,
         ff=s2["transformer_decoder.layers.0.linear1.weight"].shape[0] if layers2 else 2 * d,
-        styles=names, attention_window=MAX_FRAMES, postnorm=True, interleaved_ppe=True,
-        speech=SpeechEncoderConfig(kind="wav2vec2", frame_rate=fps * k, resample="cnn",
-                                   normalize=True,
-                                   hf_config=wav2vec2_config(s2, "audio_encoder.", p2)),
-    )  # fmt: skip
+        styles=names,
+        attention_window=MAX_FRAMES,
+        postnorm=True,
+        interleaved_ppe=True,
+        speech=SpeechEncoderConfig(
+            kind="wav2vec2",
+            frame_rate=fps * k,
+            resample="cnn",
+            normalize=True,
+            hf_config=wav2vec2_config(s2, "audio_encoder.", p2),
+        ),
+    )
     model = CodeTalker(CodeTalkerConfig(vq=vq, stage2=stage2, motion_fps=fps))
     mapped = _vq_map(s1, vq, inp, p1)
     _check_ppe(_take(s2, "PPE.pe", p2), int(fps), d, dataset, p2)
@@ -338,8 +382,10 @@ def import_codetalker(paths: list[Path], dataset: str) -> nn.Module:
 def _vq_map(s1: dict, vq, inp: Tensor, path: Path) -> dict:
     """Stage-1 tensors -> ``vqvae.*``; the official positional encoding adds one vector (that of
     position 0) to every frame: it becomes part of the embedding's bias."""
-    out = {"vqvae.encoder.inp.weight": inp,
-           "vqvae.encoder.inp.bias": _take(s1, "encoder.vertice_mapping.0.bias", path)}  # fmt: skip
+    out = {
+        "vqvae.encoder.inp.weight": inp,
+        "vqvae.encoder.inp.bias": _take(s1, "encoder.vertice_mapping.0.bias", path),
+    }
     HC = vq.components * vq.code_dim
     for side in ("encoder", "decoder"):
         pe = _take(s1, f"{side}.{side}_pos_embedding.pe", path)
@@ -347,10 +393,20 @@ def _vq_map(s1: dict, vq, inp: Tensor, path: Path) -> dict:
             raise TalkmeshError(f"{path}: {side}_pos_embedding.pe has shape {tuple(pe.shape)}")
         conv = f"{side}.squasher.0.0" if side == "encoder" else f"{side}.expander.0.0"
         out.update(_linear(s1, conv, f"vqvae.{side}.conv.conv", path))
-        out.update(_linear(s1, f"{side}.{side}_linear_embedding.net", f"vqvae.{side}.mid", path,
-                           extra_bias=pe[0, 0]))  # fmt: skip
-        out.update(_blocks_map(s1, f"{side}.{side}_transformer", f"vqvae.{side}.blocks",
-                               vq.layers, vq.heads, path))  # fmt: skip
+        out.update(
+            _linear(
+                s1,
+                f"{side}.{side}_linear_embedding.net",
+                f"vqvae.{side}.mid",
+                path,
+                extra_bias=pe[0, 0],
+            )
+        )
+        out.update(
+            _blocks_map(
+                s1, f"{side}.{side}_transformer", f"vqvae.{side}.blocks", vq.layers, vq.heads, path
+            )
+        )
         out[f"vqvae.{side}.scale"] = torch.ones(vq.num_vertices * 3)
     if "encoder.encoder_linear_embedding_post.net.weight" in s1:  # BIWI: hidden <-> H x C maps
         out.update(

@@ -37,8 +37,12 @@ def save_model(model: MotionModel, path: str | Path, *, dtype: torch.dtype | Non
     for k, v in model.state_dict().items():
         v = v.detach().cpu().contiguous()
         state[k] = v.to(dtype) if dtype is not None and v.is_floating_point() else v
-    meta = {"format": "talkmesh-model", "format_version": str(FORMAT_VERSION), "family": family,
-            "config": json.dumps(to_dict(model.cfg))}  # fmt: skip
+    meta = {
+        "format": "talkmesh-model",
+        "format_version": str(FORMAT_VERSION),
+        "family": family,
+        "config": json.dumps(to_dict(model.cfg)),
+    }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")

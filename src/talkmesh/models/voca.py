@@ -288,9 +288,14 @@ class VOCA(MotionModel):
     def tiny_config(
         cls, num_vertices: int = 30, styles: tuple[str, ...] = ("a", "b")
     ) -> VOCAConfig:
-        return VOCAConfig(num_vertices=num_vertices, styles=styles,
-                          speech=SpeechEncoderConfig(kind="mel", dim=16),
-                          conv_channels=(8, 8, 16, 16), hidden=16, latent=6)  # fmt: skip
+        return VOCAConfig(
+            num_vertices=num_vertices,
+            styles=styles,
+            speech=SpeechEncoderConfig(kind="mel", dim=16),
+            conv_channels=(8, 8, 16, 16),
+            hidden=16,
+            latent=6,
+        )
 
     # -- preparation from training data ---------------------------------------------------------
 

@@ -231,8 +231,12 @@ def add_clip(
         data.extend(b"\0" * (-len(data) % 4))
         views.append({"buffer": 0, "byteOffset": len(data), "byteLength": array.nbytes})
         data.extend(array.astype("<f4").tobytes())
-        accessor = {"bufferView": len(views) - 1, "componentType": FLOAT,
-                    "count": int(array.size), "type": SCALAR}  # fmt: skip
+        accessor = {
+            "bufferView": len(views) - 1,
+            "componentType": FLOAT,
+            "count": int(array.size),
+            "type": SCALAR,
+        }
         if bounds:  # required for animation inputs
             accessor["min"], accessor["max"] = [float(array.min())], [float(array.max())]
         accessors.append(accessor)
@@ -248,8 +252,12 @@ def add_clip(
             channels.append(
                 {"sampler": len(samplers) - 1, "target": {"node": node, "path": "weights"}}
             )
-    clip = {"name": _unique_clip_name(gltf, CLIP_NAME), "samplers": samplers,
-            "channels": channels, "extras": {"fps": float(fps)}}  # fmt: skip
+    clip = {
+        "name": _unique_clip_name(gltf, CLIP_NAME),
+        "samplers": samplers,
+        "channels": channels,
+        "extras": {"fps": float(fps)},
+    }
     out["animations"] = [*(gltf.get("animations") or []), clip]
     out["bufferViews"], out["accessors"] = views, accessors
     out["buffers"] = [{**(buffers[0] if buffers else {}), "byteLength": len(data)}, *buffers[1:]]

@@ -71,7 +71,6 @@ import logging
 import math
 import signal
 import socket
-import struct
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -92,24 +91,25 @@ from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
 from talkmesh.serve import limits as lim
 from talkmesh.serve.limits import JobQueue, QueueFull
-from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, StreamFrame, open_stream
+from talkmesh.serve.protocol import (  # noqa: F401  (re-exported: the wire format's names)
+    CLOSE_BUSY,
+    CLOSE_GOING_AWAY,
+    CLOSE_INTERNAL,
+    CLOSE_NORMAL,
+    CLOSE_POLICY,
+    CLOSE_TOO_BIG,
+    FLAG_OFFSETS,
+    FRAME_HEADER,
+    FRAME_MAGIC,
+    decode_frame,
+    encode_frame,
+)
+from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, open_stream
 
 log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
 PROCEDURAL = "procedural"
-
-FRAME_MAGIC = b"TMF1"
-FRAME_HEADER = struct.Struct("<4sIfHH")  # magic, index, time, number of weights, flags
-FLAG_OFFSETS = 1
-assert FRAME_HEADER.size == 16
-
-CLOSE_NORMAL = 1000
-CLOSE_GOING_AWAY = 1001
-CLOSE_POLICY = 1008  # bad input
-CLOSE_TOO_BIG = 1009
-CLOSE_INTERNAL = 1011
-CLOSE_BUSY = 1013  # try again later
 
 DEFAULT_MAX_SESSIONS = 4
 DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024
@@ -121,42 +121,13 @@ UPLOAD_CHUNK = 1 << 16
 
 ANIMATE_FORMATS = {"glb": "model/gltf-binary", "mp4": "video/mp4"}
 # The first bytes of the audio files /animate takes, and the suffix the audio reader needs.
-AUDIO_SIGNATURES = ((b"RIFF", ".wav"), (b"RF64", ".wav"), (b"fLaC", ".flac"), (b"OggS", ".ogg"),
-                    (b"ID3", ".mp3"))  # fmt: skip
-
-
-# ---------------------------------------------------------------------------------------------
-# Frames on the wire
-
-
-def encode_frame(frame: StreamFrame) -> bytes:
-    """A frame as one binary WebSocket message (layout in the module docstring)."""
-    weights = np.asarray(frame.weights, "<f4")
-    assert weights.shape == (len(ARKIT_NAMES),), weights.shape
-    flags = 0 if frame.offsets is None else FLAG_OFFSETS
-    parts = [
-        FRAME_HEADER.pack(FRAME_MAGIC, frame.index, frame.time, len(weights), flags),
-        weights.tobytes(),
-    ]
-    if frame.offsets is not None:
-        assert frame.offsets.ndim == 2 and frame.offsets.shape[1] == 3, frame.offsets.shape
-        parts.append(np.asarray(frame.offsets, "<f2").tobytes())
-    return b"".join(parts)
-
-
-def decode_frame(data: bytes) -> StreamFrame:
-    """One binary message back into a frame (weights float32, offsets float32 (V, 3) or None)."""
-    magic, index, time, count, flags = FRAME_HEADER.unpack_from(data)
-    if magic != FRAME_MAGIC:
-        raise ValueError(f"not a talkmesh frame (magic {magic!r})")
-    end = FRAME_HEADER.size + 4 * count
-    weights = np.frombuffer(data, "<f4", count, FRAME_HEADER.size).astype(np.float32)
-    offsets = None
-    if flags & FLAG_OFFSETS:
-        offsets = np.frombuffer(data, "<f2", offset=end).astype(np.float32).reshape(-1, 3)
-    elif len(data) != end:
-        raise ValueError(f"frame message of {len(data)} bytes, expected {end}")
-    return StreamFrame(index, time, weights, offsets)
+AUDIO_SIGNATURES = (
+    (b"RIFF", ".wav"),
+    (b"RF64", ".wav"),
+    (b"fLaC", ".flac"),
+    (b"OggS", ".ogg"),
+    (b"ID3", ".mp3"),
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -254,9 +225,12 @@ class Limits:
             )
         if self.max_upload_bytes < 1:
             raise TalkmeshError("--max-upload-mb must be positive")
-        for flag, value in (("--idle-timeout", self.idle_timeout), ("--max-seconds", self.max_seconds),
-                            ("--request-timeout", self.request_timeout),
-                            ("--first-message-timeout", self.first_message_timeout)):  # fmt: skip
+        for flag, value in (
+            ("--idle-timeout", self.idle_timeout),
+            ("--max-seconds", self.max_seconds),
+            ("--request-timeout", self.request_timeout),
+            ("--first-message-timeout", self.first_message_timeout),
+        ):
             if not value > 0:
                 raise TalkmeshError(f"{flag} must be positive, got {value:g}")
         if self.jobs < 1 or self.max_queue < 0:
@@ -423,7 +397,7 @@ class Service:
                 "queued": len(self.queue.waiting),
                 "models": list(self.models),
                 "avatar": self.avatar_name,
-            }  # fmt: skip
+            }
         )
 
     async def head_glb(self, request: Request) -> Response:
@@ -460,8 +434,11 @@ class Service:
             with open(upload, "rb") as f:
                 suffix = audio_suffix(f.read(16))
             if suffix is None:
-                return _error(400, "the request body is not wav, flac, mp3 or ogg audio: send the "
-                                   "audio file's bytes as the body")  # fmt: skip
+                return _error(
+                    400,
+                    "the request body is not wav, flac, mp3 or ogg audio: send the "
+                    "audio file's bytes as the body",
+                )
             audio = upload.rename(upload.with_suffix(suffix))
             try:  # priced from the header: nothing is decoded yet
                 seconds = await anyio.to_thread.run_sync(audio_duration, audio)
@@ -505,8 +482,12 @@ class Service:
                         return self._too_big()
                     f.write(chunk)
         except TimeoutError:
-            log.warning("dropped %s: upload not complete within %g s (%d bytes)",
-                        lim.client_name(request), deadline, received)  # fmt: skip
+            log.warning(
+                "dropped %s: upload not complete within %g s (%d bytes)",
+                lim.client_name(request),
+                deadline,
+                received,
+            )
             return _error(408, f"the upload took over {deadline:g} s: send it faster or shorter")
         except ClientDisconnect:
             log.warning("%s left during its upload (%d bytes)", lim.client_name(request), received)
@@ -577,10 +558,14 @@ def neutral_head_glb() -> bytes:
 
     head = load_head()
     anim = Animation(
-        vertices=head.template[None], faces=head.faces, fps=30.0,
-        weights=np.zeros((1, len(ARKIT_NAMES)), np.float32), weight_names=list(ARKIT_NAMES),
-        template=head.template, basis=head.blendshapes,
-    )  # fmt: skip
+        vertices=head.template[None],
+        faces=head.faces,
+        fps=30.0,
+        weights=np.zeros((1, len(ARKIT_NAMES)), np.float32),
+        weight_names=list(ARKIT_NAMES),
+        template=head.template,
+        basis=head.blendshapes,
+    )
     with tempfile.TemporaryDirectory(prefix="talkmesh-serve-") as tmp:
         (path,) = save_animation(anim, Path(tmp) / "head.glb")
         return path.read_bytes()
@@ -686,8 +671,11 @@ def serve(
     sock = _listen(host, port)
     if not quiet:
         bound = sock.getsockname()[1]
-        print(f"talkmesh: serving http://{host}:{bound}/ (stream at ws://{host}:{bound}/ws/stream; "
-              f"models: {', '.join(service.models)}); Ctrl-C to stop", flush=True)  # fmt: skip
+        print(
+            f"talkmesh: serving http://{host}:{bound}/ (stream at ws://{host}:{bound}/ws/stream; "
+            f"models: {', '.join(service.models)}); Ctrl-C to stop",
+            flush=True,
+        )
     # uvicorn re-raises the signal that stopped it once it is done; a stop is no error here, so
     # that signal finds a handler that ignores it and the command exits 0.
     stops = (signal.SIGINT, signal.SIGTERM)

@@ -61,9 +61,15 @@ def _step_stage1(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     motion = (batch.vertices - batch.templates[:, None]).flatten(2)
     out = net.vqvae(motion, batch.motion_mask)
     q = net.vqvae.quantizer
-    return StepOutput(out.loss, {"reconstruction": float(out.reconstruction.detach()),
-                                 "quantization": float(out.quantization.detach()),
-                                 "perplexity": q.perplexity(), "codes_used": float(q.used_codes())})  # fmt: skip
+    return StepOutput(
+        out.loss,
+        {
+            "reconstruction": float(out.reconstruction.detach()),
+            "quantization": float(out.quantization.detach()),
+            "perplexity": q.perplexity(),
+            "codes_used": float(q.used_codes()),
+        },
+    )
 
 
 def _build_stage2(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
@@ -107,8 +113,12 @@ def prepare_speech_statistics(net, dataset) -> None:
 
 def _prepare_stage1(net: CodeTalker, dataset) -> None:
     step = max(1, len(dataset) // STATISTICS_SAMPLES)
-    motion = torch.cat([torch.from_numpy(dataset[i].vertices - dataset[i].template).flatten(1)
-                        for i in range(0, len(dataset), step)])  # fmt: skip
+    motion = torch.cat(
+        [
+            torch.from_numpy(dataset[i].vertices - dataset[i].template).flatten(1)
+            for i in range(0, len(dataset), step)
+        ]
+    )
     net.vqvae.set_scale(motion)
 
 
