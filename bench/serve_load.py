@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from talkmesh.audio.loading import SAMPLE_RATE, load_audio
-from talkmesh.serve.server import decode_frame
+from talkmesh.serve.protocol import decode_frame
 
 LIBRIVOX = Path("/usr/share/pocketsphinx/test/data/librivox")
 TEXT = (

@@ -118,3 +118,10 @@ def test_reverb_keeps_length_and_level_and_smears_the_pauses():
     t = np.arange(len(wave)) / rs.SAMPLE_RATE
     after = (t > 0.95) & (t < 1.1)  # just after the speech ends: the room's tail
     assert rs._rms(wet[after]) > 10 * rs._rms(wave[after])
+
+
+def test_a_transcript_that_does_not_match_is_no_truth():
+    go = next(c for c in rs.builtin_clips() if c.name == "goforward")
+    wrong = rs.Clip(go.name, go.path, "zyxwvut qqqq", go.source)  # words not in the dictionary
+    with pytest.raises(rs.TalkmeshError, match="does not align"):
+        rs.truth_phones(wrong, rs.read_clip(go))

@@ -23,16 +23,16 @@ from websockets.sync.client import connect
 from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
-from talkmesh.serve.server import (
+from talkmesh.serve.protocol import (
     CLOSE_BUSY,
     CLOSE_GOING_AWAY,
     CLOSE_NORMAL,
     CLOSE_POLICY,
     CLOSE_TOO_BIG,
-    create_app,
     decode_frame,
     encode_frame,
 )
+from talkmesh.serve.server import create_app
 from talkmesh.serve.stream import StreamFrame
 
 CLIP = Path(

@@ -25,7 +25,7 @@ import soundfile as sf
 from websockets.sync.client import connect
 
 from talkmesh.serve.limits import JobQueue, QueueFull
-from talkmesh.serve.server import CLOSE_POLICY
+from talkmesh.serve.protocol import CLOSE_POLICY
 
 CLIP = Path(
     "/usr/share/pocketsphinx/test/data/librivox/sense_and_sensibility_01_austen_64kb-0880.wav"

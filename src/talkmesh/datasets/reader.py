@@ -36,6 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from talkmesh.constants import BIWI_TRAIN_SUBJECTS, VOCASET_TRAIN_SUBJECTS
 from talkmesh.datasets.pickles import safe_load_pickle
 from talkmesh.datasets.regions import (
     FLAME_MASKS_FILE,
@@ -79,16 +80,7 @@ def _sentences(prefix: str, first: int, last: int, width: int = 2) -> tuple[str,
     return tuple(f"{prefix}{k:0{width}d}" for k in range(first, last + 1))
 
 
-VOCASET_TRAIN = (
-    "FaceTalk_170728_03272_TA",
-    "FaceTalk_170904_00128_TA",
-    "FaceTalk_170725_00137_TA",
-    "FaceTalk_170915_00223_TA",
-    "FaceTalk_170811_03274_TA",
-    "FaceTalk_170913_03279_TA",
-    "FaceTalk_170904_03276_TA",
-    "FaceTalk_170912_03278_TA",
-)
+VOCASET_TRAIN = VOCASET_TRAIN_SUBJECTS
 VOCASET_VAL = ("FaceTalk_170811_03275_TA", "FaceTalk_170908_03277_TA")
 VOCASET_TEST = ("FaceTalk_170809_00138_TA", "FaceTalk_170731_00024_TA")
 VOCASET = DatasetSpec(
@@ -105,7 +97,7 @@ VOCASET = DatasetSpec(
     faces_file="FLAME_sample.ply",
 )
 
-BIWI_TRAIN = ("F2", "F3", "F4", "M3", "M4", "M5")
+BIWI_TRAIN = BIWI_TRAIN_SUBJECTS
 BIWI_UNSEEN = ("F1", "F5", "F6", "F7", "F8", "M1", "M2", "M6")
 BIWI = DatasetSpec(
     kind="biwi",

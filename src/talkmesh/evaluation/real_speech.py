@@ -254,12 +254,14 @@ def score_opening(
 
 def truth_phones(clip: Clip, wave: np.ndarray) -> list[Phone]:
     """Timing truth: the transcript forced onto the clean recording."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # an alignment that falls back to recognition is no truth
-        try:
-            return recognize_phones(wave, SAMPLE_RATE, text=clip.transcript)
-        except UserWarning as w:
-            raise TalkmeshError(f"{clip.name}: the transcript does not align: {w}") from None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        phones = recognize_phones(wave, SAMPLE_RATE, text=clip.transcript)
+    # the recogniser warns when it falls back to recognition: that is no timing truth
+    fallback = [w for w in caught if issubclass(w.category, UserWarning)]
+    if fallback:
+        raise TalkmeshError(f"{clip.name}: the transcript does not align: {fallback[0].message}")
+    return phones
 
 
 def score_clip(

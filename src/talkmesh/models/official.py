@@ -22,25 +22,14 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from talkmesh.constants import BIWI_TRAIN_SUBJECTS, VOCASET_TRAIN_SUBJECTS
 from talkmesh.errors import TalkmeshError
 
 FAMILIES = ("codetalker", "faceformer", "meshtalk")
 DATASETS = ("vocaset", "biwi")
 
 # the official training subjects, in one-hot order (the columns of the style matrix)
-SUBJECTS = {
-    "vocaset": (
-        "FaceTalk_170728_03272_TA",
-        "FaceTalk_170904_00128_TA",
-        "FaceTalk_170725_00137_TA",
-        "FaceTalk_170915_00223_TA",
-        "FaceTalk_170811_03274_TA",
-        "FaceTalk_170913_03279_TA",
-        "FaceTalk_170904_03276_TA",
-        "FaceTalk_170912_03278_TA",
-    ),
-    "biwi": ("F2", "F3", "F4", "M3", "M4", "M5"),
-}
+SUBJECTS = {"vocaset": VOCASET_TRAIN_SUBJECTS, "biwi": BIWI_TRAIN_SUBJECTS}
 FPS = {"vocaset": 30.0, "biwi": 25.0}
 TOKENS_PER_FRAME = {"vocaset": 1, "biwi": 2}  # wav2vec2 features (50 Hz) per motion frame
 MAX_FRAMES = 600  # the official positional encoding and temporal bias length

@@ -91,17 +91,13 @@ from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
 from talkmesh.serve import limits as lim
 from talkmesh.serve.limits import JobQueue, QueueFull
-from talkmesh.serve.protocol import (  # noqa: F401  (re-exported: the wire format's names)
+from talkmesh.serve.protocol import (
     CLOSE_BUSY,
     CLOSE_GOING_AWAY,
     CLOSE_INTERNAL,
     CLOSE_NORMAL,
     CLOSE_POLICY,
     CLOSE_TOO_BIG,
-    FLAG_OFFSETS,
-    FRAME_HEADER,
-    FRAME_MAGIC,
-    decode_frame,
     encode_frame,
 )
 from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, open_stream
