@@ -2,7 +2,9 @@
 
 ``task: codetalker-stage1`` trains the motion VQ-VAE (L_VQ, Eq. 3); ``task: codetalker-stage2``
 trains the speech-driven code query (Eq. 6) with stage 1 frozen, starting from ``init`` (the stage-1
-release). The model section is ``{preset: small|vocaset|biwi, vq: {...}, stage2: {...}}``; the
+release); ``task: codetalker-finetune`` continues stage 2 of a finished release (``init``: a file or
+a bundled name), e.g. on augmented audio, with its model, speech statistics and VQ-VAE as they
+are. The model section is ``{preset: small|vocaset|biwi, vq: {...}, stage2: {...}}``; the
 vertex count and the training speakers come from the data.
 """
 
@@ -85,6 +87,27 @@ def _build_stage2(model: dict[str, Any], info: DatasetInfo, init: Path | None) -
     return net
 
 
+def _build_finetune(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
+    if init is None:
+        raise TalkmeshError("task codetalker-finetune needs init: a CodeTalker release to continue")
+    if model:
+        raise TalkmeshError(
+            "task codetalker-finetune takes its model from init: leave the model section empty"
+        )
+    net = load_model(init, family="codetalker")
+    if tuple(net.cfg.stage2.styles) != tuple(info.train_subjects):
+        raise TalkmeshError(
+            f"{init}: trained on the speakers {', '.join(net.cfg.stage2.styles)}, not this "
+            f"dataset's training speakers ({', '.join(info.train_subjects)})"
+        )
+    if net.cfg.vq.num_vertices != info.num_vertices:
+        raise TalkmeshError(
+            f"{init}: a {net.cfg.vq.num_vertices}-vertex model, the data has {info.num_vertices}"
+        )
+    net.vqvae.requires_grad_(False)
+    return net.train()
+
+
 def _step_stage2(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     net.vqvae.eval()  # frozen: no codebook usage updates
     out = net(
@@ -137,4 +160,12 @@ STAGE2 = Task(
     parameters=lambda net: (p for n, p in net.named_parameters() if not n.startswith("vqvae.")),
     save=save_model,
     prepare=prepare_speech_statistics,
+)
+FINETUNE = Task(
+    name="codetalker-finetune",
+    build=_build_finetune,
+    step=_step_stage2,
+    parameters=STAGE2.parameters,
+    save=save_model,
+    prepare=None,  # the release's speech statistics are part of what it learned
 )

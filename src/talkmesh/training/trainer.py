@@ -31,6 +31,8 @@ import numpy as np
 from talkmesh.config import apply_overrides, from_dict, load_config, merge, read_yaml, to_dict
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.training import checkpoints
+from talkmesh.training.augment import AugmentConfig
+from talkmesh.training.augment import augment as augment_crop
 
 try:
     import torch
@@ -56,6 +58,7 @@ class DataConfig:
     max_seconds: float = 4.0  # random crops of at most this long (0: whole sequences)
     num_workers: int = 0
     regions: str | None = None  # region files directory, if not in the dataset
+    augment: AugmentConfig = AugmentConfig()  # training crops only (talkmesh.training.augment)
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -210,6 +213,7 @@ class Task:
 TASKS: dict[str, str] = {
     "codetalker-stage1": "talkmesh.training.codetalker:STAGE1",
     "codetalker-stage2": "talkmesh.training.codetalker:STAGE2",
+    "codetalker-finetune": "talkmesh.training.codetalker:FINETUNE",
     "meshtalk": "talkmesh.training.meshtalk:EXPRESSION",
     "meshtalk-prior": "talkmesh.training.meshtalk:PRIOR",
     "faceformer": "talkmesh.training.faceformer:FACEFORMER",
@@ -249,14 +253,19 @@ def crop_window(
 class CroppedMotion:
     """A ``MotionDataset`` as a torch dataset of random, reproducible crops.
 
-    The audio is cut to the same time window as the motion (16 kHz samples per frame).
+    The audio is cut to the same time window as the motion (16 kHz samples per frame), then
+    augmented (``augment``: recording conditions, speed and silence with the motion re-timed),
+    drawn from (seed, epoch, index) like the crop.
     """
 
-    def __init__(self, dataset, max_seconds: float, seed: int) -> None:
+    def __init__(
+        self, dataset, max_seconds: float, seed: int, augment: AugmentConfig | None = None
+    ) -> None:
         self.dataset = dataset
         self.max_frames = int(round(max_seconds * dataset.spec.motion_fps)) if max_seconds else 0
         self.seed = seed
         self.epoch = 0
+        self.augment = augment or AugmentConfig()
 
     def __len__(self) -> int:
         return len(self.dataset)
@@ -270,7 +279,11 @@ class CroppedMotion:
         )
         per_frame = SAMPLE_RATE / self.dataset.spec.motion_fps
         a0, a1 = int(round(start * per_frame)), int(round(stop * per_frame))
-        return sample._replace(vertices=sample.vertices[start:stop], audio=sample.audio[a0:a1])
+        sample = sample._replace(vertices=sample.vertices[start:stop], audio=sample.audio[a0:a1])
+        if not self.augment.enabled:
+            return sample
+        rng = np.random.default_rng([self.seed, self.epoch, index, 0xA06])
+        return augment_crop(sample, self.augment, rng, self.dataset.spec.motion_fps, self.seed)
 
 
 class EpochShuffle:
@@ -428,7 +441,7 @@ def _loaders(recipe: Recipe, train_set):
         collate_fn=collate_torch,
     )
     train_loader = torch.utils.data.DataLoader(
-        CroppedMotion(train_set, recipe.data.max_seconds, recipe.train.seed),
+        CroppedMotion(train_set, recipe.data.max_seconds, recipe.train.seed, recipe.data.augment),
         sampler=EpochShuffle(len(train_set), recipe.train.seed),
         **loader_args,
     )
@@ -504,6 +517,20 @@ def _record_run(out: Path, rank: int, system) -> None:
     (out / f"weights_rank{rank}.sha256").write_text(digest.hexdigest() + "\n")
 
 
+def _init_path(init: str | None) -> Path | None:
+    """A recipe's ``init``: a release file, or the name of a bundled model."""
+    if not init:
+        return None
+    if Path(init).is_file():
+        return Path(init)
+    from talkmesh.models.release import MODELS_DIR
+
+    bundled = MODELS_DIR / f"{init}.safetensors"
+    if "/" not in init and bundled.is_file():
+        return bundled
+    raise TalkmeshError(f"init checkpoint not found: {init} (train the earlier stage first)")
+
+
 def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Path:
     """Train ``recipe`` and write ``<out_dir>/model.safetensors``; returns that path.
 
@@ -539,9 +566,7 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
         raise TalkmeshError(f"{recipe.data.root}: the {recipe.data.train_split} split is empty")
     train_set.drop_unloadable()  # a bad file is skipped (and counted), never fatal
     info = dataset_info(train_set)
-    init = Path(recipe.init) if recipe.init else None
-    if init is not None and not init.is_file():
-        raise TalkmeshError(f"init checkpoint not found: {init} (train the earlier stage first)")
+    init = _init_path(recipe.init)
     system = build_system(recipe, info, init)
     if ckpt is not None:  # every check before the first write into the run folder
         checkpoints.check_state_shapes(ckpt, system.state_dict())
