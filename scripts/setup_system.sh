@@ -3,7 +3,8 @@
 #   espeak-ng             speech synthesis for the demo; drives the MBROLA voices
 #   mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1
 #                         synthetic voices with exact phone timings (contrib / non-free)
-#   festival festvox-*    four more synthetic voices with exact segment times
+#   festival festvox-*    four more synthetic voices with exact segment times (festvox-don: a fifth)
+#   flite libttspico-utils  more voices for corpora beyond 12 subjects (phones by forced alignment)
 #   pocketsphinx-testdata real recorded speech (LibriVox clips) used by tests and docs
 #   alsa-utils            more real speech (/usr/share/sounds/alsa/*.wav)
 #   nodejs npm            the Khronos glTF validator used by the tests; builds the browser viewer
@@ -11,7 +12,8 @@
 set -euo pipefail
 pkgs=(espeak-ng pocketsphinx-testdata alsa-utils
       mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1
-      festival festvox-kallpc16k festvox-kdlpc16k festvox-rablpc16k festvox-us-slt-hts
+      festival festvox-kallpc16k festvox-kdlpc16k festvox-rablpc16k festvox-us-slt-hts festvox-don
+      flite libttspico-utils
       chromium)
 command -v node >/dev/null 2>&1 || pkgs+=(nodejs)
 command -v npm >/dev/null 2>&1 || pkgs+=(npm)

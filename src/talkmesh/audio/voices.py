@@ -8,7 +8,15 @@ Two Debian synthesisers give the times of the phones they actually render:
   (``utt.save.segs``), for diphone and HTS voices alike.
 
 Twelve voices: the four MBROLA voices at two prosody settings (pitch and rate change the
-rendered durations, which the .pho carries) and four Festival voices.
+rendered durations, which the .pho carries) and four Festival voices. They make the default
+corpus (its subjects take the voices in this order).
+
+More voices follow them for larger corpora (``talkmesh synth --subjects N`` beyond 12): Festival's
+``don`` diphone voice (exact timings), then every other offline English synthesiser in Debian, whose
+phone times come from forcing the text onto the audio with PocketSphinx (``engine`` ``espeak``,
+``flite``, ``pico``; :func:`synthesize_aligned`): two espeak-ng formant voices (the
+others' speech PocketSphinx could not always align),
+Flite's ``rms``, ``awb``, ``slt`` and ``kal16``, and SVOX Pico's US and British voices.
 """
 
 from __future__ import annotations
@@ -17,6 +25,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,7 +41,8 @@ FESTIVAL_RATE = 16_000  # Hz of the diphone voices; HTS voices are resampled to 
 
 @dataclass(frozen=True)
 class Voice:
-    """A synthesiser voice: ``engine`` is "mbrola" or "festival"."""
+    """A synthesiser voice: ``engine`` is "mbrola" or "festival" (exact phone times), or
+    "espeak", "flite" or "pico" (phone times by forced alignment)."""
 
     name: str
     engine: str
@@ -71,7 +81,24 @@ VOICES: tuple[Voice, ...] = (
         "voice_cmu_us_slt_arctic_hts",
         description="US female (Festival slt HTS)",
     ),
+    # beyond the default corpus's twelve
+    Voice(
+        "fest-don",
+        "festival",
+        "voice_don_diphone",
+        description="British male (Festival don diphone)",
+        phoneset="mrpa",
+    ),
+    Voice("espeak-gb-f2", "espeak", "en+f2", 55, 160, "British female (espeak-ng formant)"),
+    Voice("espeak-us-f5", "espeak", "en-us+f5", 60, 185, "US female, fast (espeak-ng)"),
+    Voice("flite-rms", "flite", "rms", description="US male (Flite rms)"),
+    Voice("flite-awb", "flite", "awb", description="Scottish male (Flite awb)"),
+    Voice("flite-slt", "flite", "slt", description="US female (Flite slt)"),
+    Voice("flite-kal16", "flite", "kal16", description="US male (Flite kal16 diphone)"),
+    Voice("pico-us", "pico", "en-US", description="US female (SVOX Pico)"),
+    Voice("pico-gb", "pico", "en-GB", description="British female (SVOX Pico)"),
 )
+ALIGNED_ENGINES = {"espeak": "espeak-ng", "flite": "flite", "pico": "pico2wave"}  # -> program
 VOICE_NAMES = tuple(v.name for v in VOICES)
 
 # MBROLA (SAMPA, as espeak-ng writes it for us1-3 and en1) -> ARPABET.
@@ -110,9 +137,20 @@ def available_voices() -> list[Voice]:
     for v in VOICES:
         if v.engine == "mbrola" and espeak and mbrola and _mbrola_db(v).is_file():
             out.append(v)
-        elif v.engine == "festival" and festival:
+        elif v.engine == "festival" and festival and _festival_voice_installed(v):
+            out.append(v)
+        elif v.engine in ALIGNED_ENGINES and shutil.which(ALIGNED_ENGINES[v.engine]):
             out.append(v)
     return out
+
+
+def _festival_voice_installed(v: Voice) -> bool:
+    """The default corpus's Festival voices are checked when they run (as before); the extra
+    ones only count where their folder is installed."""
+    if v.name in VOICE_NAMES[:12]:
+        return True
+    name = v.voice.removeprefix("voice_")
+    return any(Path("/usr/share/festival/voices").glob(f"*/{name}"))
 
 
 def get_voice(name: str) -> Voice:
@@ -243,10 +281,53 @@ def synthesize_festival(
     return out
 
 
+def _aligned_command(voice: Voice, wav: Path, text_file: Path, text: str) -> list[str]:
+    if voice.engine == "espeak":
+        pitch, speed = ["-p", str(voice.pitch)], ["-s", str(voice.speed)]
+        return [
+            "espeak-ng",
+            "-v",
+            voice.voice,
+            *pitch,
+            *speed,
+            "-w",
+            str(wav),
+            "-f",
+            str(text_file),
+        ]
+    if voice.engine == "flite":
+        return ["flite", "-voice", voice.voice, "-f", str(text_file), "-o", str(wav)]
+    return ["pico2wave", "-l", voice.voice, "-w", str(wav), "--", text]
+
+
+def synthesize_aligned(voice: Voice, text: str, wav: Path) -> tuple[list[Phone], int]:
+    """Render ``text`` with an espeak-ng, Flite or Pico voice into ``wav`` (a ``.wav`` path);
+    the phones are the text forced onto the audio (PocketSphinx), as for a real recording."""
+    import soundfile as sf
+
+    from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+    from talkmesh.audio.phonemes import recognize_phones
+
+    with tempfile.TemporaryDirectory() as tmp:
+        text_file = Path(tmp) / "text.txt"
+        text_file.write_text(text + "\n")
+        _run(_aligned_command(voice, Path(wav), text_file, text))
+    info = sf.info(str(wav))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a clip the transcript cannot be forced onto has no truth
+        try:
+            phones = recognize_phones(load_audio(wav), SAMPLE_RATE, text=text)
+        except Warning as w:
+            raise TalkmeshError(f"{voice.name}: {text!r}: {w}") from None
+    return _merge(phones, info.frames / info.samplerate), info.samplerate
+
+
 def synthesize(voice: Voice, items: list[tuple[str, Path]]) -> list[tuple[list[Phone], int]]:
     """Speak each (text, wav path) with ``voice``; returns (phones, sample rate) per item."""
     if voice.engine == "festival":
         return synthesize_festival(voice, items)
+    if voice.engine in ALIGNED_ENGINES:
+        return [synthesize_aligned(voice, text, wav) for text, wav in items]
     return [synthesize_mbrola(voice, text, wav) for text, wav in items]
 
 
