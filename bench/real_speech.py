@@ -1,6 +1,6 @@
 """Lip sync on real recordings, clean, under noise and under reverb: procedural vs bundled models.
 
-    python bench/real_speech.py [--methods procedural,codetalker-synth,codetalker-synth-nogate] [--conditions clean,snr10]
+    python bench/real_speech.py [--methods procedural,codetalker-synth,codetalker-synth-raw] [--conditions clean,snr10]
         [--clips cards,librivox] [--out docs/results]
 
 Every real recording with a transcript that Debian packages put on the machine
@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,37 +37,54 @@ from talkmesh.evaluation.real_speech import (
     truth_phones,
 )
 from talkmesh.face.assets import load_head
-from talkmesh.face.pauses import gate_mouth, speech_gate
+from talkmesh.face.corrections import NONE, Corrections, correct_mouth
 from talkmesh.pipeline import animate, available_models
 
 FPS = 30.0
 
 
-GATE_OFF = "-nogate"  # method suffix: a learned model without the pause gate
+# method suffixes: a learned model with no correction (the bare model), one default one off, or
+# the lip closure on
+VARIANTS = {
+    "": Corrections(),
+    "-raw": NONE,
+    "-nogate": replace(Corrections(), pause_gate=False),
+    "-nomix": replace(Corrections(), mix=0.0),
+    "-closure": replace(Corrections(), lip_closure=True),
+}
+
+
+def _split(method: str) -> tuple[str, Corrections]:
+    for suffix, corrections in VARIANTS.items():
+        if suffix and method.endswith(suffix):
+            return method.removesuffix(suffix), corrections
+    return method, VARIANTS[""]
 
 
 def _animate_condition(wave, methods, head) -> dict[str, np.ndarray]:
     """method -> (T, V, 3). The phones are recognised once: the procedural animator is driven by
-    them and the pause gate uses them; a learned model runs once, gated and ungated (the gate
-    moves the mouth only, so this equals ``animate(pause_gate=True)`` on the lips)."""
+    them and the corrections use them; a learned model runs once, bare, and each variant corrects
+    a copy (the corrections move the mouth only, so this equals ``animate`` on the lips)."""
     phones = recognize_phones(wave, SAMPLE_RATE)
-    gate = None
+    bare = {}
     out = {}
     for method in methods:
-        model = method.removesuffix(GATE_OFF)
+        model, corrections = _split(method)
         if model == "procedural":
             out[method] = animate(wave, head=head, phones=phones, fps=FPS, seed=0).vertices
             continue
-        key = model + GATE_OFF
-        if key not in out:
-            out[key] = animate(wave, head=head, model=model, fps=FPS, pause_gate=False).vertices
-        if not method.endswith(GATE_OFF):
-            if gate is None:
-                gate = speech_gate(phones, len(out[key]), FPS)
-            out[method] = gate_mouth(
-                out[key].copy(), head.template, head.regions.mouth_weight, gate
-            )
-    return {m: out[m] for m in methods}
+        if model not in bare:
+            bare[model] = animate(
+                wave,
+                head=head,
+                model=model,
+                fps=FPS,
+                pause_gate=False,
+                lip_closure=False,
+                procedural_mix=0.0,
+            ).vertices
+        out[method] = correct_mouth(bare[model].copy(), head, phones, wave, FPS, corrections)
+    return out
 
 
 def _fmt(v: float) -> str:
@@ -125,11 +143,12 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     learned = [m for m in available_models() if m != "procedural"]
-    default = ["procedural", *learned, *(m + GATE_OFF for m in learned)]
+    default = ["procedural", *(m + v for m in learned for v in VARIANTS)]
     ap.add_argument(
         "--methods",
         default=",".join(default),
-        help=f"procedural, bundled models (with the pause gate), MODEL{GATE_OFF} (without it)",
+        help="procedural, bundled models as animate runs them (default corrections), MODEL-raw "
+        "(none), MODEL-nogate / -nomix (one off), MODEL-closure (with the lip closure)",
     )
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--clips", default="", help="comma-separated name prefixes (default: all)")

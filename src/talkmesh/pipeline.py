@@ -13,13 +13,13 @@ from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, fit_weights
 from talkmesh.face.assets import Head, load_head
+from talkmesh.face.corrections import MIX, NONE, Corrections, correct_mouth
 from talkmesh.face.lipsync import (
     SpeakingStyle,
     blink_gaze_weights,
     phones_to_weights,
     replace_eye_motion,
 )
-from talkmesh.face.pauses import gate_mouth, speech_gate
 
 DEFAULT_FPS = MOTION_FPS
 MAX_FPS = 240.0
@@ -69,6 +69,8 @@ def animate(
     blinks: bool = True,
     int8: str | None = None,
     pause_gate: bool = True,
+    lip_closure: bool = False,
+    procedural_mix: float = MIX,
 ) -> Animation:
     """Animate a face from speech.
 
@@ -94,6 +96,11 @@ def animate(
         pause_gate: learned models: close the mouth in the pauses that the phone recogniser
             finds (:mod:`talkmesh.face.pauses`); real recordings' noisy pauses otherwise keep it
             open (docs/results/real-speech.md).
+        lip_closure: learned models: shut the lips fully where the model nearly closes them
+            (:mod:`talkmesh.face.corrections`; off by default: it costs synthetic LVE).
+        procedural_mix: learned models: share of the procedural animator's mouth (driven by the
+            recognised phones) mixed into the model's except at its lip closures, in [0, 1];
+            0 turns it off.
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
@@ -116,12 +123,15 @@ def animate(
                 f"--text and phones drive the procedural animator, not {model}: drop them or "
                 "pass --model procedural"
             )
+        corrections = Corrections(pause_gate, lip_closure, procedural_mix)
         anim = animate_learned(
             wave, head, model, fps=fps, style_mix=style_mix, seed=seed, int8=int8
         )
-        if pause_gate:
-            gate = speech_gate(recognize_phones(wave, SAMPLE_RATE), len(anim.vertices), fps)
-            gate_mouth(anim.vertices, head.template, head.regions.mouth_weight, gate)
+        if corrections != NONE:  # the recogniser corrects the model's mouth
+            phones = recognize_phones(wave, SAMPLE_RATE)
+            correct_mouth(
+                anim.vertices, head, phones, wave, fps, corrections, style=style, seed=seed
+            )
         # ARKit weights that best explain the motion, so ARKit exports work for learned models
         anim.weights = fit_weights(anim.vertices, head.blendshapes, head.template)
         if blinks:  # the model's own eye motion becomes procedural blinks and gaze

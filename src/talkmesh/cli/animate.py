@@ -18,6 +18,7 @@ from talkmesh.cli.common import (
 )
 from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError, os_error_message
+from talkmesh.face.corrections import MIX
 from talkmesh.output import write_animation
 
 
@@ -72,6 +73,20 @@ def add_animate(sub: Subparsers) -> None:
         "phone recogniser finds no speech",
     )
     a.add_argument(
+        "--lip-closure",
+        action="store_true",
+        help="learned models: shut the lips fully where the model nearly closes them (p, b, m "
+        "close more often; costs accuracy on the synthetic test set)",
+    )
+    a.add_argument(
+        "--procedural-mix",
+        type=float,
+        default=MIX,
+        metavar="SHARE",
+        help="learned models: share of the procedural animator's mouth mixed into the model's "
+        f"outside its lip closures, 0 to 1 (default {MIX:g}; 0 turns it off)",
+    )
+    a.add_argument(
         "--int8",
         choices=INT8_LAYERS,
         help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
@@ -114,6 +129,8 @@ def cmd_animate(args: argparse.Namespace) -> int:
                 style_mix=parse_style(args.style),
                 blinks=not args.no_blinks,
                 pause_gate=not args.no_pause_gate,
+                lip_closure=args.lip_closure,
+                procedural_mix=args.procedural_mix,
                 int8=args.int8,
             )
             for p in paths:

@@ -138,7 +138,13 @@ def add_predict(sub: Subparsers) -> None:
     pr.add_argument(
         "--pause-gate",
         action="store_true",
-        help="close the mouth in the pauses the phone recogniser finds, as animate does",
+        help="close the mouth in the pauses the phone recogniser finds (the pause gate alone)",
+    )
+    pr.add_argument(
+        "--corrections",
+        action="store_true",
+        help="correct the mouth with the phone recogniser as animate does by default (pause gate and "
+        "procedural mix)",
     )
     pr.add_argument("-o", "--out", required=True, help="output directory")
     add_quiet(pr)
@@ -158,6 +164,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
         mode=args.mode,
         blinks=args.blinks,
         pause_gate=args.pause_gate,
+        corrections=args.corrections,
         progress=not args.quiet,
     )
     if not args.quiet:

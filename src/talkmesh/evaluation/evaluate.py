@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ import numpy as np
 from talkmesh.datasets.reader import MotionDataset, open_dataset, report_skipped
 from talkmesh.errors import TalkmeshError
 from talkmesh.evaluation.metrics import PROTOCOLS, Scores, pool, score_sequence
+from talkmesh.face.corrections import NONE, Corrections
 
 CONDITION = re.compile(r"^(?P<name>.+?)_condition_(?P<style>.+)$")
 
@@ -287,12 +289,14 @@ def write_model_predictions(
     mode: str = "fast",
     blinks: bool = False,
     pause_gate: bool = False,
+    corrections: bool = False,
     progress: bool = True,
 ) -> int:
     """Predictions of a learned model (a release file or bundled name) for a split.
 
-    With ``pause_gate``, the mouth is closed in the pauses the phone recogniser finds, as
-    ``talkmesh animate`` does (:mod:`talkmesh.face.pauses`; bundled head topology only).
+    With ``corrections``, the mouth is corrected by the phone recogniser as ``talkmesh animate``
+    does by default (:mod:`talkmesh.face.corrections`); with ``pause_gate`` only closed in the
+    pauses it finds (bundled head topology only).
 
     With ``blinks``, the model's own eye motion is replaced by the procedural animator's blinks
     and gaze (seeded by the sequence index), through the bundled head's blendshapes, as
@@ -316,7 +320,8 @@ def write_model_predictions(
     note = net.mode_note(mode)
     if progress and note:
         print(f"talkmesh: note: {note}", file=sys.stderr)
-    finish = _finisher(net.num_vertices, dataset.spec.motion_fps, blinks, pause_gate)
+    fix = Corrections() if corrections else replace(NONE, pause_gate=pause_gate)
+    finish = _finisher(net.num_vertices, dataset.spec.motion_fps, blinks, fix)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = 0
@@ -358,10 +363,11 @@ def _generate(net, sample, weights, seed: int, mode: str) -> np.ndarray:
         )[0].numpy()
 
 
-def _finisher(num_vertices: int, fps: float, blinks: bool, pause_gate: bool):
+def _finisher(num_vertices: int, fps: float, blinks: bool, fix: Corrections):
     """``finish(verts, sample, index)``, changing a prediction in place as ``talkmesh animate``
-    does: the mouth shut in the recognised pauses, the model's eye motion replaced by
-    procedural blinks and gaze. Both need the bundled head's topology (a one-line error now)."""
+    does: the mouth corrected by the phone recogniser, the model's eye motion replaced by
+    procedural blinks and gaze. Both need the bundled head's topology (a one-line error now);
+    the procedural mouth is made with the bundled default identity's blendshapes."""
     from talkmesh.face.assets import load_head
 
     if blinks:
@@ -372,19 +378,19 @@ def _finisher(num_vertices: int, fps: float, blinks: bool, pause_gate: bool):
         if head.num_vertices != num_vertices:
             raise TalkmeshError("blinks need the bundled head's topology (its blendshapes)")
         basis = head.blendshapes.reshape(len(head.blendshape_names), -1)
-    if pause_gate:
+    if fix != NONE:
         from talkmesh.audio.loading import SAMPLE_RATE
         from talkmesh.audio.phonemes import recognize_phones
-        from talkmesh.face.pauses import gate_mouth, speech_gate
+        from talkmesh.face.corrections import correct_mouth
 
-        mouth = load_head().regions.mouth_weight
-        if len(mouth) != num_vertices:
-            raise TalkmeshError("the pause gate needs the bundled head's topology (its mouth map)")
+        if load_head().num_vertices != num_vertices:
+            raise TalkmeshError("the corrections need the bundled head's topology (its mouth map)")
 
     def finish(verts: np.ndarray, sample, index: int) -> None:
-        if pause_gate:  # as animate: the mouth shuts in the recognised pauses
+        if fix != NONE:  # as animate: the recogniser corrects the mouth
             phones = recognize_phones(sample.audio, SAMPLE_RATE)
-            gate_mouth(verts, sample.template, mouth, speech_gate(phones, len(verts), fps))
+            face = load_head().with_template(sample.template, sample.subject)
+            correct_mouth(verts, face, phones, sample.audio, fps, fix)
         if blinks:  # as animate: the model's own eye motion becomes procedural eyes
             eyes = blink_gaze_weights(len(verts), fps, seed=index)
             fitted = fit_weights(verts, head.blendshapes, sample.template)

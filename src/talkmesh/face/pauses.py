@@ -4,6 +4,10 @@ Models trained on clean synthetic speech keep the mouth a few millimetres open t
 pauses of real recordings (docs/results/real-speech.md). The phone recogniser finds those pauses
 reliably, so the mouth region (``Regions.mouth_weight``) is blended back to the neutral face there,
 with short ramps so the lips close and open as they would; the upper face is left to the model.
+
+In a reverberant room the recogniser hears the room's echo of the last word as speech, so a
+pause is recognised late and short; :func:`tail_pauses` moves its start back over that tail,
+the frames quieter than the clip's speech level by ``TAIL_DB`` or more.
 """
 
 from __future__ import annotations
@@ -11,14 +15,21 @@ from __future__ import annotations
 import numpy as np
 
 from talkmesh.audio.phonemes import SILENCE, Phone
+from talkmesh.constants import SAMPLE_RATE
 
-MIN_PAUSE_S = 0.3  # shorter gaps are left to the model: the mouth need not close in them
-# The mouth closes over the first 100 ms of a pause and opens over its last 150 ms: lips part
+MIN_PAUSE_S = 0.25  # shorter gaps are left to the model: the mouth need not close in them
+# The mouth closes over the first 50 ms of a pause and opens over its last 80 ms: lips part
 # before the sound starts. On the synthetic unseen-speaker test split (bundled model, LVE 3.635 mm
-# ungated) gating pauses from 200 ms with 80 ms ramps cost 4.6% LVE (3.801): the synthetic truth
-# keeps the mouth open through short pauses; from 300 ms with 100/150 ms ramps, 2.1% (3.712).
-CLOSE_S = 0.1
-OPEN_S = 0.15
+# without corrections) pauses from 300 ms with 100/150 ms ramps cost 2.1% LVE (3.712): the
+# synthetic truth keeps the mouth open through short pauses. From 250 ms with 50/80 ms ramps and
+# the pause starts moved back over the echo they cost more, but with the procedural mix
+# (talkmesh.face.corrections) all together cost 1.4%, and no real clip's pause stays open.
+CLOSE_S = 0.05
+OPEN_S = 0.08
+TAIL_DB = 25.0  # a frame this far under the speech level is echo or silence, not a word
+TAIL_MAX_S = 0.15  # a pause moves back at most this far (RT60 0.5 s: the echo falls 18 dB)
+SPEECH_LEVEL_PERCENTILE = 95  # of the 10 ms frame energies: the clip's speech level
+HOP_S = 0.01
 
 
 def speech_gate(
@@ -62,3 +73,36 @@ def gate_mouth(
         w = (pull[t] * mouth_weight).astype(np.float32)[:, None]
         vertices[t] -= w * (vertices[t] - template)
     return vertices
+
+
+def frame_db(wave: np.ndarray, hop_s: float = HOP_S) -> np.ndarray:
+    """(S,) waveform at 16 kHz -> (N,) energy in dB of consecutive ``hop_s`` frames."""
+    hop = int(round(hop_s * SAMPLE_RATE))
+    n = len(wave) // hop
+    x = np.asarray(wave[: n * hop], np.float64).reshape(n, hop)
+    return 10.0 * np.log10(np.mean(x**2, axis=1) + 1e-12)
+
+
+def tail_pauses(
+    phones: list[Phone], wave: np.ndarray, below_db: float = TAIL_DB, max_s: float = TAIL_MAX_S
+) -> list[Phone]:
+    """``phones`` with each pause's start moved back over the quiet frames before it (at most
+    ``max_s``, keeping 30 ms of the phone before): frames ``below_db`` or more under the clip's
+    speech level are the room's echo of the last word, which the recogniser counts as speech."""
+    db = frame_db(wave)
+    if not len(db):
+        return list(phones)
+    quiet = db < np.percentile(db, SPEECH_LEVEL_PERCENTILE) - below_db
+    out = list(phones)
+    for i in range(1, len(out)):
+        prev, p = out[i - 1], out[i]
+        if p.label != SILENCE or prev.label == SILENCE:
+            continue
+        f = int(round(p.start / HOP_S))
+        lo = max(int(round((p.start - max_s) / HOP_S)), int(round(prev.start / HOP_S)) + 3)
+        while lo <= f - 1 < len(quiet) and quiet[f - 1]:
+            f -= 1
+        if f * HOP_S < p.start:
+            out[i - 1] = Phone(prev.label, prev.start, f * HOP_S)
+            out[i] = Phone(p.label, f * HOP_S, p.end)
+    return out

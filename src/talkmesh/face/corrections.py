@@ -1,0 +1,114 @@
+"""A learned model's mouth corrected by the phone recogniser: what ``animate`` outputs by default.
+
+Models trained on clean synthetic speech keep the mouth open through the noisy and reverberant
+pauses of real recordings, miss lip closures and open less on vowels than the procedural animator
+(docs/results/real-speech.md). The phone recogniser, and the procedural animator driven by its
+phones, supply what the model lacks. Three corrections, each with its own switch
+(:class:`Corrections`), move the mouth region (``Regions.mouth_weight``) only:
+
+* ``pause_gate``: the mouth shuts in recognised pauses (:mod:`talkmesh.face.pauses`), their
+  starts moved back over a reverberant tail;
+* ``mix``: a share of the procedural animator's mouth everywhere except at the model's own lip
+  closures (so it does not lift them): the mouth follows the loudness more closely;
+* ``lip_closure`` (off by default): the model's near-closures (lip opening minima within
+  ``NEAR_CLOSED_MM`` of rest) shut fully. Real /p b m/ then close, but so does every near-closure
+  the synthetic truth leaves a little open: it costs synthetic LVE (docs/results/real-speech.md).
+
+Closing the lips on the /p b m/ the recogniser finds does not work: it misses most of them in
+noise, and places some that are not there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from talkmesh.audio.phonemes import Phone
+from talkmesh.errors import TalkmeshError
+from talkmesh.face.assets import Head, lip_opening
+from talkmesh.face.lipsync import SpeakingStyle, phones_to_weights
+from talkmesh.face.pauses import gate_mouth, speech_gate, tail_pauses
+
+MIX = 0.2  # share of the procedural animator's mouth in the default output
+NEAR_CLOSED_MM = 3.0  # an opening minimum this close to rest is the model closing the lips
+BLOCK = 2048  # frames of procedural vertices built at once (ten minutes would not fit)
+
+
+@dataclass(frozen=True)
+class Corrections:
+    """Which corrections :func:`correct_mouth` applies (the defaults: what ``animate`` does).
+
+    Attributes:
+        pause_gate: shut the mouth in recognised pauses.
+        lip_closure: shut the lips fully at the model's near-closures.
+        mix: share of the procedural animator's mouth, in [0, 1] (0: none).
+    """
+
+    pause_gate: bool = True
+    lip_closure: bool = False
+    mix: float = MIX
+
+    def __post_init__(self):
+        if not 0.0 <= self.mix <= 1.0:
+            raise TalkmeshError(f"--procedural-mix must be in [0, 1], got {self.mix:g}")
+
+
+NONE = Corrections(pause_gate=False, lip_closure=False, mix=0.0)
+
+
+def near_closures(opening: np.ndarray, rest: float, within: float = NEAR_CLOSED_MM) -> np.ndarray:
+    """(T,) bool: frames where the (T,) lip ``opening`` has a local minimum less than ``within``
+    above ``rest`` (same unit), not yet at rest."""
+    prev = np.concatenate([[np.inf], opening[:-1]])
+    nxt = np.concatenate([opening[1:], [np.inf]])
+    return (opening <= prev) & (opening <= nxt) & (opening < rest + within) & (opening > rest)
+
+
+def _blend(vertices: np.ndarray, target, pull: np.ndarray, mouth: np.ndarray) -> None:
+    """vertices += pull (T,) x mouth (V,) x (target - vertices), in blocks of frames; ``target``
+    maps a slice of frames to their (t, V, 3) target vertices."""
+    for lo in range(0, len(pull), BLOCK):
+        block = slice(lo, lo + BLOCK)
+        if not pull[block].any():
+            continue
+        w = pull[block, None, None] * mouth[None, :, None]
+        vertices[block] += w * (target(block) - vertices[block])
+
+
+def correct_mouth(
+    vertices: np.ndarray,
+    head: Head,
+    phones: list[Phone],
+    wave: np.ndarray,
+    fps: float,
+    corrections: Corrections = Corrections(),
+    *,
+    style: SpeakingStyle | None = None,
+    seed: int = 0,
+) -> np.ndarray:
+    """(T, V, 3) ``vertices`` of a learned model with their mouth corrected, in place.
+
+    ``phones`` are recognised from ``wave`` ((S,) at 16 kHz); ``head`` is the face the vertices
+    animate (its template is the closed mouth, its blendshapes make the procedural animator's
+    mouth); ``style`` and ``seed`` as in :func:`phones_to_weights`.
+    """
+    T, V, _ = vertices.shape
+    assert V == head.num_vertices, (V, head.num_vertices)
+    mouth = head.regions.mouth_weight
+    opening = lip_opening(vertices, head.regions)
+    rest = float(lip_opening(head.template[None], head.regions)[0])
+    closures = near_closures(opening, rest, NEAR_CLOSED_MM / 1000.0)
+    if corrections.mix > 0:  # the model's closures (and a frame either side) keep their lips
+        kept = closures.copy()
+        kept[1:] |= closures[:-1]
+        kept[:-1] |= closures[1:]
+        pull = np.where(kept, 0.0, corrections.mix).astype(np.float32)
+        weights = phones_to_weights(phones, T, fps, audio=wave, style=style, seed=seed)
+        _blend(vertices, lambda b: head.vertices_from_weights(weights[b]), pull, mouth)
+    if corrections.lip_closure:
+        _blend(vertices, lambda b: head.template[None], closures.astype(np.float32), mouth)
+    if corrections.pause_gate:
+        gate = speech_gate(tail_pauses(phones, wave), T, fps)
+        gate_mouth(vertices, head.template, mouth, gate)
+    return vertices

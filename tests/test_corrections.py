@@ -1,0 +1,143 @@
+"""The recogniser's corrections of a learned model's mouth: each one does its job and turns off."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from talkmesh.audio.phonemes import Phone
+from talkmesh.errors import TalkmeshError
+from talkmesh.face.arkit import ARKIT_NAMES
+from talkmesh.face.assets import lip_opening, load_head
+from talkmesh.face.corrections import (
+    NEAR_CLOSED_MM,
+    NONE,
+    Corrections,
+    correct_mouth,
+    near_closures,
+)
+from talkmesh.face.lipsync import phones_to_weights
+from talkmesh.face.pauses import TAIL_MAX_S, tail_pauses
+
+FPS = 30.0
+SR = 16_000
+PHONES = [
+    Phone("SIL", 0.0, 0.3),
+    Phone("AA", 0.3, 0.6),
+    Phone("M", 0.6, 0.7),
+    Phone("AA", 0.7, 1.0),
+    Phone("SIL", 1.0, 1.5),
+    Phone("AA", 1.5, 2.0),
+]
+T = 60
+t = (np.arange(T) + 0.5) / FPS
+
+
+def _open_mouth(head):
+    """A 'model' that holds the jaw half open all the time: (T, V, 3)."""
+    w = np.zeros((T, len(ARKIT_NAMES)), np.float32)
+    w[:, ARKIT_NAMES.index("jawOpen")] = 0.5
+    return head.vertices_from_weights(w)
+
+
+def _wave():
+    """Speech-loud noise where PHONES speak, silence in their pauses."""
+    rng = np.random.default_rng(0)
+    wave = np.zeros(int(2.0 * SR), np.float32)
+    for p in PHONES:
+        if p.label != "SIL":
+            wave[int(p.start * SR) : int(p.end * SR)] = rng.normal(
+                0, 0.1, int(p.end * SR) - int(p.start * SR)
+            )
+    return wave
+
+
+def _mm(head, vertices):
+    return lip_opening(vertices, head.regions) * 1000
+
+
+def test_near_closures_are_minima_close_to_rest_only():
+    opening = np.array([5.0, 2.0, 4.0, 8.0, 6.0, 7.0, 1.0, 1.0, 3.0])
+    found = near_closures(opening, rest=1.0, within=3.0)
+    # 2.0 is a minimum 1 above rest; 6.0 is a minimum but far open; 1.0 is already at rest
+    np.testing.assert_array_equal(np.flatnonzero(found), [1])
+
+
+def test_no_corrections_leave_the_model_alone_and_mix_is_checked():
+    head = load_head()
+    verts = _open_mouth(head)
+    before = verts.copy()
+    correct_mouth(verts, head, PHONES, _wave(), FPS, NONE)
+    np.testing.assert_array_equal(verts, before)
+    with pytest.raises(TalkmeshError, match="procedural-mix"):
+        Corrections(mix=1.5)
+
+
+def _dipping(head):
+    """A 'model' whose jaw is half open but nearly closes (a minimum) at frame 20: (T, V, 3)."""
+    w = np.zeros((T, len(ARKIT_NAMES)), np.float32)
+    w[:, ARKIT_NAMES.index("jawOpen")] = 0.5
+    w[19:22, ARKIT_NAMES.index("jawOpen")] = [0.2, 0.04, 0.2]
+    return head.vertices_from_weights(w)
+
+
+def test_lip_closure_shuts_the_models_near_closure_and_only_with_its_switch():
+    head = load_head()
+    rest = float(_mm(head, head.template[None])[0])
+    bare = _mm(head, _dipping(head))
+    assert bare[20] - rest > 0.5 and bare[20] - rest < NEAR_CLOSED_MM  # nearly closed
+    closure = Corrections(pause_gate=False, lip_closure=True, mix=0.0)
+    closed = _mm(head, correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, closure))
+    assert abs(closed[20] - rest) < 0.05  # shut at the minimum
+    np.testing.assert_allclose(np.delete(closed, 20), np.delete(bare, 20), rtol=1e-6)
+    off = _mm(head, correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, NONE))
+    np.testing.assert_allclose(off, bare)
+
+
+def test_mix_moves_toward_procedural_but_keeps_the_models_closures():
+    head = load_head()
+    bare = _mm(head, _dipping(head))
+    mixed = _mm(
+        head,
+        correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, Corrections(False, False, 0.5)),
+    )
+    procedural = _mm(
+        head, head.vertices_from_weights(phones_to_weights(PHONES, T, FPS, audio=_wave()))
+    )
+    far = np.abs(procedural - bare) > 1.0
+    far[18:23] = False
+    assert far.sum() > 10
+    np.testing.assert_allclose(mixed[far], 0.5 * (bare[far] + procedural[far]), atol=0.3)
+    np.testing.assert_allclose(mixed[19:22], bare[19:22], rtol=1e-6)  # the closure is kept
+
+
+def test_pause_gate_shuts_the_mouth_in_pauses():
+    head = load_head()
+    rest = float(_mm(head, head.template[None])[0])
+    gated = _mm(
+        head, correct_mouth(_open_mouth(head), head, PHONES, _wave(), FPS, Corrections(mix=0.0))
+    )
+    assert np.all(np.abs(gated[(t >= 1.15) & (t < 1.35)] - rest) < 0.1)
+    mixed = _mm(
+        head,
+        correct_mouth(
+            _open_mouth(head), head, PHONES, _wave(), FPS, Corrections(False, False, 0.5)
+        ),
+    )
+    bare = _mm(head, _open_mouth(head))
+    assert np.all(mixed[(t >= 1.15) & (t < 1.35)] < bare[(t >= 1.15) & (t < 1.35)] - 1.0)
+
+
+def test_tail_pauses_moves_a_pause_back_over_an_echo_but_not_over_speech():
+    rng = np.random.default_rng(1)
+    speech = rng.normal(0, 0.1, SR // 2).astype(np.float32)  # 0.5 s of loud sound
+    decay = np.exp(-np.arange(SR // 2) / SR * 3 * np.log(10) / 0.5)  # RT60 0.5 s: 60 dB in 0.5 s
+    tail = (rng.normal(0, 0.1, SR // 2) * decay).astype(np.float32)
+    wave = np.concatenate([speech, tail])
+    late = [Phone("AA", 0.0, 0.75), Phone("SIL", 0.75, 1.0)]  # the recogniser hears the echo
+    moved = tail_pauses(late, wave)
+    # the echo is 25 dB down after 0.21 s: the pause now starts there, not later than 0.75 - max
+    assert 0.75 - TAIL_MAX_S - 1e-6 <= moved[1].start < 0.75
+    assert moved[0].end == moved[1].start and moved[1].end == 1.0
+    loud = np.concatenate([speech, speech])
+    assert tail_pauses(late, loud) == late  # no quiet frames: nothing moves
