@@ -295,8 +295,8 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
 COMMANDS = {
     "animate": (
         ["audio"],
-        "--avatar --fps --identity --int8 --model --no-blinks --no-pause-gate --output "
-        "--overwrite --quiet --seed --size --style --template --text",
+        "--avatar --fps --identity --int8 --lip-closure --model --no-blinks --no-pause-gate "
+        "--output --overwrite --procedural-mix --quiet --seed --size --style --template --text",
     ),
     "render": (["anim"], "--audio --fps --labels --output --overwrite --quiet --size"),
     "export": (["anim"], "--fps --output --overwrite --quiet --size"),
@@ -305,7 +305,8 @@ COMMANDS = {
     "baseline": ([], "--data --dataset --method --out --quiet --split"),
     "predict": (
         [],
-        "--blinks --conditions --data --dataset --mode --model --out --pause-gate --quiet --split",
+        "--blinks --conditions --corrections --data --dataset --mode --model --out --pause-gate "
+        "--quiet --split",
     ),
     "prepare-biwi": (["raw", "out"], "--quiet --regions --subset"),
     "prepare-vocaset": (["raw", "out"], "--quiet"),

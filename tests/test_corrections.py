@@ -141,3 +141,27 @@ def test_tail_pauses_moves_a_pause_back_over_an_echo_but_not_over_speech():
     assert moved[0].end == moved[1].start and moved[1].end == 1.0
     loud = np.concatenate([speech, speech])
     assert tail_pauses(late, loud) == late  # no quiet frames: nothing moves
+
+
+@pytest.mark.slow  # runs the bundled model on a real recording
+def test_default_corrections_shut_a_reverberant_pause_the_bare_model_leaves_open():
+    from talkmesh.audio.phonemes import recognize_phones
+    from talkmesh.evaluation import real_speech as rs
+    from talkmesh.pipeline import animate
+
+    clip = next(c for c in rs.builtin_clips() if c.name == "alsa-Front_Right")
+    clean = rs.read_clip(clip)
+    truth = rs.truth_phones(clip, clean)
+    wave = rs.degrade(clean, "reverb", None)
+    head = load_head()
+    bare = animate(
+        wave, head=head, model="codetalker-synth", fps=FPS, pause_gate=False, procedural_mix=0.0
+    ).vertices
+    fixed = correct_mouth(bare.copy(), head, recognize_phones(wave), wave, FPS)
+    rest = float(_mm(head, head.template[None])[0])
+
+    def pause_mm(vertices):
+        return rs.score_opening(_mm(head, vertices), rest, truth, wave, FPS)["pause_mm"]
+
+    # the echo hides most of the pause from the recogniser; the bare model stays ~8 mm open
+    assert pause_mm(bare) > 3.0 and pause_mm(fixed) < 1.0

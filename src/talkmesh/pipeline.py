@@ -127,21 +127,34 @@ def animate(
         anim = animate_learned(
             wave, head, model, fps=fps, style_mix=style_mix, seed=seed, int8=int8
         )
-        if corrections != NONE:  # the recogniser corrects the model's mouth
-            phones = recognize_phones(wave, SAMPLE_RATE)
-            correct_mouth(
-                anim.vertices, head, phones, wave, fps, corrections, style=style, seed=seed
-            )
-        # ARKit weights that best explain the motion, so ARKit exports work for learned models
-        anim.weights = fit_weights(anim.vertices, head.blendshapes, head.template)
-        if blinks:  # the model's own eye motion becomes procedural blinks and gaze
-            eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
-            basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
-            replace_eye_motion(anim.vertices, anim.weights, eyes, basis, block=BLOCK)
-        anim.weight_names = list(ARKIT_NAMES)
-        anim.basis = head.blendshapes
-        return anim
+        return _finish_learned(anim, head, corrections, blinks=blinks, style=style, seed=seed)
     return animate_procedural(wave, head, text=text, phones=phones, fps=fps, seed=seed, style=style)
+
+
+def _finish_learned(
+    anim: Animation,
+    head: Head,
+    corrections: Corrections,
+    *,
+    blinks: bool,
+    style: SpeakingStyle | None,
+    seed: int,
+) -> Animation:
+    """A learned model's animation as :func:`animate` returns it: the mouth corrected by the
+    phone recogniser, ARKit weights fitted, the eye motion made procedural (with ``blinks``)."""
+    wave, fps = anim.audio, anim.fps
+    if corrections != NONE:  # the recogniser corrects the model's mouth
+        phones = recognize_phones(wave, SAMPLE_RATE)
+        correct_mouth(anim.vertices, head, phones, wave, fps, corrections, style=style, seed=seed)
+    # ARKit weights that best explain the motion, so ARKit exports work for learned models
+    anim.weights = fit_weights(anim.vertices, head.blendshapes, head.template)
+    if blinks:  # the model's own eye motion becomes procedural blinks and gaze
+        eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
+        basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
+        replace_eye_motion(anim.vertices, anim.weights, eyes, basis, block=BLOCK)
+    anim.weight_names = list(ARKIT_NAMES)
+    anim.basis = head.blendshapes
+    return anim
 
 
 def animate_procedural(
