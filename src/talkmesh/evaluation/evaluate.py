@@ -321,7 +321,7 @@ def write_model_predictions(
     if progress and note:
         print(f"talkmesh: note: {note}", file=sys.stderr)
     fix = Corrections() if corrections else replace(NONE, pause_gate=pause_gate)
-    finish = _finisher(net.num_vertices, dataset.spec.motion_fps, blinks, fix)
+    finish = _finisher(net.num_vertices, dataset.spec.motion_fps, blinks, fix, _identities(data))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = 0
@@ -363,11 +363,25 @@ def _generate(net, sample, weights, seed: int, mode: str) -> np.ndarray:
         )[0].numpy()
 
 
-def _finisher(num_vertices: int, fps: float, blinks: bool, fix: Corrections):
+def _identities(data: str | Path) -> dict[str, str]:
+    """subject -> talkmesh identity, from a synthetic corpus's manifest (else empty)."""
+    import json
+
+    manifest = Path(data) / "manifest.json"
+    if not manifest.is_file():
+        return {}
+    subjects = json.loads(manifest.read_text()).get("subjects", {})
+    return {s: m["identity"] for s, m in subjects.items() if "identity" in m}
+
+
+def _finisher(
+    num_vertices: int, fps: float, blinks: bool, fix: Corrections, identities: dict[str, str]
+):
     """``finish(verts, sample, index)``, changing a prediction in place as ``talkmesh animate``
     does: the mouth corrected by the phone recogniser, the model's eye motion replaced by
     procedural blinks and gaze. Both need the bundled head's topology (a one-line error now);
-    the procedural mouth is made with the bundled default identity's blendshapes."""
+    the procedural mouth is made with the subject's identity's blendshapes (``identities``),
+    else the bundled default identity's."""
     from talkmesh.face.assets import load_head
 
     if blinks:
@@ -389,7 +403,9 @@ def _finisher(num_vertices: int, fps: float, blinks: bool, fix: Corrections):
     def finish(verts: np.ndarray, sample, index: int) -> None:
         if fix != NONE:  # as animate: the recogniser corrects the mouth
             phones = recognize_phones(sample.audio, SAMPLE_RATE)
-            face = load_head().with_template(sample.template, sample.subject)
+            face = load_head(identities.get(sample.subject)).with_template(
+                sample.template, sample.subject
+            )
             correct_mouth(verts, face, phones, sample.audio, fps, fix)
         if blinks:  # as animate: the model's own eye motion becomes procedural eyes
             eyes = blink_gaze_weights(len(verts), fps, seed=index)

@@ -59,10 +59,10 @@ NONE = Corrections(pause_gate=False, lip_closure=False, mix=0.0)
 
 def near_closures(opening: np.ndarray, rest: float, within: float = NEAR_CLOSED_MM) -> np.ndarray:
     """(T,) bool: frames where the (T,) lip ``opening`` has a local minimum less than ``within``
-    above ``rest`` (same unit), not yet at rest."""
+    above ``rest`` (same unit)."""
     prev = np.concatenate([[np.inf], opening[:-1]])
     nxt = np.concatenate([opening[1:], [np.inf]])
-    return (opening <= prev) & (opening <= nxt) & (opening < rest + within) & (opening > rest)
+    return (opening <= prev) & (opening <= nxt) & (opening < rest + within)
 
 
 def _blend(vertices: np.ndarray, target, pull: np.ndarray, mouth: np.ndarray) -> None:
