@@ -33,11 +33,13 @@ $(VIEWER): $(wildcard web/viewer/*) package-lock.json | $(STAMP)
 viewer: $(STAMP)
 	npm run --silent build:viewer
 
-DEMO_TEXT ?= Bob bought a big blue map, and we all peeked at the moon above the bay.
+# A real recording: two consecutive sentences of a LibriVox reading (public domain; see
+# THIRD_PARTY_NOTICES.md), with a pause between them in which the mouth shuts.
+DEMO_AUDIO ?= examples/librivox-sense-and-sensibility.flac
 demo: setup
 	mkdir -p out
-	espeak-ng -v en-us -s 150 -w out/demo.wav "$(DEMO_TEXT)"
-	$(VENV)/bin/talkmesh animate out/demo.wav -o out/demo.mp4 -o out/demo.glb --overwrite
+	cp $(DEMO_AUDIO) out/demo.flac
+	$(VENV)/bin/talkmesh animate out/demo.flac -o out/demo.mp4 -o out/demo.glb --overwrite
 	@echo "demo: out/demo.mp4 (video with sound) and out/demo.glb (open in three.js or Blender)"
 
 test: setup
