@@ -28,7 +28,7 @@ from talkmesh.pipeline import animate
 ROOT = Path(__file__).resolve().parents[1]
 FPS = 30.0
 CELL = 320
-CROP = (70, 130, 250, 250)  # the lower face of a CELL-pixel render
+CROP = (70, 150, 250, 262)  # the lower face of a CELL-pixel render
 
 
 def pick_frames(phones) -> list[int]:
