@@ -89,3 +89,27 @@ def test_docs_table_is_rendered_from_the_data():
     assert render_table(TABLE) in docs, (
         "re-render docs/guide/recipes.md from configs/official_hparams.json"
     )
+
+
+def test_meshtalk_weight_decay_reaches_the_decoder_only():
+    import torch
+
+    from talkmesh.errors import TalkmeshError
+    from talkmesh.models.meshtalk import MeshTalkModel
+    from talkmesh.training.trainer import decay_groups
+
+    net = MeshTalkModel(MeshTalkModel.tiny_config())
+    params = list(net.model.parameters())
+    groups = decay_groups(net, params, 0.5, ("model.decoder",))
+    optimizer = torch.optim.Adam(groups, lr=0.1)
+    for p in params:
+        p.data.fill_(1.0)  # decay moves every non-zero parameter it applies to
+        p.grad = torch.zeros_like(p)  # and nothing else moves one
+    before = {n: p.detach().clone() for n, p in net.model.named_parameters()}
+    optimizer.step()
+    moved = {n for n, p in net.model.named_parameters() if not torch.equal(p, before[n])}
+    decoder = {n for n, _ in net.model.named_parameters() if n.startswith("decoder.")}
+    assert moved == decoder and decoder
+    assert len(decay_groups(net, params, 0.5, ())) == 1
+    with pytest.raises(TalkmeshError, match="names no parameters"):
+        decay_groups(net, params, 0.5, ("model.nothing",))

@@ -73,6 +73,9 @@ class TrainConfig:
 
     lr: float = 1e-4
     weight_decay: float = 0.0
+    # the sub-modules weight decay applies to, dotted names in the trained network (MeshTalk's
+    # official step 1 decays its decoder only: ``[model.decoder]``); empty: every parameter
+    weight_decay_modules: tuple[str, ...] = ()
     optimizer: Literal["adam", "adamw"] = "adamw"
     lr_step_size: int = 0  # multiply the lr by lr_gamma every this many lr_step_unit (0: constant)
     lr_step_unit: Literal["epoch", "step"] = "epoch"
@@ -382,9 +385,10 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
 
         def configure_optimizers(self):
             params = [p for p in task.parameters(self.model) if p.requires_grad]
-            opt = torch.optim.AdamW if recipe.train.optimizer == "adamw" else torch.optim.Adam
-            optimizer = opt(params, lr=recipe.train.lr, weight_decay=recipe.train.weight_decay)
             t = recipe.train
+            opt = torch.optim.AdamW if t.optimizer == "adamw" else torch.optim.Adam
+            groups = decay_groups(self.model, params, t.weight_decay, t.weight_decay_modules)
+            optimizer = opt(groups, lr=t.lr, weight_decay=t.weight_decay)
             if not t.lr_step_size:
                 return optimizer
             # CodeTalker's StepLR (per epoch), MeshTalk's x0.1 at an iteration (per step)
@@ -424,11 +428,35 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
                 np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
                 random.setstate(rng["python"])
             for state in checkpoint.get("optimizer_states", []):  # changed settings apply
-                for group in state.get("param_groups", []):
+                for i, group in enumerate(state.get("param_groups", [])):
                     group["lr"] = recipe.train.lr
-                    group["weight_decay"] = recipe.train.weight_decay
+                    # decay_groups: the decayed parameters first, then the others (no decay)
+                    group["weight_decay"] = recipe.train.weight_decay if i == 0 else 0.0
 
     return MotionSystem()
+
+
+def decay_groups(
+    net: torch.nn.Module, params: list, weight_decay: float, modules: tuple[str, ...]
+) -> list[dict]:
+    """Optimizer parameter groups: weight decay on the parameters under ``modules`` (dotted
+    sub-module names of ``net``; empty: all of them), none on the others."""
+    if not modules:
+        return [{"params": params, "weight_decay": weight_decay}]
+    names = {id(p): n for n, p in net.named_parameters()}
+    for m in modules:
+        if not any(n.startswith(m + ".") for n in names.values()):
+            raise TalkmeshError(
+                f"train.weight_decay_modules: {m!r} names no parameters of the trained network "
+                f"(its sub-modules: {', '.join(sorted({n.split('.')[0] for n in names.values()}))})"
+            )
+    decayed = [p for p in params if any(names[id(p)].startswith(m + ".") for m in modules)]
+    chosen = {id(p) for p in decayed}
+    rest = [p for p in params if id(p) not in chosen]
+    return [
+        {"params": decayed, "weight_decay": weight_decay},
+        {"params": rest, "weight_decay": 0.0},
+    ]
 
 
 def _loaders(recipe: Recipe, train_set):
