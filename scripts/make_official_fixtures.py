@@ -19,6 +19,18 @@ this script imports it at run time (none of its code is copied here) and, per da
 Only what cannot run here is patched: ``from_pretrained`` (no network) and, for transformers >= 4.x
 where ``Wav2Vec2FeatureProjection`` returns ``(hidden, normed)`` instead of ``hidden``, that call
 takes the first element (the same computation). The checkout's files are not modified.
+
+MeshTalk (facebookresearch/meshtalk; its code needs torch and torchaudio, run this script with an
+environment that has both) is saved as its ``Net.save`` does (``torch.save(state_dict())`` to
+``encoder.pkl``, ``context_model.pkl``, ``vertex_unet.pkl``) under tests/fixtures/official/meshtalk/,
+with the demo's smoothing masks as ``forehead_mask.txt`` / ``neck_mask.txt`` (its assets' format);
+``meshtalk.npz`` holds the official outputs of ``animate_face.py``'s steps (``load_audio``,
+``audio_chunking``, the audio encoder, ``ContextModel.sample`` with argmax and with Gumbel draws
+under ``torch.manual_seed``, ``VertexUnet``, ``smooth_geom``). Its layers have hard-coded widths
+(128-channel convolutions, 64 per head in the prior), so to stay small every weight is a window of
+one of a few shared random vectors (``torch.save`` stores a shared storage once). Patched: the
+module ``pytorch3d`` (imported for .obj reading, not used here) is a stub, and ``torchaudio.load``
+(which needs torchcodec) reads the 16 kHz wav with soundfile.
 """
 
 from __future__ import annotations
@@ -35,6 +47,8 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "tests" / "fixtures" / "official"
 NUM_VERTICES = 24  # tiny meshes: the architecture does not depend on the vertex count
 SEED = 0
+ROW_STEP = 7  # MeshTalk fixture: elements between the starts of a weight's rows
+SAMPLE_SEED = 3  # torch.manual_seed before MeshTalk's Gumbel draws
 
 VOCASET_SUBJECTS = (
     "FaceTalk_170728_03272_TA FaceTalk_170904_00128_TA FaceTalk_170725_00137_TA "
@@ -228,12 +242,103 @@ def codetalker(checkout: Path, wav: Path) -> None:
     sys.path.remove(str(checkout))
 
 
+def shared_weights(modules: list[torch.nn.Module], seed: int) -> None:
+    """Replace every parameter by a window of one of a few shared random vectors (chosen by its
+    fan-in's scale; biases 0.02): rows start ROW_STEP elements apart, so a saved file holds a few
+    small storages whatever the layer widths."""
+    gen = torch.Generator().manual_seed(seed)
+    params = [p for m in modules for p in m.parameters()]
+    scales = (0.04, 0.12, 0.35)
+
+    def group(p: torch.Tensor) -> float:
+        if p.ndim == 1:
+            return 0.02
+        return min(scales, key=lambda s: abs(np.log(s * np.sqrt(p[0].numel()))))
+
+    def layout(p: torch.Tensor) -> tuple[list[int], int]:
+        strides = list(torch.empty(p.shape).stride())
+        if p.ndim > 1:
+            strides[0] = ROW_STEP
+        return strides, sum((n - 1) * st for n, st in zip(p.shape, strides)) + 1
+
+    sizes: dict[float, int] = {}
+    for p in params:
+        sizes[group(p)] = max(sizes.get(group(p), 0), layout(p)[1])
+    pools = {s: (torch.rand(n + 97, generator=gen) * 2 - 1) * s * 3**0.5 for s, n in sizes.items()}
+    for i, p in enumerate(params):
+        strides, _ = layout(p)
+        p.data = pools[group(p)].as_strided(p.shape, strides, (i * 13) % 97)
+
+
+def meshtalk(checkout: Path, wav: Path) -> None:
+    """The official MeshTalk at a tiny size (6172 -> 24 vertices, 16 -> 2 heads, 128 -> 12
+    classes, 128 -> 16 latent widths; the layers' own widths are the official ones)."""
+    import types
+
+    import torchaudio as ta
+
+    stub = types.ModuleType("pytorch3d")
+    stub.io = types.ModuleType("pytorch3d.io")
+    stub.io.load_obj = None
+    sys.modules.setdefault("pytorch3d", stub)
+    sys.modules.setdefault("pytorch3d.io", stub.io)
+    ta.load = lambda path: (torch.from_numpy(speech(Path(path)))[None], 16000)
+    sys.path.insert(0, str(checkout))
+    from models.context_model import ContextModel
+    from models.encoders import MultimodalEncoder
+    from models.vertex_unet import VertexUnet
+    from utils.helpers import audio_chunking, load_audio, smooth_geom
+
+    V, H, C, D = NUM_VERTICES, 2, 12, 16
+    gen = torch.Generator().manual_seed(SEED)
+    mean = torch.randn(V, 3, generator=gen) * 0.1
+    stddev = torch.rand(V, 3, generator=gen) * 0.01 + 0.005
+    template = mean + torch.randn(V, 3, generator=gen) * 0.01
+    masks = torch.rand(2, V, generator=gen)
+    geom_unet = VertexUnet(classes=C, heads=H, n_vertices=V, mean=mean, stddev=stddev).eval()
+    context_model = ContextModel(classes=C, heads=H, audio_dim=D).eval()
+    encoder = MultimodalEncoder(
+        classes=C, heads=H, expression_dim=D, audio_dim=D, n_vertices=V, mean=mean, stddev=stddev
+    ).eval()
+    shared_weights([geom_unet, context_model, encoder], SEED)
+    out = OUT / "meshtalk"
+    out.mkdir(exist_ok=True)
+    for net in (encoder, context_model, geom_unet):  # as Net.save writes them
+        torch.save(net.state_dict(), out / f"{net.model_name}.pkl")
+    for name, mask in zip(("forehead_mask", "neck_mask"), masks):
+        np.savetxt(out / f"{name}.txt", mask.numpy())
+    audio = audio_chunking(load_audio(str(wav)), frame_rate=30, chunk_size=16000)
+    result = {"template": template.numpy(), "masks": masks.numpy()}
+    with torch.no_grad():
+        audio_code = encoder.audio_encoder(audio.unsqueeze(0))["code"]
+        for mode, argmax in (("argmax", True), ("gumbel", False)):
+            torch.manual_seed(SAMPLE_SEED)
+            one_hot = context_model.sample(audio_code, argmax=argmax)["one_hot"]
+            T = one_hot.shape[1]
+            geom = template.view(1, 1, V, 3).expand(-1, T, -1, -1).contiguous()
+            geom = geom_unet(geom, one_hot)["geom"].squeeze(0)
+            smoothed = smooth_geom(smooth_geom(geom, masks[0]), masks[1])
+            result[f"{mode}_codes"] = one_hot[0].argmax(-1).numpy()
+            result[f"{mode}_vertices"] = geom.numpy()
+            result[f"{mode}_smoothed"] = smoothed.numpy()
+        # teacher forcing on the drawn codes and the encoder on the generated motion
+        result["prior_logprobs"] = context_model(one_hot, audio_code)["logprobs"][0].numpy()
+        result["encoder_logprobs"] = encoder(geom[None], audio.unsqueeze(0))["logprobs"][0].numpy()
+        result["audio_code"] = audio_code[0].numpy()
+    result["sample_seed"] = np.array(SAMPLE_SEED)
+    np.savez(out / "meshtalk.npz", **result)
+    print(f"meshtalk: {T} frames from {load_audio(str(wav)).shape[1]} samples")
+    sys.path.remove(str(checkout))
+
+
 def detect(checkout: Path) -> str:
+    if (checkout / "models" / "context_model.py").is_file():
+        return "meshtalk"
     if (checkout / "faceformer.py").is_file():
         return "faceformer"
     if (checkout / "models" / "stage2.py").is_file():
         return "codetalker"
-    raise SystemExit(f"{checkout}: not a checkout of FaceFormer or CodeTalker")
+    raise SystemExit(f"{checkout}: not a checkout of FaceFormer, CodeTalker or MeshTalk")
 
 
 def main() -> None:
@@ -249,9 +354,9 @@ def main() -> None:
     args = p.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     for checkout in args.official:
-        {"faceformer": faceformer, "codetalker": codetalker}[detect(checkout)](
-            checkout.resolve(), args.wav
-        )
+        {"faceformer": faceformer, "codetalker": codetalker, "meshtalk": meshtalk}[
+            detect(checkout)
+        ](checkout.resolve(), args.wav)
 
 
 if __name__ == "__main__":

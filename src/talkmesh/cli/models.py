@@ -42,14 +42,19 @@ def add_import_checkpoint(sub: Subparsers) -> None:
         "import-checkpoint",
         help="convert a paper's released weights into a talkmesh model (docs/guide/official.md)",
     )
-    ic.add_argument("files", nargs="+", help="the released file(s), e.g. vocaset.pth")
+    ic.add_argument(
+        "files",
+        nargs="+",
+        help="the released file(s), e.g. vocaset.pth (MeshTalk: its pretrained_models folder, "
+        "optionally with the assets' mask .txt files)",
+    )
     ic.add_argument("--family", required=True, choices=("codetalker", "faceformer", "meshtalk"))
     ic.add_argument(
         "--dataset",
         required=True,
-        choices=("vocaset", "biwi"),
+        choices=("vocaset", "biwi", "meshtalk"),
         type=str.lower,
-        help="what the weights were trained on",
+        help="what the weights were trained on (meshtalk: the released MeshTalk's own face mesh)",
     )
     ic.add_argument("-o", "--out", required=True, help="output model (.safetensors)")
     ic.add_argument("--overwrite", action="store_true", help="replace an existing output file")

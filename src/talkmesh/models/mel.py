@@ -26,6 +26,7 @@ LOG_FLOOR = 1e-5  # power floor before the log: silence maps to log(LOG_FLOOR)
 DEFAULT_MEL_MEAN = -4.0  # rough log-mel statistics of speech; replace with data via set_statistics
 DEFAULT_MEL_STD = 4.0
 MS_PER_S = 1000.0
+WINDOW_BLOCK = 64  # windows transformed at once in ``windows`` mode (bounds the STFT's memory)
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,16 @@ class MelConfig:
     # activations grew to ~700x the expression features in training, the fusion logits saturated
     # the softmax and the Gumbel gradients to the expression path vanished (docs/results/meshtalk.md)
     layer_norm: bool = False
+    # official-exact options (facebookresearch/meshtalk models/encoders.py; on in imported models):
+    input_kernel: int = 1  # kernel of the first conv (mels -> width); official 5
+    log_floor: float = LOG_FLOOR  # power floor before the log; official 1e-10
+    # official: every motion frame reads its own 1 s of audio (hop sample_rate // fps, centred on
+    # the frame), each window's spectrogram reflect-padded alone, the stack's output averaged over
+    # time; talkmesh: one spectrogram of the whole utterance, streamable
+    windows: bool = False
+    gain: float = (
+        0.0  # scale each utterance to this mean absolute amplitude (official 0.01); 0: off
+    )
 
     def __post_init__(self) -> None:
         if self.sample_rate <= 0 or self.hop_length <= 0 or self.n_mels <= 0:
@@ -61,6 +72,10 @@ class MelConfig:
             raise TalkmeshError("meshtalk audio config: win_length must be in (0, n_fft]")
         if self.kernel_size < 1 or not self.dilations or min(self.dilations) < 1:
             raise TalkmeshError("meshtalk audio config: kernel_size and dilations must be >= 1")
+        if self.input_kernel < 1 or self.log_floor <= 0 or self.gain < 0:
+            raise TalkmeshError(
+                "meshtalk audio config: input_kernel >= 1, log_floor > 0 and gain >= 0 needed"
+            )
         if self.lookahead_frames > self.receptive_field - 1 or self.lookahead_ms < 0:
             raise TalkmeshError(
                 f"meshtalk audio config: lookahead_ms={self.lookahead_ms} needs "
@@ -76,7 +91,7 @@ class MelConfig:
     @property
     def receptive_field(self) -> int:
         """Mel frames seen per motion frame."""
-        return 1 + (self.kernel_size - 1) * sum(self.dilations)
+        return self.input_kernel + (self.kernel_size - 1) * sum(self.dilations)
 
     @property
     def lookahead_frames(self) -> int:
@@ -117,14 +132,14 @@ class MelAudioEncoder(nn.Module):
         self.register_buffer("filterbank", filters, persistent=False)
         self.register_buffer("mel_mean", torch.full((cfg.n_mels,), DEFAULT_MEL_MEAN))
         self.register_buffer("mel_std", torch.full((cfg.n_mels,), DEFAULT_MEL_STD))
-        self.input = nn.Conv1d(cfg.n_mels, cfg.width, kernel_size=1)
+        self.input = nn.Conv1d(cfg.n_mels, cfg.width, kernel_size=cfg.input_kernel)
         self.convs = nn.ModuleList(
             nn.Conv1d(cfg.width, cfg.width, cfg.kernel_size, dilation=d) for d in cfg.dilations
         )
         self.output = nn.Linear(cfg.width, cfg.out_dim)
         self.norm = nn.LayerNorm(cfg.out_dim) if cfg.layer_norm else nn.Identity()
 
-    def log_mel(self, audio: Tensor, center: bool = True) -> Tensor:
+    def log_mel(self, audio: Tensor, center: bool = True, pad_mode: str = "constant") -> Tensor:
         """(B, S) -> (B, n_mels, M) log power, M = S // hop + 1 (frame m centred on sample m*hop);
         ``center=False``: frame m starts at sample m*hop (the caller pads, as streaming does)."""
         cfg = self.cfg
@@ -135,12 +150,12 @@ class MelAudioEncoder(nn.Module):
             win_length=cfg.win_length,
             window=self.window,
             center=center,
-            pad_mode="constant",
+            pad_mode=pad_mode,
             return_complex=True,
         )
         power = spec.real.square() + spec.imag.square()
         mel = torch.einsum("bfm,fn->bnm", power, self.filterbank)
-        return torch.log(mel.clamp(min=LOG_FLOOR))
+        return torch.log(mel.clamp(min=cfg.log_floor))
 
     @torch.no_grad()
     def set_statistics(self, audio: Tensor) -> None:
@@ -171,6 +186,10 @@ class MelAudioEncoder(nn.Module):
         if audio_lengths is not None:  # padded batches: silence past each sample's end
             valid = torch.arange(audio.shape[1], device=audio.device)[None] < audio_lengths[:, None]
             audio = audio * valid
+        if cfg.gain:
+            audio = self.scale_gain(audio, audio_lengths)
+        if cfg.windows:
+            return self.windowed(audio, num_frames, shift)
         centres = self.frame_indices(num_frames).to(audio.device) + shift
         last_mel = (
             int(centres[-1]) + cfg.lookahead_frames
@@ -180,7 +199,7 @@ class MelAudioEncoder(nn.Module):
         needed = last_mel * cfg.hop_length + cfg.n_fft // 2 + 1
         audio = F.pad(audio[:, :needed], (0, max(0, needed - audio.shape[1])))
         mel = self.log_mel(audio)[:, :, : last_mel + 1]
-        mel = F.pad(mel, (cfg.context_frames, 0), value=math.log(LOG_FLOOR))  # silence before t=0
+        mel = F.pad(mel, (cfg.context_frames, 0), value=math.log(cfg.log_floor))  # before t=0
         x = self.convolve(mel)[:, :, centres]  # (B, width, T)
         return self.norm(self.output(x.transpose(1, 2)))
 
@@ -194,3 +213,43 @@ class MelAudioEncoder(nn.Module):
             crop = (x.shape[-1] - y.shape[-1]) // 2  # centred residual stays inside the window
             x = (x[:, :, crop : crop + y.shape[-1]] + y) / 2
         return x
+
+    def scale_gain(self, audio: Tensor, audio_lengths: Tensor | None) -> Tensor:
+        """(B, S) -> each utterance scaled to mean absolute amplitude ``cfg.gain`` (official
+        ``load_audio``: "energy matches average energy of audio used in training")."""
+        n = audio.new_full((audio.shape[0],), audio.shape[1])
+        if audio_lengths is not None:
+            n = audio_lengths.to(audio.dtype)
+        level = audio.abs().sum(1) / n.clamp(min=1)
+        return audio * (self.cfg.gain / level.clamp(min=1e-12))[:, None]
+
+    def window_hop(self) -> int:
+        """Samples between motion frames in ``windows`` mode (official: sample_rate // fps)."""
+        return int(self.cfg.sample_rate // self.fps)
+
+    def window_frames(self, samples: int) -> int:
+        """The motion frames the official ``audio_chunking`` makes from ``samples``: one per
+        hop whose 1 s window (centred on the frame) fits the zero-padded audio."""
+        hop, size = self.window_hop(), self.cfg.sample_rate
+        padded = samples + 2 * ((size - hop) // 2)
+        return max(0, -(-(padded - size) // hop))
+
+    def windowed(self, audio: Tensor, num_frames: int, shift: int = 0) -> Tensor:
+        """Official ``windows`` mode: (B, S) -> (B, T, out_dim). Frame t reads samples
+        [t*hop - pad, t*hop - pad + sample_rate) (zeros outside the audio), pad = (sample_rate -
+        hop) // 2; ``shift`` moves every window that many mel hops later."""
+        cfg = self.cfg
+        hop, size = self.window_hop(), cfg.sample_rate
+        pad = (size - hop) // 2
+        start = pad - shift * cfg.hop_length
+        x = F.pad(audio, (max(0, start), 0))[:, max(0, -start) :]
+        need = (num_frames - 1) * hop + size
+        x = F.pad(x[:, :need], (0, max(0, need - x.shape[1])))
+        windows = x.unfold(1, size, hop)  # (B, T, size): a view, no copy
+        B, T = windows.shape[:2]
+        out = []
+        for block in windows.reshape(B * T, size).split(WINDOW_BLOCK):
+            mel = self.log_mel(block, pad_mode="reflect")  # each window alone, as officially
+            out.append(self.convolve(mel).mean(-1))  # (N, width): the stack's output, averaged
+        x = torch.cat(out).view(B, T, -1)
+        return self.norm(self.output(x))

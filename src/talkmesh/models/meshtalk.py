@@ -6,10 +6,10 @@ Read top to bottom:
    official code, H=16, C=128) and ``small`` (a synthetic corpus on 2 CPU cores).
 2. Audio: the log-mel encoder (:class:`talkmesh.models.mel.MelAudioEncoder`, the paper's) or
    :class:`talkmesh.models.speech.SpeechFeatures` (any talkmesh speech encoder, same call).
-3. :class:`ExpressionEncoder`: per-frame MLP + LSTM over the mesh sequence.
-4. :class:`FusionQuantizer`: MLP to H heads of C logits, hard straight-through Gumbel-softmax (Eq. 1-2).
-5. :class:`TemplateDecoder`: U-Net over the template with additive skips, the code concatenated at the
-   bottleneck, two LSTM layers, back to vertices (Eq. 3). Any neutral mesh of the topology can be animated.
+3-5. The layers (:mod:`talkmesh.models.meshtalk_layers`): :class:`ExpressionEncoder` (per-frame
+   MLP + LSTM), :class:`FusionQuantizer` (MLP to H heads of C logits, hard straight-through
+   Gumbel-softmax, Eq. 1-2), :class:`TemplateDecoder` (U-Net over the template, Eq. 3: any neutral
+   mesh of the topology can be animated).
 6. Losses as functions returning NamedTuples: :func:`meshtalk_loss` (reconstruction, cross-modality
    Eq. 6 with the soft mouth and upper-face maps, eyelid Eq. 7).
 7. :class:`MeshTalk`: ``forward`` (teacher-forced graph with the two cross-modal decodes), ``encode``,
@@ -34,9 +34,17 @@ from torch import Tensor, nn
 
 from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.base import MotionModel, frames_for_audio
-from talkmesh.models.mel import LEAKY_SLOPE, MelAudioEncoder, MelConfig
-from talkmesh.models.meshtalk_prior import PRESETS, AutoregressivePrior, PriorConfig
+from talkmesh.models.base import MotionModel
+from talkmesh.models.mel import MelAudioEncoder, MelConfig
+from talkmesh.models.meshtalk_context import build_prior
+from talkmesh.models.meshtalk_layers import (
+    ExpressionEncoder,
+    FusionQuantizer,
+    Quantized,
+    TemplateDecoder,
+    gumbel_one_hot,
+)
+from talkmesh.models.meshtalk_prior import PRESETS, PriorConfig
 from talkmesh.models.speech import SpeechEncoderConfig, SpeechFeatures, release_config
 
 
@@ -91,6 +99,13 @@ class MeshTalkConfig:
     # audio encoder: None = the paper's mel convolutions (``audio``); or any talkmesh speech
     # encoder (talkmesh.models.speech, e.g. frozen Whisper) mapped to ``audio.out_dim`` + LayerNorm
     speech: SpeechEncoderConfig | None = None
+    # official-exact options (facebookresearch/meshtalk; on in imported models):
+    expression_output: int = 0  # width of a Linear after the expression LSTM (official ``code``)
+    # "scalar": templates and offsets scaled by one spread each, the expression encoder reads
+    # offsets from the template; "per_vertex" (official): per-coordinate mean and stddev, the
+    # expression encoder reads normalised vertex positions
+    vertex_norm: str = "scalar"
+    official_decoder: bool = False  # TemplateDecoder(official=True): the released VertexUnet
 
     def __post_init__(self) -> None:
         if self.num_vertices < 1:
@@ -107,6 +122,10 @@ class MeshTalkConfig:
             _fail("meshtalk config: gumbel_tau must be positive")
         if self.inputs not in ("both", "expression"):
             _fail(f"meshtalk config: inputs must be both or expression, got {self.inputs!r}")
+        if self.vertex_norm not in ("scalar", "per_vertex"):
+            _fail(
+                f"meshtalk config: vertex_norm must be scalar or per_vertex, got {self.vertex_norm!r}"
+            )
 
 
 def meshtalk_config(preset: str, num_vertices: int, fps: float = MOTION_FPS) -> MeshTalkConfig:
@@ -127,111 +146,6 @@ def meshtalk_config(preset: str, num_vertices: int, fps: float = MOTION_FPS) -> 
             decoder_widths=(128, 64, 64),
         )
     raise TalkmeshError(f"unknown meshtalk preset '{preset}': choose one of {', '.join(PRESETS)}")
-
-
-# ---------------------------------------------------------------------------------------------
-# 3. Expression encoder
-
-
-class ExpressionEncoder(nn.Module):
-    """(B, T, V*3) normalised vertex offsets -> (B, T, D): three FC layers and one LSTM (Sec. 3.1)."""
-
-    def __init__(self, in_dim: int, widths: tuple[int, ...]) -> None:
-        super().__init__()
-        dims = (in_dim, *widths)
-        self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
-        self.lstm = nn.LSTM(widths[-1], widths[-1], batch_first=True)
-
-    def forward(self, x: Tensor) -> Tensor:
-        for layer in self.layers:
-            x = F.leaky_relu(layer(x), LEAKY_SLOPE)
-        return self.lstm(x)[0]
-
-
-# ---------------------------------------------------------------------------------------------
-# 4. Fusion and Gumbel quantiser
-
-
-class Quantized(NamedTuple):
-    """logits (B, T, H, C); codes (B, T, H) int64; one_hot (B, T, H, C), straight-through in training."""
-
-    logits: Tensor
-    codes: Tensor
-    one_hot: Tensor
-
-
-def gumbel_one_hot(
-    logits: Tensor, tau: float, sample: bool, generator: torch.Generator | None = None
-) -> Quantized:
-    """Hard straight-through Gumbel-softmax over the last axis (Eq. 2); argmax when not sampling."""
-    if sample:
-        u = torch.rand(logits.shape, generator=generator, device=logits.device, dtype=logits.dtype)
-        noisy = logits - torch.log(-torch.log(u.clamp(min=1e-10, max=1.0 - 1e-7)))
-        soft = torch.softmax(noisy / tau, dim=-1)
-        codes = noisy.argmax(-1)
-        hard = F.one_hot(codes, logits.shape[-1]).to(logits.dtype)
-        return Quantized(logits, codes, hard - soft.detach() + soft)
-    codes = logits.argmax(-1)
-    return Quantized(logits, codes, F.one_hot(codes, logits.shape[-1]).to(logits.dtype))
-
-
-class FusionQuantizer(nn.Module):
-    """Three-layer MLP over [audio, expression] features -> H x C logits, then Gumbel (Eq. 1-2)."""
-
-    def __init__(self, in_dim: int, width: int, num_heads: int, num_classes: int) -> None:
-        super().__init__()
-        self.num_heads, self.num_classes = num_heads, num_classes
-        self.layers = nn.ModuleList(
-            [
-                nn.Linear(in_dim, width),
-                nn.Linear(width, width),
-                nn.Linear(width, num_heads * num_classes),
-            ]
-        )
-
-    def forward(self, features: Tensor) -> Tensor:
-        """(B, T, D) -> (B, T, H, C) logits."""
-        x = features
-        for layer in self.layers[:-1]:
-            x = F.leaky_relu(layer(x), LEAKY_SLOPE)
-        x = self.layers[-1](x)
-        return x.view(*x.shape[:-1], self.num_heads, self.num_classes)
-
-
-# ---------------------------------------------------------------------------------------------
-# 5. Template-conditioned decoder
-
-
-class TemplateDecoder(nn.Module):
-    """U-Net over the template (Fig. 2): template encoder with additive skips, codes concatenated at
-    the bottleneck, LSTMs over time, FC layers back to vertex offsets (zero-initialised last layer, so an
-    untrained decoder returns the template)."""
-
-    def __init__(self, num_vertices: int, code_dim: int, widths: tuple[int, ...], lstm_layers: int):
-        super().__init__()
-        dims = (num_vertices * 3, *widths)
-        self.encoder = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
-        self.bottleneck = nn.Linear(widths[-1] + code_dim, widths[-1])
-        self.lstm = nn.LSTM(widths[-1], widths[-1], num_layers=lstm_layers, batch_first=True)
-        up = dims[::-1]  # widths[-1] ... widths[0], V*3
-        self.decoder = nn.ModuleList(nn.Linear(a, b) for a, b in zip(up[:-2], up[1:-1]))
-        self.output = nn.Linear(widths[0], num_vertices * 3)
-        nn.init.zeros_(self.output.weight)
-        nn.init.zeros_(self.output.bias)
-
-    def forward(self, template: Tensor, code: Tensor) -> Tensor:
-        """template (B, V*3) normalised, code (B, T, H*C) -> (B, T, V*3) normalised offsets."""
-        skips = []
-        x = template
-        for layer in self.encoder:
-            x = F.leaky_relu(layer(x), LEAKY_SLOPE)
-            skips.append(x)
-        x = x[:, None].expand(-1, code.shape[1], -1)
-        x = F.leaky_relu(self.bottleneck(torch.cat([x, code], dim=-1)), LEAKY_SLOPE)
-        x = self.lstm(x)[0] + skips[-1][:, None]
-        for layer, skip in zip(self.decoder, reversed(skips[:-1])):
-            x = F.leaky_relu(layer(x), LEAKY_SLOPE) + skip[:, None]
-        return self.output(x)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -344,11 +258,14 @@ class MeshTalk(nn.Module):
             speech = release_config(cfg.speech, self.audio_encoder.encoder)
             if speech is not cfg.speech:
                 self.config = cfg = replace(cfg, speech=speech)
-        self.expression_encoder = ExpressionEncoder(V * 3, cfg.expression_widths)
-        self.fusion = FusionQuantizer(
-            cfg.audio.out_dim + cfg.expression_widths[-1], cfg.fusion_width, H, C
+        self.expression_encoder = ExpressionEncoder(
+            V * 3, cfg.expression_widths, cfg.expression_output
         )
-        self.decoder = TemplateDecoder(V, H * C, cfg.decoder_widths, cfg.decoder_lstm_layers)
+        expression_dim = cfg.expression_output or cfg.expression_widths[-1]
+        self.fusion = FusionQuantizer(cfg.audio.out_dim + expression_dim, cfg.fusion_width, H, C)
+        self.decoder = TemplateDecoder(
+            V, H * C, cfg.decoder_widths, cfg.decoder_lstm_layers, cfg.official_decoder
+        )
         self.register_buffer("mouth_weight", self._vertex_map(mouth_weight, 1.0))
         self.register_buffer("upper_weight", self._vertex_map(upper_weight, 1.0))
         eyelid_mask = torch.zeros(V)
@@ -360,8 +277,9 @@ class MeshTalk(nn.Module):
         self.register_buffer("eyelid_mask", eyelid_mask)
         # normalisation (set_statistics): templates and offsets are scaled to unit spread
         self.register_buffer("template_mean", torch.zeros(V, 3))
-        self.register_buffer("template_scale", torch.ones(()))
-        self.register_buffer("offset_scale", torch.ones(()))
+        scale = (V, 3) if cfg.vertex_norm == "per_vertex" else ()
+        self.register_buffer("template_scale", torch.ones(scale))
+        self.register_buffer("offset_scale", torch.ones(scale))
 
     def _vertex_map(self, values: Tensor | None, default: float) -> Tensor:
         V = self.config.num_vertices
@@ -378,6 +296,11 @@ class MeshTalk(nn.Module):
         _check_mesh("templates", templates, self.config.num_vertices, 3)
         mean = templates.mean(0)
         self.template_mean.copy_(mean)
+        if self.config.vertex_norm == "per_vertex":  # one spread per coordinate: the motion's
+            spread = offsets.reshape(-1, *mean.shape).std(0).clamp(min=1e-8)
+            self.template_scale.copy_(spread)
+            self.offset_scale.copy_(spread)
+            return
         self.template_scale.copy_((templates - mean).std().clamp(min=1e-8))
         self.offset_scale.copy_(offsets.std().clamp(min=1e-8))
 
@@ -390,8 +313,11 @@ class MeshTalk(nn.Module):
         _check_mesh("vertices", vertices, self.config.num_vertices, 4)
         _check_mesh("templates", templates, self.config.num_vertices, 3)
         B, T = vertices.shape[:2]
-        offsets = (vertices - templates[:, None]) / self.offset_scale
-        expr = self.expression_encoder(offsets.reshape(B, T, -1))
+        if self.config.vertex_norm == "per_vertex":  # official: normalised positions
+            x = (vertices - self.template_mean) / self.template_scale
+        else:
+            x = (vertices - templates[:, None]) / self.offset_scale
+        expr = self.expression_encoder(x.reshape(B, T, -1))
         aud = self.audio_encoder(audio, audio_lengths, T)
         return aud, expr
 
@@ -544,6 +470,9 @@ class SamplingConfig:
     temperature: float = 1.0
     top_k: int | None = None
     argmax: bool = False
+    # draw by Gumbel-max with one uniform per class, as the official ContextModel.sample: a seed
+    # then gives the official code's draws under torch.manual_seed(seed); off: torch.multinomial
+    gumbel: bool = False
 
     def __post_init__(self) -> None:
         if self.temperature <= 0:
@@ -560,6 +489,10 @@ class MeshTalkModelConfig:
     model: MeshTalkConfig
     prior: PriorConfig | None = None
     sampling: SamplingConfig = SamplingConfig()
+    # the official demo's post-processing (animate_face.py): a temporal Gaussian (9 frames,
+    # sigma 2) blended in by per-vertex masks, one after the other (forehead, then neck); the
+    # masks are the buffer ``smooth_masks`` (smoothing, V), filled on import from the assets
+    smoothing: int = 0
 
     def __post_init__(self) -> None:
         p, m = self.prior, self.model
@@ -582,7 +515,9 @@ class MeshTalkModel(MotionModel):
     def __init__(self, cfg: MeshTalkModelConfig, maps=(None, None, None)) -> None:
         super().__init__()
         self.model = MeshTalk(cfg.model, *maps)
-        self.prior = AutoregressivePrior(cfg.prior) if cfg.prior is not None else None
+        self.prior = build_prior(cfg.prior) if cfg.prior is not None else None
+        if cfg.smoothing:
+            self.register_buffer("smooth_masks", torch.zeros(cfg.smoothing, cfg.model.num_vertices))
         self.cfg = replace(cfg, model=self.model.config)  # a pretrained speech encoder's release
 
     def audio_features(
@@ -606,6 +541,14 @@ class MeshTalkModel(MotionModel):
     @property
     def styles(self) -> tuple[str, ...]:
         return ()
+
+    def default_frames(self, samples: int) -> int:
+        """Frames for ``samples`` of audio; the official 1 s windows count them as its
+        ``audio_chunking`` does (``MelConfig.windows``)."""
+        encoder = self.model.audio_encoder
+        if isinstance(encoder, MelAudioEncoder) and encoder.cfg.windows:
+            return max(1, encoder.window_frames(samples))
+        return super().default_frames(samples)
 
     @classmethod
     def tiny_config(
@@ -636,6 +579,7 @@ class MeshTalkModel(MotionModel):
         temperature: float | None = None,
         top_k: int | None = None,
         argmax: bool | None = None,
+        gumbel: bool | None = None,
         cached: bool = True,
         progress: bool = False,
     ) -> Tensor:
@@ -650,13 +594,14 @@ class MeshTalkModel(MotionModel):
             _fail(f"meshtalk: audio must be (B, S), got {tuple(audio.shape)}")
         s = self.cfg.sampling
         if num_frames is None:
-            num_frames = frames_for_audio(audio.shape[1], self.motion_fps)
+            num_frames = self.default_frames(audio.shape[1])
         features = self.audio_features(audio, audio_lengths, num_frames)
         generator = torch.Generator(device=audio.device).manual_seed(int(seed))
         kwargs = dict(
             temperature=s.temperature if temperature is None else temperature,
             top_k=s.top_k if top_k is None else top_k,
             argmax=s.argmax if argmax is None else argmax,
+            gumbel=s.gumbel if gumbel is None else gumbel,
             generator=generator,
         )
         if cached:
@@ -685,4 +630,25 @@ class MeshTalkModel(MotionModel):
         codes = self.sample_codes(
             audio, audio_lengths=audio_lengths, num_frames=num_frames, seed=seed, **sampling
         )
-        return self.model.decode(template.to(audio.dtype), codes)
+        vertices = self.model.decode(template.to(audio.dtype), codes)
+        for mask in getattr(self, "smooth_masks", ()):
+            vertices = smooth_region(vertices, mask)
+        return vertices
+
+
+SMOOTH_TAPS = 9  # the official demo's smooth_geom: filter_size 9, sigma 2
+SMOOTH_SIGMA = 2.0
+
+
+def smooth_region(vertices: Tensor, mask: Tensor) -> Tensor:
+    """(B, T, V, 3) -> the official ``smooth_geom``: a Gaussian over time (edge frames
+    repeated), blended with the input by ``mask`` (V,) in [0, 1]."""
+    B, T, V, _ = vertices.shape
+    taps = torch.arange(SMOOTH_TAPS, dtype=torch.float64) - SMOOTH_TAPS // 2
+    kernel = torch.exp(-0.5 * taps**2 / SMOOTH_SIGMA**2)
+    kernel = (kernel / kernel.sum()).to(vertices)
+    x = vertices.permute(0, 2, 3, 1).reshape(B * V * 3, 1, T)
+    x = F.pad(x, (SMOOTH_TAPS // 2, SMOOTH_TAPS // 2), mode="replicate")
+    smoothed = F.conv1d(x, kernel.view(1, 1, -1)).view(B, V, 3, T).permute(0, 3, 1, 2)
+    m = mask.to(vertices)[None, None, :, None]
+    return smoothed * m + vertices * (1 - m)

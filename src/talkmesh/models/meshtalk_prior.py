@@ -44,6 +44,9 @@ class PriorConfig:
     # "own": the prior's own mel encoder (``audio``, causal with its look-ahead, paper Eq. 8);
     # "expression": the trained expression space's audio features (as the official code does)
     audio_source: str = "own"
+    # "talkmesh" (AutoregressivePrior) or "official" (the released ContextModel's wiring:
+    # talkmesh.models.meshtalk_context.OfficialContextPrior; on in imported models)
+    layout: str = "talkmesh"
 
     def __post_init__(self) -> None:
         if self.num_heads < 1 or self.num_classes < 2 or self.width < 1:
@@ -58,6 +61,8 @@ class PriorConfig:
             raise TalkmeshError("meshtalk prior config: fps must be positive")
         if self.audio_source not in ("own", "expression"):
             raise TalkmeshError("meshtalk prior config: audio_source must be own or expression")
+        if self.layout not in ("talkmesh", "official"):
+            raise TalkmeshError("meshtalk prior config: layout must be talkmesh or official")
 
     @property
     def receptive_field(self) -> int:
@@ -79,6 +84,31 @@ def prior_config(preset: str, fps: float = MOTION_FPS) -> PriorConfig:
             fps=fps,
         )
     raise TalkmeshError(f"unknown meshtalk preset '{preset}': choose one of {', '.join(PRESETS)}")
+
+
+def draw_codes(
+    logits: Tensor,
+    temperature: float,
+    top_k: int | None,
+    argmax: bool,
+    gumbel: bool,
+    generator: torch.Generator | None,
+) -> Tensor:
+    """(B, C) logits -> (B,) class ids: argmax, or a draw from softmax(logits / temperature)
+    (top-k restricted). ``gumbel``: the official draw, argmax(log-softmax + Gumbel noise) with one
+    uniform per class, so a seed gives the official code's draws under ``torch.manual_seed``."""
+    if argmax:
+        return logits.argmax(-1)
+    logits = logits / temperature
+    if top_k is not None and top_k < logits.shape[-1]:
+        kth = torch.topk(logits, top_k, dim=-1).values[:, -1:]
+        logits = logits.masked_fill(logits < kth, float("-inf"))
+    if gumbel:
+        u = torch.rand(logits.shape, generator=generator, device=logits.device)
+        noise = -torch.log(-torch.log(u.clamp(min=1e-10, max=1.0)))
+        return (torch.log_softmax(logits, dim=-1) + noise.to(logits.dtype)).argmax(-1)
+    probs = torch.softmax(logits.double(), dim=-1)
+    return torch.multinomial(probs, 1, generator=generator)[:, 0]
 
 
 class PriorLoss(NamedTuple):
@@ -265,24 +295,6 @@ class AutoregressivePrior(nn.Module):
 
     # -- sampling ---------------------------------------------------------------------------------
 
-    @staticmethod
-    def _draw(
-        logits: Tensor,
-        temperature: float,
-        top_k: int | None,
-        argmax: bool,
-        generator: torch.Generator | None,
-    ) -> Tensor:
-        """(B, C) logits -> (B,) class ids."""
-        if argmax:
-            return logits.argmax(-1)
-        logits = logits / temperature
-        if top_k is not None and top_k < logits.shape[-1]:
-            kth = torch.topk(logits, top_k, dim=-1).values[:, -1:]
-            logits = logits.masked_fill(logits < kth, float("-inf"))
-        probs = torch.softmax(logits.double(), dim=-1)
-        return torch.multinomial(probs, 1, generator=generator)[:, 0]
-
     def _check_sampling(
         self, audio_features: Tensor, temperature: float, top_k: int | None, prompt: Tensor | None
     ) -> int:
@@ -303,6 +315,7 @@ class AutoregressivePrior(nn.Module):
         temperature: float = 1.0,
         top_k: int | None = None,
         argmax: bool = False,
+        gumbel: bool = False,
         generator: torch.Generator | None = None,
         prompt: Tensor | None = None,
         progress: bool = False,
@@ -346,7 +359,7 @@ class AutoregressivePrior(nn.Module):
                     y = F.leaky_relu(pre, LEAKY_SLOPE)
                     current[i + 1][:, block] = y if i == 0 else current[i][:, block] + y
                 logits = F.linear(current[-1][:, block], self.head_weight[h]) + self.head_bias[h]
-                c = self._draw(logits, temperature, top_k, argmax, generator)
+                c = draw_codes(logits, temperature, top_k, argmax, gumbel, generator)
                 codes[:, t, h] = c
                 current[0][:, block] = self.embedding(c + h * cfg.num_classes)
             for layer, ring, x in zip(self.layers, rings, current):
@@ -361,6 +374,7 @@ class AutoregressivePrior(nn.Module):
         temperature: float = 1.0,
         top_k: int | None = None,
         argmax: bool = False,
+        gumbel: bool = False,
         generator: torch.Generator | None = None,
         prompt: Tensor | None = None,
     ) -> Tensor:
@@ -376,5 +390,5 @@ class AutoregressivePrior(nn.Module):
         for t in range(P, T):
             for h in range(self.config.num_heads):
                 logits = self(codes[:, : t + 1], audio_features[:, : t + 1])[:, t, h]
-                codes[:, t, h] = self._draw(logits, temperature, top_k, argmax, generator)
+                codes[:, t, h] = draw_codes(logits, temperature, top_k, argmax, gumbel, generator)
         return codes

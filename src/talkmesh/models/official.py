@@ -26,11 +26,11 @@ from talkmesh.constants import BIWI_TRAIN_SUBJECTS, VOCASET_TRAIN_SUBJECTS
 from talkmesh.errors import TalkmeshError
 
 FAMILIES = ("codetalker", "faceformer", "meshtalk")
-DATASETS = ("vocaset", "biwi")
+DATASETS = ("vocaset", "biwi", "meshtalk")  # meshtalk: the released MeshTalk's own face mesh
 
 # the official training subjects, in one-hot order (the columns of the style matrix)
 SUBJECTS = {"vocaset": VOCASET_TRAIN_SUBJECTS, "biwi": BIWI_TRAIN_SUBJECTS}
-FPS = {"vocaset": 30.0, "biwi": 25.0}
+FPS = {"vocaset": 30.0, "biwi": 25.0, "meshtalk": 30.0}
 TOKENS_PER_FRAME = {"vocaset": 1, "biwi": 2}  # wav2vec2 features (50 Hz) per motion frame
 MAX_FRAMES = 600  # the official positional encoding and temporal bias length
 
@@ -433,16 +433,20 @@ def import_checkpoint(files: list[str | Path], family: str, dataset: str) -> nn.
         raise TalkmeshError(f"unknown family '{family}': use one of {', '.join(FAMILIES)}")
     dataset = dataset.lower()
     if dataset not in DATASETS:
-        raise TalkmeshError(f"unknown dataset '{dataset}': use vocaset or biwi")
+        raise TalkmeshError(f"unknown dataset '{dataset}': use vocaset, biwi or meshtalk")
     paths = [Path(f) for f in files]
+    if family == "meshtalk":
+        from talkmesh.models.official_meshtalk import import_meshtalk
+
+        return import_meshtalk(paths, FPS[dataset])
+    if dataset == "meshtalk":
+        raise TalkmeshError(
+            f"--dataset meshtalk is MeshTalk's own mesh: {family} uses vocaset or biwi"
+        )
     if family == "faceformer":
         if len(paths) != 1:
             raise TalkmeshError(
                 f"a FaceFormer release is one file (vocaset.pth or biwi.pth), got {len(paths)}"
             )
         return import_faceformer(paths[0], dataset)
-    if family == "codetalker":
-        return import_codetalker(paths, dataset)
-    raise TalkmeshError(
-        f"importing {family} checkpoints is not supported yet: faceformer and codetalker import"
-    )
+    return import_codetalker(paths, dataset)
