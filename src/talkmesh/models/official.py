@@ -16,7 +16,6 @@ generation computes what the official ``predict`` computes.
 
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 
 import torch
@@ -24,6 +23,9 @@ from torch import Tensor, nn
 
 from talkmesh.constants import BIWI_TRAIN_SUBJECTS, VOCASET_TRAIN_SUBJECTS
 from talkmesh.errors import TalkmeshError
+from talkmesh.models.checkpoint_io import _fill, _leftover, _take, load_checkpoint
+
+__all__ = ["import_checkpoint", "load_checkpoint", "wav2vec2_config"]
 
 FAMILIES = ("codetalker", "faceformer", "meshtalk")
 DATASETS = ("vocaset", "biwi", "meshtalk")  # meshtalk: the released MeshTalk's own face mesh
@@ -33,53 +35,6 @@ SUBJECTS = {"vocaset": VOCASET_TRAIN_SUBJECTS, "biwi": BIWI_TRAIN_SUBJECTS}
 FPS = {"vocaset": 30.0, "biwi": 25.0, "meshtalk": 30.0}
 TOKENS_PER_FRAME = {"vocaset": 1, "biwi": 2}  # wav2vec2 features (50 Hz) per motion frame
 MAX_FRAMES = 600  # the official positional encoding and temporal bias length
-
-
-def load_checkpoint(path: str | Path) -> dict[str, Tensor]:
-    """A released file -> its flat tensor dict, never running code from it.
-
-    Accepts a plain state dict or ``{'state_dict': ...}`` (CodeTalker's trainer), strips a
-    ``module.`` prefix and renames torch 1.x weight-norm tensors to today's names.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise TalkmeshError(f"{path}: no such checkpoint file")
-    try:
-        obj = torch.load(str(path), map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:  # torch's safe unpickler met something else
-        text = str(e).split("WeightsUnpickler error:")[-1].strip()
-        why = text.splitlines()[0][:120] if text else type(e).__name__
-        raise TalkmeshError(
-            f"{path}: refused: not a plain PyTorch weight file ({why}); talkmesh never "
-            "unpickles anything but tensors"
-        ) from None
-    except Exception as e:  # corrupt or not a torch file at all
-        raise TalkmeshError(
-            f"{path}: not a readable PyTorch checkpoint ({type(e).__name__})"
-        ) from None
-    if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
-        obj = obj["state_dict"]
-    if not isinstance(obj, dict) or not all(
-        isinstance(k, str) and isinstance(v, Tensor) for k, v in obj.items()
-    ):
-        raise TalkmeshError(f"{path}: not a state dict (a mapping of names to tensors)")
-    out = {}
-    for key, value in obj.items():
-        if key.startswith("module."):
-            key = key[len("module.") :]
-        key = key.replace(".weight_g", ".parametrizations.weight.original0")
-        key = key.replace(".weight_v", ".parametrizations.weight.original1")
-        out[key] = value.float() if value.is_floating_point() else value
-    return out
-
-
-def _take(state: dict[str, Tensor], key: str, path: Path) -> Tensor:
-    try:
-        return state.pop(key)
-    except KeyError:
-        raise TalkmeshError(
-            f"{path}: tensor '{key}' is missing: is this the right file and --family?"
-        ) from None
 
 
 def wav2vec2_config(state: dict[str, Tensor], prefix: str, path: Path) -> dict:
@@ -118,35 +73,6 @@ def wav2vec2_config(state: dict[str, Tensor], prefix: str, path: Path) -> dict:
         num_conv_pos_embedding_groups=hidden // pos[1],
     )
     return cfg.to_dict()
-
-
-def _fill(model: nn.Module, mapped: dict[str, Tensor], path: Path) -> nn.Module:
-    """Load ``mapped`` into ``model``: every key present, shapes equal, strict."""
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(mapped))
-    if missing:
-        raise TalkmeshError(
-            f"{path}: no tensor for talkmesh's '{missing[0]}' ({len(missing)} missing)"
-        )
-    for key, value in mapped.items():
-        if key not in expected:
-            raise TalkmeshError(f"{path}: internal mapping error: unknown key '{key}'")
-        if tuple(value.shape) != tuple(expected[key].shape):
-            raise TalkmeshError(
-                f"{path}: '{key}' has shape {tuple(value.shape)}, this architecture needs "
-                f"{tuple(expected[key].shape)}: is --dataset right?"
-            )
-    model.load_state_dict(mapped, strict=True)
-    return model.eval()
-
-
-def _leftover(state: dict[str, Tensor], path: Path) -> None:
-    if state:
-        names = sorted(state)
-        raise TalkmeshError(
-            f"{path}: unexpected tensor '{names[0]}' ({len(names)} not used): "
-            "is this the right file and --family?"
-        )
 
 
 def import_faceformer(path: Path, dataset: str) -> nn.Module:

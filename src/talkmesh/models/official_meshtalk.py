@@ -5,7 +5,7 @@ The release is three files written by the official ``Net.save`` (``torch.save(st
 ``encoder.pkl`` (MultimodalEncoder: mel audio encoder, expression encoder, fusion MLP),
 ``context_model.pkl`` (the autoregressive ContextModel) and ``vertex_unet.pkl`` (the decoder).
 They are told apart by their tensors, read with ``torch.load(weights_only=True)`` only
-(:func:`talkmesh.models.official.load_checkpoint`), and every tensor is mapped onto one talkmesh
+(:func:`talkmesh.models.checkpoint_io.load_checkpoint`), and every tensor is mapped onto one talkmesh
 key or checked against what talkmesh computes (the mel filterbank, window and head masks);
 the ``unmasked_linear`` of the prior's embedding and classifier, which the official code builds
 but never reads, are shape-checked and dropped. Optional text files from the official
@@ -39,7 +39,7 @@ PARTS = {  # a tensor only that file has -> its name in the release
 def _files(paths: list[Path]) -> tuple[dict[str, dict[str, Tensor]], dict[str, np.ndarray], Path]:
     """The release's three state dicts (by part) and the asset masks (by file name); a folder
     stands for the files in it."""
-    from talkmesh.models.official import load_checkpoint
+    from talkmesh.models.checkpoint_io import load_checkpoint
 
     files = []
     for path in paths:
@@ -135,7 +135,7 @@ def _configs(parts: dict, fps: float, smoothing: int, path: Path):
 
 
 def _lstm(state: dict, theirs: str, ours: str, layers: int, path: Path) -> dict:
-    from talkmesh.models.official import _take
+    from talkmesh.models.checkpoint_io import _take
 
     out = {}
     for layer in range(layers):
@@ -154,7 +154,7 @@ def _check_fixed(name: str, got: Tensor, want: Tensor, path: Path) -> None:
 
 def _encoder_map(enc: dict, net, path: Path) -> dict:
     """encoder.pkl -> ``model.*`` (the mel encoder, expression encoder, fusion MLP)."""
-    from talkmesh.models.official import _take
+    from talkmesh.models.checkpoint_io import _take
 
     audio = net.model.audio_encoder
     _check_fixed(
@@ -197,7 +197,7 @@ def _encoder_map(enc: dict, net, path: Path) -> dict:
 
 def _unet_map(unet: dict, path: Path) -> dict:
     """vertex_unet.pkl -> ``model.decoder.*`` and the per-vertex statistics."""
-    from talkmesh.models.official import _take
+    from talkmesh.models.checkpoint_io import _take
 
     m = {}
     pairs = [(f"encoder.{i}", f"model.decoder.encoder.{i}") for i in range(3)]
@@ -219,8 +219,8 @@ def _unet_map(unet: dict, path: Path) -> dict:
 def _context_map(ctx: dict, H: int, C: int, path: Path) -> dict:
     """context_model.pkl -> ``prior.*``; the head masks are checked, the embedding's and
     classifier's audio maps (built, never read by the official code) dropped."""
+    from talkmesh.models.checkpoint_io import _take
     from talkmesh.models.meshtalk_context import head_mask
-    from talkmesh.models.official import _take
 
     m = {}
     stages = [("embedding", "prior.embedding", C, HIDDEN)]
@@ -246,8 +246,8 @@ def _context_map(ctx: dict, H: int, C: int, path: Path) -> dict:
 
 def import_meshtalk(paths: list[Path], fps: float):
     """MeshTalk's released files (+ optional asset masks) -> a :class:`MeshTalkModel`."""
+    from talkmesh.models.checkpoint_io import _fill, _leftover
     from talkmesh.models.meshtalk import MeshTalkModel
-    from talkmesh.models.official import _fill, _leftover
 
     parts, masks, first = _files(paths)
     smooth = [name for name in SMOOTHING if name in masks]
