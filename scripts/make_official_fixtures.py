@@ -270,9 +270,53 @@ def shared_weights(modules: list[torch.nn.Module], seed: int) -> None:
         p.data = pools[group(p)].as_strided(p.shape, strides, (i * 13) % 97)
 
 
-def meshtalk(checkout: Path, wav: Path) -> None:
-    """The official MeshTalk at a tiny size (6172 -> 24 vertices, 16 -> 2 heads, 128 -> 12
-    classes, 128 -> 16 latent widths; the layers' own widths are the official ones)."""
+def obj_vertices(path: Path) -> torch.Tensor:
+    """The ``v`` lines of an .obj file -> (V, 3) (the official demo reads it with pytorch3d)."""
+    rows = [line.split()[1:4] for line in path.read_text().splitlines() if line.startswith("v ")]
+    return torch.tensor(np.array(rows, dtype=np.float32))
+
+
+def meshtalk_models(checkout: Path, size: str):
+    """The official networks: ``tiny`` (6172 -> 24 vertices, 16 -> 2 heads, 128 -> 12 classes,
+    128 -> 16 latent widths, the layers' own widths official, weights from shared random vectors)
+    or ``released`` (animate_face.py's sizes, the official initialisation, the checkout's vertex
+    statistics, template and smoothing masks)."""
+    from models.context_model import ContextModel
+    from models.encoders import MultimodalEncoder
+    from models.vertex_unet import VertexUnet
+
+    gen = torch.Generator().manual_seed(SEED)
+    torch.manual_seed(SEED)
+    if size == "released":
+        V, H, C, D = 6172, 16, 128, 128
+        assets = checkout / "assets"
+        mean = torch.from_numpy(np.load(assets / "face_mean.npy")).float()
+        stddev = torch.from_numpy(np.load(assets / "face_std.npy")).float()
+        template = obj_vertices(assets / "face_template.obj")
+        masks = torch.from_numpy(
+            np.stack([np.loadtxt(assets / f"{n}_mask.txt") for n in ("forehead", "neck")])
+        ).float()
+    else:
+        V, H, C, D = NUM_VERTICES, 2, 12, 16
+        mean = torch.randn(V, 3, generator=gen) * 0.1
+        stddev = torch.rand(V, 3, generator=gen) * 0.01 + 0.005
+        template = mean + torch.randn(V, 3, generator=gen) * 0.01
+        masks = torch.rand(2, V, generator=gen)
+    geom_unet = VertexUnet(classes=C, heads=H, n_vertices=V, mean=mean, stddev=stddev).eval()
+    context_model = ContextModel(classes=C, heads=H, audio_dim=D).eval()
+    encoder = MultimodalEncoder(
+        classes=C, heads=H, expression_dim=D, audio_dim=D, n_vertices=V, mean=mean, stddev=stddev
+    ).eval()
+    if size == "tiny":
+        shared_weights([geom_unet, context_model, encoder], SEED)
+    return encoder, context_model, geom_unet, template.reshape(V, 3), masks
+
+
+def meshtalk(checkout: Path, wav: Path, size: str = "tiny", out: Path | None = None) -> None:
+    """Save the official MeshTalk (``meshtalk_models``) as Net.save does and run
+    animate_face.py's steps on ``wav``: argmax codes, then Gumbel draws after
+    ``torch.manual_seed(SAMPLE_SEED)``; ``official_seconds`` times each generation."""
+    import time
     import types
 
     import torchaudio as ta
@@ -284,40 +328,29 @@ def meshtalk(checkout: Path, wav: Path) -> None:
     sys.modules.setdefault("pytorch3d.io", stub.io)
     ta.load = lambda path: (torch.from_numpy(speech(Path(path)))[None], 16000)
     sys.path.insert(0, str(checkout))
-    from models.context_model import ContextModel
-    from models.encoders import MultimodalEncoder
-    from models.vertex_unet import VertexUnet
     from utils.helpers import audio_chunking, load_audio, smooth_geom
 
-    V, H, C, D = NUM_VERTICES, 2, 12, 16
-    gen = torch.Generator().manual_seed(SEED)
-    mean = torch.randn(V, 3, generator=gen) * 0.1
-    stddev = torch.rand(V, 3, generator=gen) * 0.01 + 0.005
-    template = mean + torch.randn(V, 3, generator=gen) * 0.01
-    masks = torch.rand(2, V, generator=gen)
-    geom_unet = VertexUnet(classes=C, heads=H, n_vertices=V, mean=mean, stddev=stddev).eval()
-    context_model = ContextModel(classes=C, heads=H, audio_dim=D).eval()
-    encoder = MultimodalEncoder(
-        classes=C, heads=H, expression_dim=D, audio_dim=D, n_vertices=V, mean=mean, stddev=stddev
-    ).eval()
-    shared_weights([geom_unet, context_model, encoder], SEED)
-    out = OUT / "meshtalk"
-    out.mkdir(exist_ok=True)
+    encoder, context_model, geom_unet, template, masks = meshtalk_models(checkout, size)
+    V = template.shape[0]
+    out = out or OUT / "meshtalk"
+    out.mkdir(parents=True, exist_ok=True)
     for net in (encoder, context_model, geom_unet):  # as Net.save writes them
         torch.save(net.state_dict(), out / f"{net.model_name}.pkl")
     for name, mask in zip(("forehead_mask", "neck_mask"), masks):
         np.savetxt(out / f"{name}.txt", mask.numpy())
-    audio = audio_chunking(load_audio(str(wav)), frame_rate=30, chunk_size=16000)
     result = {"template": template.numpy(), "masks": masks.numpy()}
     with torch.no_grad():
-        audio_code = encoder.audio_encoder(audio.unsqueeze(0))["code"]
         for mode, argmax in (("argmax", True), ("gumbel", False)):
+            start = time.perf_counter()  # animate_face.py from the audio file on
+            audio = audio_chunking(load_audio(str(wav)), frame_rate=30, chunk_size=16000)
+            audio_code = encoder.audio_encoder(audio.unsqueeze(0))["code"]
             torch.manual_seed(SAMPLE_SEED)
             one_hot = context_model.sample(audio_code, argmax=argmax)["one_hot"]
             T = one_hot.shape[1]
             geom = template.view(1, 1, V, 3).expand(-1, T, -1, -1).contiguous()
             geom = geom_unet(geom, one_hot)["geom"].squeeze(0)
             smoothed = smooth_geom(smooth_geom(geom, masks[0]), masks[1])
+            result[f"{mode}_seconds"] = np.array(time.perf_counter() - start)
             result[f"{mode}_codes"] = one_hot[0].argmax(-1).numpy()
             result[f"{mode}_vertices"] = geom.numpy()
             result[f"{mode}_smoothed"] = smoothed.numpy()
@@ -327,7 +360,7 @@ def meshtalk(checkout: Path, wav: Path) -> None:
         result["audio_code"] = audio_code[0].numpy()
     result["sample_seed"] = np.array(SAMPLE_SEED)
     np.savez(out / "meshtalk.npz", **result)
-    print(f"meshtalk: {T} frames from {load_audio(str(wav)).shape[1]} samples")
+    print(f"meshtalk ({size}): {T} frames from {load_audio(str(wav)).shape[1]} samples -> {out}")
     sys.path.remove(str(checkout))
 
 
@@ -351,12 +384,22 @@ def main() -> None:
         help="a local checkout of the official code (repeatable)",
     )
     p.add_argument("--wav", type=Path, default=OUT / "speech.wav")
+    p.add_argument(
+        "--meshtalk-size",
+        choices=("tiny", "released"),
+        default="tiny",
+        help="MeshTalk: the tiny fixture, or the released sizes (random weights; for "
+        "bench/official_equivalence.py --meshtalk DIR: use with --out)",
+    )
+    p.add_argument("--out", type=Path, help="MeshTalk: write here instead of the fixtures")
     args = p.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     for checkout in args.official:
-        {"faceformer": faceformer, "codetalker": codetalker, "meshtalk": meshtalk}[
-            detect(checkout)
-        ](checkout.resolve(), args.wav)
+        kind = detect(checkout)
+        if kind == "meshtalk":
+            meshtalk(checkout.resolve(), args.wav, args.meshtalk_size, args.out)
+        else:
+            {"faceformer": faceformer, "codetalker": codetalker}[kind](checkout.resolve(), args.wav)
 
 
 if __name__ == "__main__":

@@ -80,8 +80,22 @@ def test_prior_encoder_and_cached_sampling_equal_the_official(model, fx, audio):
 def test_cli_import_writes_a_release_that_generates_the_same(tmp_path, fx, audio, model):
     out = tmp_path / "meshtalk.safetensors"
     files = [str(p) for p in RELEASE + MASKS]
-    assert main(["import-checkpoint", *files, "--family", "meshtalk", "--dataset", "meshtalk",
-                 "-o", str(out), "-q"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "import-checkpoint",
+                *files,
+                "--family",
+                "meshtalk",
+                "--dataset",
+                "meshtalk",
+                "-o",
+                str(out),
+                "-q",
+            ]
+        )
+        == 0
+    )
     loaded = load_model(out)
     template = torch.from_numpy(fx["template"])[None]
     a = loaded.generate(audio, template, seed=2)

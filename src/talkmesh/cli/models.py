@@ -76,7 +76,7 @@ def cmd_import_checkpoint(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(
             f"wrote {out} ({args.family}, {args.dataset}, {model.motion_fps:g} fps, "
-            f"styles: {', '.join(model.styles)})"
+            f"styles: {', '.join(model.styles) or 'none'})"
         )
     return 0
 
