@@ -280,15 +280,15 @@ def meshtalk_models(checkout: Path, size: str):
     """The official networks: ``tiny`` (6172 -> 24 vertices, 16 -> 2 heads, 128 -> 12 classes,
     128 -> 16 latent widths, the layers' own widths official, weights from shared random vectors)
     or ``released`` (animate_face.py's sizes, the official initialisation, the checkout's vertex
-    statistics, template and smoothing masks)."""
+    statistics, template and smoothing masks) or ``paper`` (the same with the paper's 64 heads)."""
     from models.context_model import ContextModel
     from models.encoders import MultimodalEncoder
     from models.vertex_unet import VertexUnet
 
     gen = torch.Generator().manual_seed(SEED)
     torch.manual_seed(SEED)
-    if size == "released":
-        V, H, C, D = 6172, 16, 128, 128
+    if size in ("released", "paper"):
+        V, H, C, D = 6172, 16 if size == "released" else 64, 128, 128
         assets = checkout / "assets"
         mean = torch.from_numpy(np.load(assets / "face_mean.npy")).float()
         stddev = torch.from_numpy(np.load(assets / "face_std.npy")).float()
@@ -386,9 +386,9 @@ def main() -> None:
     p.add_argument("--wav", type=Path, default=OUT / "speech.wav")
     p.add_argument(
         "--meshtalk-size",
-        choices=("tiny", "released"),
+        choices=("tiny", "released", "paper"),
         default="tiny",
-        help="MeshTalk: the tiny fixture, or the released sizes (random weights; for "
+        help="MeshTalk: the tiny fixture, or the released or paper sizes (random weights; for "
         "bench/official_equivalence.py --meshtalk DIR: use with --out)",
     )
     p.add_argument("--out", type=Path, help="MeshTalk: write here instead of the fixtures")

@@ -138,3 +138,21 @@ def test_window_frames_are_the_official_chunk_count(samples, fps):
     official = len(range(8000, samples + 2 * pad - 8000, hop))
     encoder = MelAudioEncoder(MelConfig(windows=True), fps)
     assert encoder.window_frames(samples) == official
+
+
+class Payload:
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_a_malicious_release_file_never_runs(tmp_path):
+    marker = tmp_path / "pwned"
+    folder = tmp_path / "pretrained_models"
+    folder.mkdir()
+    torch.save({"vertex_bias": torch.zeros(3), "x": Payload(marker)}, folder / "vertex_unet.pkl")
+    with pytest.raises(TalkmeshError, match="refused"):
+        import_checkpoint([folder], "meshtalk", "meshtalk")
+    assert not marker.exists()
