@@ -1,13 +1,23 @@
 """How well `talkmesh rig` carries the 52 ARKit blendshapes onto a head, where the truth is known.
 
 The bundled head is turned into "user" meshes whose true blendshapes follow from the bundled ones:
-rescaled to centimetres or millimetres and rotated to another up-axis (truth: the same offsets,
-scaled and rotated), remeshed denser by one midpoint subdivision (truth: the subdivided shapes),
-with its vertices shuffled, and the bundled identities (one blendshape set serves them all, so it is their truth). Per shape: the mean
-vertex error in mm and as % of the shape's own mean displacement; the jaw opening (lip gap under
-jawOpen) and the lip gap under mouthClose + jawOpen, truth vs transfer.
 
-    PYTHONPATH=src python bench/rig_transfer.py
+* rescaled to centimetres or millimetres and rotated to another up-axis (truth: the same offsets,
+  scaled and rotated);
+* remeshed denser by one midpoint subdivision (truth: the subdivided shapes);
+* remeshed coarser by quadric decimation (fast-simplification) to 50% and 25% of its triangles
+  (truth: the bundled shapes at each new vertex's closest point on the bundled surface, among the
+  triangles facing its way);
+* with its vertices shuffled;
+* the bundled identities (one blendshape set serves them all, so it is their truth).
+
+Both methods run on every case: ``transfer`` (deformation transfer, the default) and ``closest``
+(closest-point offsets, the earlier method). Per shape: the mean vertex error in mm and as % of the
+shape's own mean displacement, averaged over the 52 shapes (and the worst shape); the lip gap
+(between the rig's upper_lip and lower_lip landmarks) under jawOpen and under mouthClose +
+jawOpen, truth vs transfer.
+
+    PYTHONPATH=src python bench/rig_transfer.py [--quick]
 """
 
 from __future__ import annotations
@@ -20,7 +30,8 @@ import trimesh
 
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import list_identities, load_head
-from talkmesh.face.rig import rig_head
+from talkmesh.face.registration import closest_points, vertex_normals
+from talkmesh.face.rig import METHODS, rig_head
 
 JAW, CLOSE = ARKIT_NAMES.index("jawOpen"), ARKIT_NAMES.index("mouthClose")
 
@@ -36,58 +47,76 @@ def subdivide(vertices, faces, shapes):
     return new_v, new_f, np.stack(moved)
 
 
+def decimate(vertices, faces, shapes, keep):
+    """Quadric decimation to ``keep`` of the triangles; truth: the shapes at the closest point."""
+    import fast_simplification
+
+    new_v, new_f = fast_simplification.simplify(
+        vertices.astype(np.float32), faces.astype(np.int64), target_reduction=1 - keep
+    )
+    new_v = new_v.astype(np.float64)
+    normals = vertex_normals(new_v, new_f)
+    face, bary, _ = closest_points(new_v, vertices, faces.astype(np.int64), normals)
+    truth = np.einsum("vc,kvcx->kvx", bary, shapes[:, faces[face]])
+    return new_v, new_f, truth
+
+
 def lip_gap(vertices, offsets, weights, pair):
     """Distance between the two lip vertices ``pair`` with ``weights`` {shape: w} applied."""
     v = vertices[pair] + sum(w * offsets[k][pair] for k, w in weights.items())
     return float(np.linalg.norm(v[0] - v[1]))
 
 
-def cases(head):
+def cases(head, quick: bool):
     v, f, s = head.template.astype(np.float64), head.faces, head.blendshapes.astype(np.float64)
     r_z = rotation([1, 0, 0], -90)  # a Z-up export
-    pair = head.regions.lip_pair
-    yield "cm, Z-up", 100 * v @ r_z.T + [3, -2, 10], f, 100 * s @ r_z.T, 100, pair
-    r = rotation([0.3, 1, 0.2], 37)
-    yield "mm, rotated 37 deg", 1000 * v @ r.T, f, 1000 * s @ r.T, 1000, pair
-    sv, sf, ss = subdivide(v, f, s)
-    yield "denser (subdivided)", sv, sf, ss, 1, pair  # the original vertices come first
-    perm = np.random.default_rng(0).permutation(len(v))
-    inverse = np.argsort(perm)
-    yield "shuffled vertices", v[perm], inverse[f], s[:, perm], 1, inverse[pair]
-    for name in list_identities()[:3]:
-        other = load_head(name)
-        yield f"identity {name}", other.template.astype(np.float64), f, s, 1, pair
+    yield "cm, Z-up", 100 * v @ r_z.T + [3, -2, 10], f, 100 * s @ r_z.T, 100
+    if not quick:
+        r = rotation([0.3, 1, 0.2], 37)
+        yield "mm, rotated 37 deg", 1000 * v @ r.T, f, 1000 * s @ r.T, 1000
+        yield ("denser (subdivided)", *subdivide(v, f, s), 1)
+    yield ("coarser (50% of triangles)", *decimate(v, f, s, 0.5), 1)
+    cv, cf, cs = decimate(v, f, s, 0.25)
+    r = rotation([1, 0.2, 0], 25)
+    yield "coarser (25%), mm, rotated 25 deg", 1000 * cv @ r.T, cf, 1000 * cs @ r.T, 1000
+    if not quick:
+        perm = np.random.default_rng(0).permutation(len(v))
+        yield "shuffled vertices", v[perm], np.argsort(perm)[f], s[:, perm], 1
+    for name in list_identities()[: 1 if quick else 3]:
+        yield f"identity {name}", load_head(name).template.astype(np.float64), f, s, 1
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.parse_args()
+    parser.add_argument("--quick", action="store_true", help="three cases only")
+    args = parser.parse_args()
     head = load_head()
     print(
-        "| case | vertices | units | up | mean err mm | worst shape mm | mean % | worst % | "
-        "jaw gap mm true/ours | close+jaw gap mm true/ours | s |"
+        "| case | method | vertices | units | up | mean err mm | worst shape mm | mean % | "
+        "worst % | jaw gap mm true/ours | close+jaw gap mm true/ours | s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, v, f, truth, unit, pair in cases(head):
-        t = time.perf_counter()
-        rig = rig_head(v, f, head)
-        seconds = time.perf_counter() - t
-        err = np.linalg.norm(rig.blendshapes - truth, axis=2).mean(1) / unit * 1000
-        mag = np.linalg.norm(truth, axis=2).mean(1) / unit * 1000
-        pct = 100 * err / mag
-        # the user's lip vertices: the nearest to the bundled ones, mapped by the fitted pose
-        gaps = [
-            lip_gap(v, o, w, pair) / unit * 1000
-            for w in ({JAW: 1.0}, {JAW: 1.0, CLOSE: 1.0})
-            for o in (truth, rig.blendshapes)
-        ]
-        print(
-            f"| {name} | {len(v)} | {rig.units} | {rig.up_axis} | {err.mean():.3f} | "
-            f"{err.max():.3f} ({ARKIT_NAMES[int(err.argmax())]}) | {pct.mean():.1f} | "
-            f"{pct.max():.1f} | {gaps[0]:.1f}/{gaps[1]:.1f} | {gaps[2]:.1f}/{gaps[3]:.1f} | "
-            f"{seconds:.1f} |",
-            flush=True,
-        )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, v, f, truth, unit in cases(head, args.quick):
+        for method in METHODS:
+            t = time.perf_counter()
+            rig = rig_head(v, f, head, method=method)
+            seconds = time.perf_counter() - t
+            err = np.linalg.norm(rig.blendshapes - truth, axis=2).mean(1) / unit * 1000
+            mag = np.linalg.norm(truth, axis=2).mean(1) / unit * 1000
+            pct = 100 * err / mag
+            pair = [rig.landmarks["upper_lip"], rig.landmarks["lower_lip"]]
+            gaps = [
+                lip_gap(v, o, w, pair) / unit * 1000
+                for w in ({JAW: 1.0}, {JAW: 1.0, CLOSE: 1.0})
+                for o in (truth, rig.blendshapes)
+            ]
+            print(
+                f"| {name} | {method} | {len(v)} | {rig.units} | {rig.up_axis} | "
+                f"{err.mean():.3f} | {err.max():.3f} ({ARKIT_NAMES[int(err.argmax())]}) | "
+                f"{pct.mean():.1f} | {pct.max():.1f} | {gaps[0]:.1f}/{gaps[1]:.1f} | "
+                f"{gaps[2]:.1f}/{gaps[3]:.1f} | {seconds:.1f} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -319,7 +319,7 @@ COMMANDS = {
         "--anim --audio --model --output --overwrite --quiet --source-template --template",
     ),
     "dub": ([], "--anim --audio --model --output --overwrite --quiet --source-template"),
-    "rig": (["mesh"], "--output --overwrite --quiet"),
+    "rig": (["mesh"], "--landmark --landmarks --output --overwrite --quiet"),
     "serve": (
         [],
         "--avatar --first-message-timeout --host --idle-timeout --jobs --max-message-bytes "

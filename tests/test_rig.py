@@ -10,7 +10,8 @@ from talkmesh.cli import main
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
-from talkmesh.face.rig import rig_head
+from talkmesh.face.rig import LANDMARK_NAMES, head_landmarks, rig_head
+from talkmesh.face.transfer import deformation_gradients, rigid_follow, transfer
 from talkmesh.output.avatar import animate_avatar, read_glb
 
 
@@ -19,14 +20,87 @@ def head():
     return load_head()
 
 
-def test_units_and_up_axis_are_detected_and_kept(head):
-    """The head in centimetres, Z-up, shifted: the offsets come back scaled and rotated."""
+@pytest.fixture(scope="module")
+def z_up_cm(head):
+    """The head in centimetres, Z-up, shifted, rigged; and the rotation."""
     r = trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0])[:3, :3]
-    rig = rig_head(100 * head.template @ r.T + [3, -2, 10], head.faces, head)
+    return rig_head(100 * head.template @ r.T + [3, -2, 10], head.faces, head), r
+
+
+def test_units_and_up_axis_are_detected_and_kept(head, z_up_cm):
+    """The offsets come back scaled and rotated; the eyes and teeth are found as parts."""
+    rig, r = z_up_cm
     assert rig.units == "cm" and rig.up_axis == "-z"
     truth = 100 * head.blendshapes @ r.T
     error_mm = 10 * np.linalg.norm(rig.blendshapes - truth, axis=2).mean(1)
-    assert error_mm.max() < 0.05, dict(zip(ARKIT_NAMES, error_mm.round(3)))
+    # rigid parts follow a best rotation, blendshapes rotate linearly: not exact, within 0.3 mm
+    assert error_mm.mean() < 0.02 and error_mm.max() < 0.3, dict(
+        zip(ARKIT_NAMES, error_mm.round(3))
+    )
+    assert rig.parts == {"eye": 2, "teeth": 2}
+    assert rig.landmarks == head_landmarks(head)  # the same mesh: every landmark on its vertex
+
+
+def test_vertex_motion_is_carried_through_the_correspondence(head, z_up_cm):
+    rig, r = z_up_cm
+    offsets = head.blendshapes[[ARKIT_NAMES.index("jawOpen")]]
+    carried = rig.carry(offsets)
+    assert carried.shape == (1, head.num_vertices, 3)
+    np.testing.assert_allclose(carried[0], 100 * offsets[0] @ r.T, atol=1e-3)
+
+
+def test_deformation_transfer_is_exact_for_an_affine_map_and_follows_the_gradients():
+    """A triangle mesh sheared by A: the gradient of every triangle is A, and transferring it
+    (anchored at the true offsets) returns the true offsets; rigid_follow turns a part."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    v, f = mesh.vertices, mesh.faces
+    a = np.array([[1.2, 0.3, 0.0], [0.0, 0.9, 0.1], [0.0, 0.0, 1.1]])
+    offsets = (v @ a.T - v)[None]
+    gradients = deformation_gradients(v, f, offsets)
+    edges = v[f[:, 1]] - v[f[:, 0]]  # the gradients map every edge as A does
+    np.testing.assert_allclose(np.einsum("fxy,fy->fx", gradients[0], edges), edges @ a.T, atol=1e-9)
+    out = transfer(v, f, gradients, offsets)
+    np.testing.assert_allclose(out, offsets, atol=1e-9)
+    # Anchored at zero, the gradients still give the shape up to a translation.
+    free = transfer(v, f, gradients, np.zeros_like(offsets), anchor=1e-6)
+    shifted = free[0] - free[0].mean(0) - (offsets[0] - offsets[0].mean(0))
+    assert np.abs(shifted).max() < 1e-3
+    turn = trimesh.transformations.rotation_matrix(0.3, [0, 1, 0])[:3, :3]
+    follow = rigid_follow(v + 5.0, v, (v @ turn.T - v)[None])
+    np.testing.assert_allclose(follow[0], (v @ turn.T) - v, atol=1e-9)
+
+
+def test_landmarks_can_be_given_and_are_checked(head):
+    v = 1000 * head.template.astype(np.float64)
+    marks = head_landmarks(head)
+    assert set(marks) == set(LANDMARK_NAMES) and len(set(marks.values())) == len(marks)
+    rig = rig_head(v, head.faces, head, landmarks=marks, method="closest")
+    assert rig.landmarks == marks and rig.units == "mm"
+    with pytest.raises(TalkmeshError, match="unknown landmark 'nose'"):
+        rig_head(v, head.faces, head, landmarks={"nose": 3})
+    with pytest.raises(TalkmeshError, match="vertices 0 to 4765"):
+        rig_head(v, head.faces, head, landmarks={"chin": 5000})
+
+
+def test_a_head_with_sealed_lips_is_refused(head):
+    """Merging the inner lip vertices of the upper and lower lip closes the mouth opening."""
+    v, f = head.template.astype(np.float64), head.faces.astype(np.int64)
+    lips = head.regions.lips
+    upper, lower = head.regions.lip_pair
+    inner = lips[np.linalg.norm(v[lips] - v[[upper, lower]].mean(0), axis=1) < 0.03]
+    keep = v.copy()
+    # weld: each inner lower-lip vertex within 3 mm of an upper-lip vertex becomes it
+    tree = trimesh.proximity.cKDTree(v[inner])
+    remap = np.arange(len(v))
+    for i in inner:
+        d, j = tree.query(v[i], k=2)
+        if d[1] < 0.003 and inner[j[1]] < i:
+            remap[i] = inner[j[1]]
+    sealed = remap[f]
+    sealed = sealed[(sealed[:, 0] != sealed[:, 1]) & (sealed[:, 1] != sealed[:, 2])]
+    sealed = sealed[sealed[:, 0] != sealed[:, 2]]
+    with pytest.raises(TalkmeshError, match="no mouth opening"):
+        rig_head(keep, sealed, head)
 
 
 @pytest.mark.slow
@@ -40,7 +114,7 @@ def test_denser_mesh_keeps_the_shapes_and_the_lips_apart(head):
     rig = rig_head(v, f, head)
     error = np.linalg.norm(rig.blendshapes - truth, axis=2).mean(1)
     magnitude = np.linalg.norm(truth, axis=2).mean(1)
-    assert (error / magnitude).mean() < 0.05
+    assert (error / magnitude).mean() < 0.1
     jaw = ARKIT_NAMES.index("jawOpen")
     upper, lower = head.regions.lip_pair  # original vertices keep their index
     gap = np.linalg.norm((v + rig.blendshapes[jaw])[upper] - (v + rig.blendshapes[jaw])[lower])

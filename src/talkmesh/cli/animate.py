@@ -226,13 +226,27 @@ def add_rig(sub: Subparsers) -> None:
         "mesh", help="a head mesh (.obj .ply .stl .off .glb .gltf), any units and up-axis"
     )
     rg.add_argument("-o", "--output", required=True, help="output .glb (use it with --avatar)")
+    rg.add_argument(
+        "--landmarks",
+        metavar="FILE",
+        help='landmark vertex ids of your mesh as JSON {"nose_tip": 1234, ...}, overriding the '
+        "automatic ones (names: nose_tip chin upper_lip lower_lip mouth_left mouth_right "
+        "eyelid_left eyelid_right brow_left brow_right)",
+    )
+    rg.add_argument(
+        "--landmark",
+        action="append",
+        default=[],
+        metavar="NAME=VERTEX_ID",
+        help="one landmark vertex id (repeatable; wins over --landmarks)",
+    )
     rg.add_argument("--overwrite", action="store_true", help="replace an existing output")
     add_quiet(rg)
     rg.set_defaults(func=cmd_rig)
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
-    from talkmesh.face.rig import load_mesh, rig_head
+    from talkmesh.face.rig import load_mesh, read_landmarks, rig_head
     from talkmesh.output.formats import save_animation
 
     out = Path(args.output)
@@ -240,11 +254,19 @@ def cmd_rig(args: argparse.Namespace) -> int:
         raise TalkmeshError(f"{out}: the rigged head is written as .glb")
     if out.exists() and not args.overwrite:
         raise TalkmeshError(f"{out} already exists: choose another -o or pass --overwrite")
-    rig = rig_head(*load_mesh(args.mesh))
+    landmarks = read_landmarks(args.landmarks) if args.landmarks else {}
+    for item in args.landmark:
+        name, _, index = item.partition("=")
+        if not index.strip().isdigit():
+            raise TalkmeshError(f"--landmark {item}: give NAME=VERTEX_ID, e.g. nose_tip=1234")
+        landmarks[name.strip()] = int(index)
+    rig = rig_head(*load_mesh(args.mesh), landmarks=landmarks)
     save_animation(rig.neutral_animation(), out, overwrite=args.overwrite)
     if not args.quiet:
+        parts = ", ".join(f"{n} {k}" for k, n in rig.parts.items()) or "none"
         print(
             f"wrote {out}: 52 ARKit morph targets on {len(rig.vertices)} vertices (units "
-            f"{rig.units}, up {rig.up_axis}, fit within {rig.residual:.3g} {rig.units} median)"
+            f"{rig.units}, up {rig.up_axis}, fit within {rig.residual:.3g} {rig.units} median; "
+            f"separate parts following rigidly: {parts})"
         )
     return 0

@@ -1,33 +1,38 @@
 """Rigging a plain head mesh: the bundled 52 ARKit blendshapes carried onto any head.
 
-``rig_head(vertices, faces)`` registers the bundled head onto the user's mesh and gives every user
-vertex the blendshape offsets of the closest point of the registered head's surface:
+``rig_head(vertices, faces)`` does it in four steps:
 
-1. Rigid + scale registration: the 24 axis-aligned orientations (so a Z-up or Y-down export is
-   found), each started from the meshes' centroids and RMS radii, refined by trimmed, two-way
-   iterative closest points with Umeyama's similarity fit (Umeyama 1991, eq. 40-42); the
-   orientation whose fit leaves the smallest residual wins.
-2. Non-rigid refinement: the registered head is pulled towards the user's surface by a displacement
-   field smoothed over the head's mesh (uniform Laplacian smoothing of the closest-point
-   displacements, a few rounds), so a wider jaw or fuller lips still land on their counterpart.
-3. Transfer: each user vertex takes the barycentric blend of the offsets at its closest point on
-   the registered head, rotated and scaled into the user's frame; vertices farther than
-   ``FALLOFF`` (relative to the head's size) from the head fade to no motion (hair, shoulders).
+1. Registration (:mod:`talkmesh.face.registration`): rigid + scale (this gives the units, mm / cm
+   / m, and the up-axis), then a non-rigid fit of the bundled head's skin onto the user's surface,
+   held by landmarks: automatic (the bundled head's :data:`LANDMARKS` at the closest user vertex
+   after the rigid fit) or given as user vertex ids, which then also start the rigid fit.
+2. Checks: a mesh the bundled head cannot be fitted to is "not a head"; lips joined across the
+   mouth (the shortest path over the surface between the upper and lower lip is hardly longer
+   than the straight line) mean "no mouth opening", since the jaw could not open.
+3. Skin: deformation transfer (:mod:`talkmesh.face.transfer`): every user triangle takes the
+   deformation gradient of its corresponding bundled triangle (the closest one facing the same
+   way on the registered head), rotated into the user's axes, and the offsets are solved for in
+   the least-squares sense, anchored weakly to the closest-point offsets. Triangles far from the
+   head (hair, shoulders) keep their shape and fade to no motion.
+4. Other parts: each separate connected component of the user's mesh that lies on the bundled
+   head's eyeballs or teeth follows that part rigidly (eyes turn with the ``eyeLook*`` shapes, the
+   lower teeth move with the jaw); other small components (tongue, lashes) take the closest-point
+   offsets.
 
-Units (mm, cm, m: the scale of the fit) and up-axis (the orientation) are detected, and the offsets
-come out in the user's units and axes. This is closest-point transfer, not Sumner and Popovic's
-deformation-gradient transfer: it keeps the shapes' magnitudes exactly where the heads agree, and
-smooths them where the user's mesh is much finer than the bundled one.
+``method="closest"`` skips steps 3-4 and gives every vertex the closest-point offsets (the
+comparison the bench makes). :meth:`Rig.carry` maps any motion of the bundled topology (a vertex
+model's prediction) onto the user's mesh through the same correspondence.
 """
 
 from __future__ import annotations
 
-import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 from scipy import sparse
+from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from talkmesh.animation import Animation
@@ -35,17 +40,55 @@ from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import Head, load_head
+from talkmesh.face.registration import (
+    closest_points,
+    nonrigid_fit,
+    rigid_fit,
+    vertex_normals,
+)
+from talkmesh.face.transfer import deformation_gradients, rigid_follow, transfer
 
-ICP_ITERATIONS = 40
-COARSE = 6  # iterations tried from each of the 24 orientations
-TRIM = 0.9  # ICP fits the closest 90% of the pairs, so hair and shoulders do not pull
-NONRIGID_ROUNDS = 8
-SMOOTHING = 15  # Laplacian smoothing iterations of each round's displacement field
 FALLOFF = (0.02, 0.06)  # fraction of the head's RMS radius: full motion within, none beyond
 MIN_VERTICES = 100
-CANDIDATES = 12  # nearest head vertices whose triangles are searched for the closest point
-FACING = 0.3  # cosine between normals below which a triangle faces away from a point ...
-AWAY_PENALTY = 1e3  # ... and is taken only when no triangle facing the point is a candidate
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+NOT_A_HEAD = 0.08  # median registration distance over RMS radius beyond which it is no head
+SEALED_LIPS = 0.12  # surface path between the lips shorter than this x the RMS radius: no mouth
+METHODS = ("transfer", "closest")
+PART_MATCH = 0.3  # centroid distance over RMS radius within which a component is that part
+NOSE_WINDOW = 0.015  # metres around the rigid fit's nose tip searched for the real one
+SKIN, EYE, TEETH, TONGUE = 0, 1, 2, 3  # Regions.vertex_part
+
+# Landmarks: name -> how to find it on the bundled head. "Left" is the face's own left (+x), as in
+# ARKit's names. Each is where a blendshape moves most, or a geometric extreme of the midline.
+LANDMARK_SHAPES = {
+    "mouth_left": "mouthSmileLeft",
+    "mouth_right": "mouthSmileRight",
+    "eyelid_left": "eyeBlinkLeft",
+    "eyelid_right": "eyeBlinkRight",
+    "brow_left": "browOuterUpLeft",
+    "brow_right": "browOuterUpRight",
+}
+LANDMARK_NAMES = ("nose_tip", "chin", "upper_lip", "lower_lip", *LANDMARK_SHAPES)
+
+
+@lru_cache(maxsize=1)
+def _bundled_landmarks() -> dict[str, int]:
+    head = load_head()
+    return head_landmarks(head)
+
+
+def head_landmarks(head: Head) -> dict[str, int]:
+    """The bundled head's landmark vertex ids, by name (see ``LANDMARK_NAMES``)."""
+    t, skin = head.template, head.regions.vertex_part == SKIN
+    midline = skin & (np.abs(t[:, 0]) < 0.002)
+    out = {"nose_tip": int(np.flatnonzero(midline)[np.argmax(t[midline, 2])])}
+    chin = np.flatnonzero(midline & (t[:, 1] < -0.068))  # below the labiomental fold
+    out["chin"] = int(chin[np.argmax(t[chin, 2])])
+    out["upper_lip"], out["lower_lip"] = (int(i) for i in head.regions.lip_pair)
+    for name, shape in LANDMARK_SHAPES.items():
+        size = np.linalg.norm(head.blendshapes[ARKIT_NAMES.index(shape)], axis=1) * skin
+        out[name] = int(np.argmax(size))
+    return out
 
 
 @dataclass(frozen=True)
@@ -61,6 +104,10 @@ class Rig:
         translation: (3,) so that ``scale * rotation @ p + translation`` takes a point p of the
             bundled head (metres) into the user's frame.
         residual: median distance (user units) from the registered head to the user's surface.
+        landmarks: name -> the user vertex id each landmark was placed at.
+        parts: what the user's separate components were taken for: 'eye', 'teeth', ... -> count.
+        corners: (V, 3) bundled head vertices around each user vertex's corresponding point.
+        weights: (V, 3) their barycentric weights, times the fade to no motion far from the head.
     """
 
     vertices: np.ndarray
@@ -70,12 +117,32 @@ class Rig:
     rotation: np.ndarray
     translation: np.ndarray
     residual: float
+    landmarks: dict[str, int] = field(default_factory=dict)
+    parts: dict[str, int] = field(default_factory=dict)
+    corners: np.ndarray | None = None
+    weights: np.ndarray | None = None
 
     @property
     def units(self) -> str:
         """The unit the fitted scale is closest to (by decades): mm, cm or m."""
         decade = int(np.clip(np.round(np.log10(self.scale)), 0, 3))
         return {0: "m", 1: "dm", 2: "cm", 3: "mm"}[decade]
+
+    @property
+    def up_axis(self) -> str:
+        """The user's axis the head's up (+y) maps to: '+y', '-z', ..."""
+        up = self.rotation[:, 1]
+        k = int(np.argmax(np.abs(up)))
+        return ("+" if up[k] > 0 else "-") + "xyz"[k]
+
+    def carry(self, offsets: np.ndarray) -> np.ndarray:
+        """(T, Vh, 3) offsets of the bundled topology (metres, e.g. a vertex model's prediction
+        minus its template) -> (T, V, 3) offsets on the user's mesh, in its units and axes,
+        through the closest-point correspondence."""
+        offsets = np.asarray(offsets, np.float64)
+        assert offsets.ndim == 3 and offsets.shape[2] == 3, offsets.shape
+        moved = np.einsum("vc,tvcx->tvx", self.weights, offsets[:, self.corners])
+        return (self.scale * moved @ self.rotation.T).astype(np.float32)
 
     def neutral_animation(self) -> Animation:
         """One neutral frame with the 52 blendshapes as its ``basis`` (all weights zero): saved as
@@ -89,142 +156,6 @@ class Rig:
             template=self.vertices,
             basis=self.blendshapes,
         )
-
-    @property
-    def up_axis(self) -> str:
-        """The user's axis the head's up (+y) maps to: '+y', '-z', ..."""
-        up = self.rotation[:, 1]
-        k = int(np.argmax(np.abs(up)))
-        return ("+" if up[k] > 0 else "-") + "xyz"[k]
-
-
-def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama: s, R, t minimising sum |s R src + t - dst|^2 over (N, 3) pairs."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    u, d, vt = np.linalg.svd(b.T @ a / len(src))
-    sign = np.ones(3)
-    sign[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
-    rotation = u @ np.diag(sign) @ vt
-    scale = float((d * sign).sum() / (a**2).sum(1).mean())
-    return scale, rotation, mu_d - scale * rotation @ mu_s
-
-
-def _orientations() -> list[np.ndarray]:
-    """The 24 rotations that map coordinate axes onto coordinate axes."""
-    out = []
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1, -1), repeat=3):
-            r = np.zeros((3, 3))
-            r[list(perm), [0, 1, 2]] = signs
-            if np.linalg.det(r) > 0:
-                out.append(r)
-    return out
-
-
-def _principal_orientations(source: np.ndarray, target: np.ndarray) -> list[np.ndarray]:
-    """The 4 rotations that align the principal axes of ``source`` with those of ``target``."""
-    axes = [np.linalg.eigh(np.cov((x - x.mean(0)).T))[1] for x in (source, target)]
-    out = []
-    for signs in itertools.product((1, -1), repeat=3):
-        r = axes[1] @ np.diag(signs) @ axes[0].T
-        if np.linalg.det(r) > 0:
-            out.append(r)
-    return out
-
-
-def _icp(source: np.ndarray, target: np.ndarray, tree: cKDTree, init: np.ndarray, steps: int):
-    """Trimmed two-way similarity ICP of ``source`` onto ``target`` from rotation ``init``."""
-    rms = lambda x: np.sqrt(((x - x.mean(0)) ** 2).sum(1).mean())  # noqa: E731
-    scale = rms(target) / rms(source)
-    rotation = init
-    shift = target.mean(0) - scale * rotation @ source.mean(0)
-    source_tree = None
-    for _ in range(steps):
-        moved = scale * source @ rotation.T + shift
-        d1, i1 = tree.query(moved)
-        source_tree = cKDTree(moved)
-        d2, i2 = source_tree.query(target)
-        keep1 = d1 <= np.quantile(d1, TRIM)
-        keep2 = d2 <= np.quantile(d2, TRIM)
-        src = np.concatenate([source[keep1], source[i2[keep2]]])
-        dst = np.concatenate([target[i1[keep1]], target[keep2]])
-        scale, rotation, shift = _similarity(src, dst)
-    moved = scale * source @ rotation.T + shift
-    residual = float(np.median(tree.query(moved)[0]))
-    return scale, rotation, shift, residual
-
-
-def _laplacian(faces: np.ndarray, n: int) -> sparse.csr_matrix:
-    """Row-normalised adjacency (uniform Laplacian smoothing operator) of a triangle mesh."""
-    i = faces[:, [0, 1, 2, 1, 2, 0]].ravel()
-    j = faces[:, [1, 2, 0, 0, 1, 2]].ravel()
-    adj = sparse.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
-    adj.data[:] = 1.0
-    degree = np.asarray(adj.sum(1)).ravel()
-    degree[degree == 0] = 1.0
-    return sparse.diags(1.0 / degree) @ adj
-
-
-def _nonrigid(head: np.ndarray, faces: np.ndarray, target: np.ndarray, tree: cKDTree) -> np.ndarray:
-    """Pull ``head`` (V, 3) towards ``target`` points with a smooth displacement field."""
-    smooth = _laplacian(faces, len(head))
-    out = head.copy()
-    for _ in range(NONRIGID_ROUNDS):
-        d, i = tree.query(out)
-        field = target[i] - out
-        field[d > np.quantile(d, TRIM)] = 0.0
-        for _ in range(SMOOTHING):
-            field = smooth @ field
-        out = out + field
-    return out
-
-
-def closest_points(
-    points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For (P, 3) points: the closest triangle of the mesh, barycentric coordinates (P, 3) of
-    the closest point on it, and the distance (P,). Searches the triangles around the
-    ``CANDIDATES`` nearest vertices (exact for meshes without long thin triangles). With the
-    points' (P, 3) ``normals``, triangles facing away are passed over while one facing the same
-    way is near: closed lips and eyelids touch, and the lower lip must not take the upper's motion.
-    """
-    import trimesh
-
-    corner_of = faces.ravel()  # vertex -> its faces, as CSR arrays
-    order = np.argsort(corner_of, kind="stable")
-    starts = np.searchsorted(corner_of[order], np.arange(len(vertices) + 1))
-    _, near = cKDTree(vertices).query(points, k=min(CANDIDATES, len(vertices)))
-    near = near.reshape(len(points), -1)
-    counts = starts[near + 1] - starts[near]  # faces around each candidate vertex
-    point_ids = np.repeat(np.repeat(np.arange(len(points)), near.shape[1]), counts.ravel())
-    offsets = np.arange(counts.sum()) - np.repeat(
-        np.cumsum(counts.ravel()) - counts.ravel(), counts.ravel()
-    )
-    face_ids = order[np.repeat(starts[near.ravel()], counts.ravel()) + offsets] // 3
-    pairs = np.unique(np.stack([point_ids, face_ids], 1), axis=0)
-    best = np.full(len(points), np.inf)
-    best_face = np.zeros(len(points), np.int64)
-    best_point = np.zeros((len(points), 3))
-    tri = vertices[faces[pairs[:, 1]]]
-    closest = trimesh.triangles.closest_point(tri, points[pairs[:, 0]])
-    dist = np.linalg.norm(closest - points[pairs[:, 0]], axis=1)
-    rank = dist
-    if normals is not None:
-        face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        face_normals /= np.maximum(np.linalg.norm(face_normals, axis=1, keepdims=True), 1e-30)
-        facing = (face_normals * normals[pairs[:, 0]]).sum(1)
-        rank = dist + np.where(facing < FACING, AWAY_PENALTY, 0.0)
-    order = np.lexsort((rank, pairs[:, 0]))  # per point, nearest first
-    first = order[np.r_[True, pairs[order[1:], 0] != pairs[order[:-1], 0]]]
-    p = pairs[first, 0]
-    best[p], best_face[p], best_point[p] = dist[first], pairs[first, 1], closest[first]
-    bary = trimesh.triangles.points_to_barycentric(vertices[faces[best_face]], best_point)
-    return best_face, np.clip(bary, 0.0, 1.0), best
-
-
-MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
-NOT_A_HEAD = 0.08  # median registration distance over RMS radius beyond which it is no head
 
 
 def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -249,10 +180,35 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, np.float64), faces.astype(np.int64)
 
 
-def rig_head(vertices: np.ndarray, faces: np.ndarray, head: Head | None = None) -> Rig:
-    """The bundled head's 52 blendshapes carried onto the mesh (V, 3) vertices, (F, 3) faces."""
-    vertices = np.asarray(vertices, np.float64)
-    faces = np.asarray(faces, np.int64)
+def read_landmarks(path: str | Path) -> dict[str, int]:
+    """Landmark vertex ids from a JSON file ``{"nose_tip": 1234, ...}`` (plain data only)."""
+    import json
+
+    path = Path(path)
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise TalkmeshError(f"{path}: cannot read landmarks ({type(e).__name__}: {e})") from None
+    if not isinstance(data, dict) or not all(
+        isinstance(v, int) and not isinstance(v, bool) for v in data.values()
+    ):
+        raise TalkmeshError(f'{path}: give landmarks as a JSON object {{"nose_tip": 1234, ...}}')
+    return data
+
+
+def _check_landmarks(landmarks: dict[str, int], num_vertices: int) -> None:
+    for name, index in landmarks.items():
+        if name not in LANDMARK_NAMES:
+            raise TalkmeshError(
+                f"unknown landmark '{name}': choose from {', '.join(LANDMARK_NAMES)}"
+            )
+        if not 0 <= int(index) < num_vertices:
+            raise TalkmeshError(
+                f"landmark {name}={index}: the mesh has vertices 0 to {num_vertices - 1}"
+            )
+
+
+def _check_input(vertices: np.ndarray, faces: np.ndarray) -> None:
     if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < MIN_VERTICES:
         raise TalkmeshError(
             f"a head mesh needs at least {MIN_VERTICES} vertices, got {len(vertices)}"
@@ -261,37 +217,218 @@ def rig_head(vertices: np.ndarray, faces: np.ndarray, head: Head | None = None) 
         raise TalkmeshError("the mesh has no triangles: give a surface mesh (OBJ, PLY, glTF)")
     if not np.isfinite(vertices).all():
         raise TalkmeshError("the mesh's vertices contain NaN or infinite values")
-    head = head or load_head()
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise TalkmeshError("the mesh's triangles refer to vertices it does not have")
+
+
+def _components(faces: np.ndarray, n: int) -> np.ndarray:
+    """(n,) connected component label of every vertex (by shared triangles)."""
+    i, j = faces[:, [0, 1, 2]].ravel(), faces[:, [1, 2, 0]].ravel()
+    graph = sparse.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
+    return csgraph.connected_components(graph, directed=False)[1]
+
+
+def _place_landmarks(user, user_normals, head_points, head_normals) -> np.ndarray:
+    """The user vertex nearest each registered head landmark among those facing its way."""
+    _, near = cKDTree(user).query(head_points, k=min(16, len(user)))
+    facing = np.einsum("lkx,lx->lk", user_normals[near], head_normals) > 0.3
+    pick = np.where(facing.any(1), np.argmax(facing, axis=1), 0)  # nearest facing, else nearest
+    return near[np.arange(len(near)), pick]
+
+
+def _check_mouth(vertices, faces, upper: int, lower: int, radius: float) -> None:
+    """A one-line error when the lips are one surface (no mouth opening to open the jaw)."""
+    if upper == lower:
+        raise TalkmeshError(
+            "the mesh has no mouth opening: upper and lower lip are one vertex (cut the lips "
+            "apart, or give --landmark upper_lip=ID --landmark lower_lip=ID)"
+        )
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    n = len(vertices)
+    graph = sparse.coo_matrix((length, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
+    limit = SEALED_LIPS * radius
+    path = csgraph.dijkstra(graph, directed=False, indices=upper, limit=limit)[lower]
+    if path < limit:
+        raise TalkmeshError(
+            f"the mesh has no mouth opening: the lips are joined ({path:.3g} units over the "
+            "surface from upper to lower lip); cut the lips apart so the jaw can open"
+        )
+
+
+def _register(vertices, faces, head, landmarks):
+    """Rigid + non-rigid registration of the head's skin; returns (s, R, t, residual, skin ids,
+    skin faces, registered skin (S, 3), user landmark ids by name)."""
     source = head.template.astype(np.float64)
-    tree = cKDTree(vertices)
-    # A short fit from every orientation, then a full one from the best two.
-    starts = _orientations() + _principal_orientations(source, vertices)
-    coarse = sorted(starts, key=lambda r: _icp(source, vertices, tree, r, COARSE)[3])
-    fits = [_icp(source, vertices, tree, r, ICP_ITERATIONS) for r in coarse[:2]]
-    scale, rotation, shift, _ = min(fits, key=lambda f: f[3])
-    registered = _nonrigid(scale * source @ rotation.T + shift, head.faces, vertices, tree)
+    marks = _bundled_landmarks() if head.num_vertices == 4766 else head_landmarks(head)
+    given = {k: int(v) for k, v in (landmarks or {}).items()}
+    _check_landmarks(given, len(vertices))
+    pairs = None
+    if len(given) >= 4:
+        names = list(given)
+        pairs = (source[[marks[k] for k in names]], vertices[[given[k] for k in names]])
+    scale, rotation, shift, fit = rigid_fit(source, vertices, pairs)
     radius = np.sqrt(((vertices - vertices.mean(0)) ** 2).sum(1).mean())
-    fit = float(np.median(tree.query(scale * source @ rotation.T + shift)[0]))
     if fit > NOT_A_HEAD * radius:
         raise TalkmeshError(
             f"the mesh does not look like a head: the bundled head fits it no closer than "
             f"{100 * fit / radius:.0f}% of its size (give a head, face forward, mouth included)"
         )
-    import trimesh
+    skin = np.flatnonzero(head.regions.vertex_part == SKIN)
+    local = np.full(head.num_vertices, -1)
+    local[skin] = np.arange(len(skin))
+    skin_faces = local[head.faces[(local[head.faces] >= 0).all(1)]]
+    rigid = scale * source[skin] @ rotation.T + shift
+    user_normals = vertex_normals(vertices, faces)
+    # The fit is held by the landmarks given and by the nose tip (the user vertex farthest forward
+    # near where the rigid fit puts it, a feature that closest points alone let slide); the other
+    # landmarks are placed on the fitted head afterwards.
+    held = dict(given)
+    if "nose_tip" not in held:
+        forward = rotation[:, 2]
+        window = np.flatnonzero(
+            np.linalg.norm(vertices - rigid[local[marks["nose_tip"]]], axis=1) < NOSE_WINDOW * scale
+        )
+        if len(window):
+            held["nose_tip"] = int(window[np.argmax(vertices[window] @ forward)])
+    ids = local[[marks[k] for k in held]]
+    registered = nonrigid_fit(
+        rigid, skin_faces, vertices, faces, (ids, vertices[list(held.values())].reshape(-1, 3))
+    )
+    names = list(LANDMARK_NAMES)
+    at = local[[marks[k] for k in names]]
+    placed = _place_landmarks(
+        vertices, user_normals, registered[at], vertex_normals(registered, skin_faces)[at]
+    )
+    found = dict(zip(names, (int(i) for i in placed)))
+    found.update(held)
+    _check_mouth(vertices, faces, found["upper_lip"], found["lower_lip"], radius)
+    return scale, rotation, shift, radius, skin, skin_faces, registered, found, user_normals
 
-    normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
-    face, bary, dist = closest_points(vertices, registered, head.faces.astype(np.int64), normals)
-    corners = head.faces[face]  # (V, 3) head vertices around each closest point
-    offsets = np.einsum("vc,kvcx->kvx", bary, head.blendshapes[:, corners].astype(np.float64))
+
+def rig_head(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    head: Head | None = None,
+    *,
+    landmarks: dict[str, int] | None = None,
+    method: str = "transfer",
+) -> Rig:
+    """The bundled head's 52 blendshapes carried onto the mesh (V, 3) vertices, (F, 3) faces.
+
+    Args:
+        vertices, faces: the user's neutral head mesh, any units and axes.
+        head: the bundled head (its default identity if None).
+        landmarks: user vertex ids by landmark name (``LANDMARK_NAMES``), overriding the
+            automatic ones; four or more also start the rigid fit.
+        method: "transfer" (deformation transfer, the default) or "closest" (closest-point
+            offsets everywhere).
+    """
+    if method not in METHODS:
+        raise TalkmeshError(f"unknown rig method '{method}': choose one of {', '.join(METHODS)}")
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    _check_input(vertices, faces)
+    head = head or load_head()
+    scale, rotation, shift, radius, skin, skin_faces, registered, found, user_normals = _register(
+        vertices, faces, head, landmarks
+    )
+    shapes = head.blendshapes[:, skin].astype(np.float64)
+    # Closest-point correspondence of every user vertex on the registered head (its skin as fitted,
+    # eyes, teeth and tongue as placed by the rigid fit).
+    whole = scale * head.template.astype(np.float64) @ rotation.T + shift
+    whole[skin] = registered
+    head_faces = head.faces.astype(np.int64)
+    face, bary, dist = closest_points(vertices, whole, head_faces, user_normals)
     near, far = FALLOFF[0] * radius, FALLOFF[1] * radius
     fade = np.clip((far - dist) / (far - near), 0.0, 1.0)
-    blendshapes = scale * offsets @ rotation.T * fade[None, :, None]
+    corners = head_faces[face]
+    weights = bary * fade[:, None]
+    guess = scale * np.einsum("vc,kvcx->kvx", weights, head.blendshapes[:, corners]) @ rotation.T
+    parts: dict[str, int] = {}
+    if method == "transfer":
+        labels = _components(faces, len(vertices))
+        part_of, follow = _classify(vertices, labels, head, scale, rotation, shift)
+        on_skin = part_of[faces[:, 0]] == SKIN
+        gradients = _user_gradients(
+            vertices, faces[on_skin], registered, skin_faces, shapes, rotation, radius, head
+        )
+        offsets = transfer(vertices, faces[on_skin], gradients, guess)
+        offsets[:, part_of != SKIN] = guess[:, part_of != SKIN]
+        for label, source_ids in follow.items():
+            mine = labels == label
+            part = scale * head.template[source_ids].astype(np.float64) @ rotation.T + shift
+            moved = scale * head.blendshapes[:, source_ids].astype(np.float64) @ rotation.T
+            offsets[:, mine] = rigid_follow(vertices[mine], part, moved)
+            name = {EYE: "eye", TEETH: "teeth", TONGUE: "tongue"}[
+                int(head.regions.vertex_part[source_ids[0]])
+            ]
+            parts[name] = parts.get(name, 0) + 1
+    else:
+        offsets = guess
     return Rig(
         vertices=vertices.astype(np.float32),
         faces=faces.astype(np.int32),
-        blendshapes=blendshapes.astype(np.float32),
+        blendshapes=offsets.astype(np.float32),
         scale=scale,
         rotation=rotation,
         translation=shift,
         residual=float(np.median(cKDTree(vertices).query(registered)[0])),
+        landmarks=found,
+        parts=parts,
+        corners=corners,
+        weights=weights,
     )
+
+
+def _classify(vertices, labels, head, scale, rotation, shift):
+    """What each user component is: (V,) part per vertex, and {component label: bundled vertex
+    ids} for those that follow a bundled eyeball or teeth rigidly. A component (not the largest)
+    is taken for the bundled eyeball, teeth row or tongue whose centroid (after the rigid fit) is
+    nearest its own, within PART_MATCH of that part's RMS radius and its size is within a factor
+    of two; everything else is skin."""
+    placed = scale * head.template.astype(np.float64) @ rotation.T + shift
+    head_labels = _components(head.faces.astype(np.int64), head.num_vertices)
+    parts = []
+    for source in np.unique(head_labels):
+        ids = np.flatnonzero(head_labels == source)
+        part = int(head.regions.vertex_part[ids[0]])
+        if part != SKIN:
+            rms = np.sqrt(((placed[ids] - placed[ids].mean(0)) ** 2).sum(1).mean())
+            parts.append((ids, part, placed[ids].mean(0), rms))
+    part_of = np.full(len(vertices), SKIN)
+    follow: dict[int, np.ndarray] = {}
+    sizes = np.bincount(labels)
+    for label in np.flatnonzero(sizes):
+        if label == np.argmax(sizes):
+            continue
+        mine = labels == label
+        centre = vertices[mine].mean(0)
+        rms = np.sqrt(((vertices[mine] - centre) ** 2).sum(1).mean())
+        fits = [
+            (np.linalg.norm(centre - c) / r, ids, part)
+            for ids, part, c, r in parts
+            if 0.5 < rms / r < 2.0
+        ]
+        if fits and min(fits, key=lambda x: x[0])[0] < PART_MATCH:
+            _, ids, part = min(fits, key=lambda x: x[0])
+            part_of[mine] = part
+            if part != TONGUE:  # the tongue bends (tongueOut): closest-point offsets
+                follow[int(label)] = ids
+    return part_of, follow
+
+
+def _user_gradients(vertices, faces, registered, skin_faces, shapes, rotation, radius, head):
+    """(52, F, 3, 3) the deformation gradient each user triangle takes: its corresponding
+    bundled triangle's (closest facing the same way, on the registered skin), in the user's
+    axes, fading to the identity (no motion) far from the head."""
+    skin = np.flatnonzero(head.regions.vertex_part == SKIN)
+    source = deformation_gradients(head.template[skin].astype(np.float64), skin_faces, shapes)
+    tri = vertices[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
+    match, _, dist = closest_points(tri.mean(1), registered, skin_faces, normal)
+    near, far = FALLOFF[0] * radius, FALLOFF[1] * radius
+    fade = np.clip((far - dist) / (far - near), 0.0, 1.0)[None, :, None, None]
+    moved = rotation @ source[:, match] @ rotation.T  # Q in the user's axes: R Q R^T
+    return fade * moved + (1 - fade) * np.eye(3)
