@@ -295,11 +295,12 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
 COMMANDS = {
     "animate": (
         ["audio"],
-        "--avatar --fps --identity --int8 --lip-closure --model --no-blinks --no-pause-gate "
-        "--output --overwrite --procedural-mix --quiet --seed --size --style --template --text",
+        "--avatar --camera --fps --identity --int8 --lip-closure --model --no-blinks "
+        "--no-pause-gate --output --overwrite --procedural-mix --quiet --seed --size --style "
+        "--template --text",
     ),
-    "render": (["anim"], "--audio --fps --labels --output --overwrite --quiet --size"),
-    "export": (["anim"], "--fps --output --overwrite --quiet --size"),
+    "render": (["anim"], "--audio --camera --fps --labels --output --overwrite --quiet --size"),
+    "export": (["anim"], "--camera --fps --output --overwrite --quiet --size"),
     "synth": ([], "--out --overwrite --quiet --seed --sentences --subjects --workers"),
     "evaluate": ([], "--data --dataset --json --overwrite --pred --protocol --regions --split"),
     "baseline": ([], "--data --dataset --method --out --quiet --split"),

@@ -151,6 +151,21 @@ def test_winding_does_not_change_the_image(head):
     assert np.abs(images[2] - images[0]).mean() < 2
 
 
+def test_three_quarter_camera_turns_the_head(head):
+    """Seen from 3/4, the eyes leave the image's centre line; an unknown camera is refused."""
+    vertices, faces = head
+    centres = []
+    for camera in ("front", "three-quarter"):
+        with Renderer(faces, 96, vertex_colors=eye_colors(vertices), camera=camera) as renderer:
+            image = renderer.render(vertices).astype(int)
+        dark = np.argwhere(image.sum(-1) < 3 * 90)  # the eyes: (row, column) of dark pixels
+        assert len(dark) > 10
+        centres.append(dark[:, 1].mean() / 96)
+    assert abs(centres[0] - 0.5) < 0.03 and abs(centres[1] - 0.5) > 0.08, centres
+    with pytest.raises(TalkmeshError, match="unknown camera 'side'"):
+        Renderer(faces, 32, camera="side")
+
+
 def test_renderer_rejects_bad_input(head):
     vertices, faces = head
     with Renderer(faces, 32) as renderer:

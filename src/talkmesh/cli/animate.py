@@ -137,7 +137,9 @@ def cmd_animate(args: argparse.Namespace) -> int:
                 if avatar is not None and p.suffix.lower() in (".glb", ".vrm"):
                     _write_avatar(anim, avatar, p, args.overwrite)
                 else:
-                    write_animation(anim, p, overwrite=args.overwrite, size=args.size)
+                    write_animation(
+                        anim, p, overwrite=args.overwrite, size=args.size, camera=args.camera
+                    )
                 if not args.quiet:
                     tqdm.write(f"wrote {p} ({anim.num_frames} frames, {anim.duration:.2f} s)")
         except TalkmeshError as e:
@@ -187,14 +189,16 @@ def cmd_render(args: argparse.Namespace) -> int:
         out.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temps(out.parent)
     if len(anims) == 1:
-        render_video(anims[0], out, size=args.size, progress=not args.quiet)
+        render_video(anims[0], out, size=args.size, progress=not args.quiet, camera=args.camera)
     else:
         labels = args.labels.split(",") if args.labels else [Path(a).stem for a in args.anim]
         if len(labels) != len(anims):
             raise TalkmeshError(
                 f"--labels names {len(labels)} panels but {len(anims)} animations were given"
             )
-        render_side_by_side(anims, labels, out, size=args.size, progress=not args.quiet)
+        render_side_by_side(
+            anims, labels, out, size=args.size, progress=not args.quiet, camera=args.camera
+        )
     if not args.quiet:
         print(f"wrote {out}")
     return 0
@@ -214,7 +218,13 @@ def add_export(sub: Subparsers) -> None:
 def cmd_export(args: argparse.Namespace) -> int:
     src, out = Path(args.anim), Path(args.output)
     check_outputs([[out]], [src], args.overwrite)
-    write_animation(load_input(args.anim, args.fps), out, overwrite=args.overwrite, size=args.size)
+    write_animation(
+        load_input(args.anim, args.fps),
+        out,
+        overwrite=args.overwrite,
+        size=args.size,
+        camera=args.camera,
+    )
     if not args.quiet:
         print(f"wrote {out}")
     return 0

@@ -26,6 +26,12 @@ def add_output_options(sp: argparse.ArgumentParser) -> None:
         default=VIDEO_SIZE,
         help=f"video size in pixels (default {VIDEO_SIZE})",
     )
+    sp.add_argument(
+        "--camera",
+        choices=("front", "three-quarter"),
+        default="front",
+        help="video view: front (default) or three-quarter (the head turned 35 degrees)",
+    )
     add_quiet(sp)
 
 

@@ -427,8 +427,16 @@ def _user_gradients(vertices, faces, registered, skin_faces, shapes, rotation, r
     tri = vertices[faces]
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
-    match, _, dist = closest_points(tri.mean(1), registered, skin_faces, normal)
+    # Four samples per triangle (its centroid and the midpoints towards its corners): a coarse
+    # triangle spans several bundled ones and takes the mean of their gradients.
+    centre = tri.mean(1)
+    samples = np.concatenate([centre[:, None], (centre[:, None] + tri) / 2], axis=1)
+    match, _, dist = closest_points(
+        samples.reshape(-1, 3), registered, skin_faces, np.repeat(normal, 4, axis=0)
+    )
+    match, dist = match.reshape(-1, 4), dist.reshape(-1, 4)[:, 0]
     near, far = FALLOFF[0] * radius, FALLOFF[1] * radius
     fade = np.clip((far - dist) / (far - near), 0.0, 1.0)[None, :, None, None]
-    moved = rotation @ source[:, match] @ rotation.T  # Q in the user's axes: R Q R^T
+    mean = source[:, match].mean(axis=2)  # (52, F, 3, 3)
+    moved = rotation @ mean @ rotation.T  # Q in the user's axes: R Q R^T
     return fade * moved + (1 - fade) * np.eye(3)

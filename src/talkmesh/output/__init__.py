@@ -13,8 +13,11 @@ from talkmesh.output.media import VIDEO_SIZE, VIDEO_SUFFIXES
 __all__ = ["VIDEO_SIZE", "VIDEO_SUFFIXES", "write_animation"]
 
 
-def write_animation(anim, path: Path, *, overwrite: bool, size: int = VIDEO_SIZE) -> None:
-    """Write ``anim`` to ``path``: a video for ``VIDEO_SUFFIXES``, else the extension's exporter.
+def write_animation(
+    anim, path: Path, *, overwrite: bool, size: int = VIDEO_SIZE, camera: str = "front"
+) -> None:
+    """Write ``anim`` to ``path``: a video for ``VIDEO_SUFFIXES`` (seen from ``camera``: "front"
+    or "three-quarter"), else the extension's exporter.
 
     Any OSError (parent is a file, permission denied, disk full, read-only folder) is a one-line
     :class:`TalkmeshError` naming ``path``; temporaries left in the folder by killed writers go.
@@ -24,16 +27,16 @@ def write_animation(anim, path: Path, *, overwrite: bool, size: int = VIDEO_SIZE
     with writing(path):
         path.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temps(path.parent)
-        _write(anim, path, overwrite=overwrite, size=size)
+        _write(anim, path, overwrite=overwrite, size=size, camera=camera)
 
 
-def _write(anim, path: Path, *, overwrite: bool, size: int) -> None:
+def _write(anim, path: Path, *, overwrite: bool, size: int, camera: str) -> None:
     if path.suffix.lower() in VIDEO_SUFFIXES:
         from talkmesh.output.render import render_video
 
         if path.exists() and not overwrite:
             raise TalkmeshError(f"{path} already exists: choose another -o or pass --overwrite")
-        render_video(anim, path, size=size)
+        render_video(anim, path, size=size, camera=camera)
     else:
         from talkmesh.output.formats import save_animation
 

@@ -29,6 +29,9 @@ if TYPE_CHECKING:
 SUPERSAMPLE = 2  # render at 2x and average 2x2 pixels: 4 samples per pixel
 FOV_DEG = 18.0  # a portrait lens: little perspective distortion of the nose
 FRAME_MARGIN = 1.08  # the reference bounding box fills 1 / FRAME_MARGIN of the image height
+# Camera positions: how far the head is turned about its vertical (+y) axis, in degrees; the
+# three-quarter view shows the face's right side (the viewer's left), the mouth's depth with it.
+CAMERAS = {"front": 0.0, "three-quarter": 35.0}
 
 # Materials and lights. Colours are sRGB in [0, 1]; light directions point towards the lights in
 # view space (x right, y up, z towards the viewer).
@@ -186,6 +189,7 @@ class Renderer:
         reference: optional (V, 3) vertices to aim the camera at; default the first rendered frame.
         fov_deg: vertical field of view of the camera.
         supersample: render at this multiple of ``size`` and average (1 turns anti-aliasing off).
+        camera: a name in ``CAMERAS``: "front" or "three-quarter" (the head turned 35 degrees).
         ctx: an OpenGL context to share (see :func:`create_context`); by default the renderer
             creates its own and releases it in :meth:`close`.
 
@@ -202,6 +206,7 @@ class Renderer:
         fov_deg: float = FOV_DEG,
         supersample: int = SUPERSAMPLE,
         ctx: moderngl.Context | None = None,
+        camera: str = "front",
     ) -> None:
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -223,6 +228,13 @@ class Renderer:
         if supersample not in (1, 2):
             raise TalkmeshError(f"supersample must be 1 or 2, got {supersample}")
         self.fov_y = math.radians(fov_deg)
+        if camera not in CAMERAS:
+            raise TalkmeshError(f"unknown camera '{camera}': choose {' or '.join(CAMERAS)}")
+        turn = math.radians(CAMERAS[camera])
+        self._turn = None
+        if turn:
+            c, s = math.cos(turn), math.sin(turn)
+            self._turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], np.float32).T
         self._normals = VertexNormals(self.faces.astype(np.int64), self.num_vertices)
         self._framed = False
         self._flags = 0
@@ -334,7 +346,8 @@ class Renderer:
             )
         if not np.isfinite(vertices).all():
             raise TalkmeshError("cannot render vertices that are NaN or infinite")
-        return vertices[: self.num_vertices]
+        vertices = vertices[: self.num_vertices]
+        return vertices if self._turn is None else vertices @ self._turn
 
     def draw(self, vertices: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Renders into ``out``, a contiguous (H, W, 3) RGB or (H, W, 4) RGBA uint8 array, by

@@ -48,6 +48,7 @@ def _renderer_for(
     size: int | tuple[int, int],
     vertex_colors: np.ndarray | None = None,
     ctx: moderngl.Context | None = None,
+    camera: str = "front",
 ) -> Renderer:
     """A renderer aimed at the animation's template (or first frame), in the head's colours."""
     template = anim.template
@@ -62,6 +63,7 @@ def _renderer_for(
         vertex_colors=vertex_colors,
         reference=anim.vertices[0] if reference is None else reference,
         ctx=ctx,
+        camera=camera,
     )
 
 
@@ -74,6 +76,7 @@ def render_video(
     inputs: Iterable[str | os.PathLike] = (),
     crf: int = VIDEO_CRF,
     progress: bool = False,
+    camera: str = "front",
 ) -> Path:
     """Renders an animation to an mp4 (H.264 yuv420p, with AAC audio if it has audio).
 
@@ -86,13 +89,14 @@ def render_video(
         inputs: files the caller read from; writing over one of them is refused.
         crf: H.264 quality (lower is better; 18 is visually lossless).
         progress: show a progress bar on stderr.
+        camera: "front" or "three-quarter" (``raster.CAMERAS``).
 
     Returns:
         The path written.
     """
     size, inputs = video_size(size), list(inputs)
     check_output(path, VIDEO_SUFFIXES, inputs)
-    with _renderer_for(anim, size, vertex_colors) as renderer:
+    with _renderer_for(anim, size, vertex_colors, camera=camera) as renderer:
         frames = (renderer.draw(v) for v in anim.vertices)
         return write_video(
             frames,
@@ -117,6 +121,7 @@ def render_side_by_side(
     inputs: Iterable[str | os.PathLike] = (),
     crf: int = VIDEO_CRF,
     progress: bool = False,
+    camera: str = "front",
 ) -> Path:
     """Renders animations next to each other, each labelled, into one mp4.
 
@@ -132,6 +137,7 @@ def render_side_by_side(
         inputs: files the caller read from; writing over one of them is refused.
         crf: H.264 quality.
         progress: show a progress bar on stderr.
+        camera: "front" or "three-quarter" (``raster.CAMERAS``).
 
     Returns:
         The path written; the video is (N * width) x height.
@@ -147,7 +153,7 @@ def render_side_by_side(
     ctx = create_context()
     renderers: list[Renderer] = []
     try:
-        renderers = [_renderer_for(a, (width, height), ctx=ctx) for a in anims]
+        renderers = [_renderer_for(a, (width, height), ctx=ctx, camera=camera) for a in anims]
         canvas = np.empty((height, width * len(anims), 4), dtype=np.uint8)
 
         def frames() -> Iterator[np.ndarray]:
@@ -185,6 +191,7 @@ def contact_sheet(
     size: int = 256,
     *,
     inputs: Iterable[str | os.PathLike] = (),
+    camera: str = "front",
 ) -> np.ndarray:
     """Saves a PNG grid of ``n`` evenly spaced frames, each labelled with its time.
 
@@ -202,7 +209,7 @@ def contact_sheet(
     step = size + SHEET_GUTTER
     sheet = np.full((rows * step + SHEET_GUTTER, cols * step + SHEET_GUTTER, 3), 255, np.uint8)
     image = np.empty((size, size, 3), dtype=np.uint8)
-    with _renderer_for(anim, size) as renderer:
+    with _renderer_for(anim, size, camera=camera) as renderer:
         for k, t in enumerate(picks):
             y, x = SHEET_GUTTER + (k // cols) * step, SHEET_GUTTER + (k % cols) * step
             cell = sheet[y : y + size, x : x + size]
