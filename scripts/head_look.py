@@ -3,8 +3,9 @@
     PYTHONPATH=src python scripts/head_look.py [-o docs/images/head-look.png]
 
 Left: the plain part colours; middle: ``talkmesh.face.look`` (irises and pupils, lip colour, dark
-mouth cavity); right: the same from a 3/4 view (the mesh turned 35 degrees about +y). Mouth half
-open (jawOpen 0.5), eyes looking left (eyeLookOutLeft / eyeLookInRight 0.6).
+mouth cavity, teeth and tongue shaded by depth); right: the same from the three-quarter camera
+(``--camera three-quarter``). Mouth half open (jawOpen 0.5), eyes looking left (eyeLookOutLeft /
+eyeLookInRight 0.6).
 """
 
 from __future__ import annotations
@@ -33,19 +34,17 @@ def main() -> None:
     for name, w in POSE.items():
         weights[ARKIT_NAMES.index(name)] = w
     vertices = head.vertices_from_weights(weights[None])[0]
-    angle = np.radians(35)
-    turn = np.array(
-        [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
-    )
     plain = PART_SRGB[np.clip(head.regions.vertex_part, 0, len(PART_SRGB) - 1)]
     panels = []
-    for colors, verts in (
-        (plain, vertices),
-        (head_colors(head), vertices),
-        (head_colors(head), vertices @ turn.T.astype(np.float32)),
+    for colors, camera in (
+        (plain, "front"),
+        (head_colors(head), "front"),
+        (head_colors(head), "three-quarter"),
     ):
-        with Renderer(head.faces, SIZE, vertex_colors=colors, reference=vertices) as renderer:
-            panels.append(renderer.render(verts))
+        with Renderer(
+            head.faces, SIZE, vertex_colors=colors, reference=vertices, camera=camera
+        ) as renderer:
+            panels.append(renderer.render(vertices))
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(panels, axis=1)).save(args.output, optimize=True)
     print(f"wrote {args.output}")

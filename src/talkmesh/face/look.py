@@ -8,7 +8,9 @@ within them, by geometry of the neutral face (metres, +y up, +z towards the view
   centre (the mean of its vertices);
 * lips: the part of ``Regions.lips`` within an ellipse around the lips' midline;
 * mouth cavity: skin vertices inside the head behind the lips (the mouth bag), darker the deeper
-  they are, so an open mouth is dark inside instead of lit like the face.
+  they are, so an open mouth is dark inside instead of lit like the face;
+* teeth and tongue: darker the farther behind the lips they sit (a baked stand-in for the
+  occlusion a one-pass renderer cannot compute), so the back teeth do not glow in a 3/4 view.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ LIP_BLEND = 0.85
 LIP_ELLIPSE = (0.026, 0.012)  # half-width and half-height of the lips (m) around the midline
 MOUTH_BOX = ((-0.035, 0.035), (-0.07, -0.01), (-0.075, 0.015))  # x, y, z of the mouth bag (m)
 CAVITY_DEPTH = 0.02  # metres behind the box's front over which the cavity darkens fully
+INSIDE_SHADE = (0.6, 0.045)  # teeth and tongue: at most this much darker, reached this far (m)
+# behind the lips' midline
 
 
 def head_colors(head: Head) -> np.ndarray:
@@ -55,6 +59,10 @@ def head_colors(head: Head) -> np.ndarray:
         cos = d[:, 2] / np.maximum(np.linalg.norm(d, axis=1), 1e-12)
         colors[eye[cos > IRIS_COS]] = IRIS
         colors[eye[cos > PUPIL_COS]] = PUPIL
+
+    mouth = np.flatnonzero((part == 2) | (part == 3))
+    behind = np.clip((centre[2] - t[mouth, 2]) / INSIDE_SHADE[1], 0.0, 1.0)[:, None]
+    colors[mouth] *= 1.0 - INSIDE_SHADE[0] * behind
 
     inside = part == 0
     for axis, (lo, hi) in enumerate(MOUTH_BOX):

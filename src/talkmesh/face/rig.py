@@ -4,11 +4,12 @@
 
 1. Registration (:mod:`talkmesh.face.registration`): rigid + scale (this gives the units, mm / cm
    / m, and the up-axis), then a non-rigid fit of the bundled head's skin onto the user's surface,
-   held by landmarks: automatic (the bundled head's :data:`LANDMARKS` at the closest user vertex
-   after the rigid fit) or given as user vertex ids, which then also start the rigid fit.
+   held by landmarks (``LANDMARK_NAMES``): those the user gives as vertex ids (four or more also
+   start the rigid fit) and the nose tip, found as the user vertex farthest forward near where the
+   rigid fit puts it; the other landmarks are placed on the fitted head afterwards.
 2. Checks: a mesh the bundled head cannot be fitted to is "not a head"; lips joined across the
-   mouth (the shortest path over the surface between the upper and lower lip is hardly longer
-   than the straight line) mean "no mouth opening", since the jaw could not open.
+   mouth (the shortest path over the surface from the upper to the lower lip landmark is shorter
+   than ``SEALED_LIPS`` of the head's size) mean "no mouth opening": the jaw could not open.
 3. Skin: deformation transfer (:mod:`talkmesh.face.transfer`): every user triangle takes the
    deformation gradient of its corresponding bundled triangle (the closest one facing the same
    way on the registered head), rotated into the user's axes, and the offsets are solved for in
@@ -57,6 +58,7 @@ METHODS = ("transfer", "closest")
 PART_MATCH = 0.3  # centroid distance over RMS radius within which a component is that part
 NOSE_WINDOW = 0.015  # metres around the rigid fit's nose tip searched for the real one
 SKIN, EYE, TEETH, TONGUE = 0, 1, 2, 3  # Regions.vertex_part
+OTHER = -1  # a separate component that is no bundled part: closest-point offsets
 
 # Landmarks: name -> how to find it on the bundled head. "Left" is the face's own left (+x), as in
 # ARKit's names. Each is where a blendshape moves most, or a geometric extreme of the midline.
@@ -73,8 +75,8 @@ LANDMARK_NAMES = ("nose_tip", "chin", "upper_lip", "lower_lip", *LANDMARK_SHAPES
 
 @lru_cache(maxsize=1)
 def _bundled_landmarks() -> dict[str, int]:
-    head = load_head()
-    return head_landmarks(head)
+    """The landmarks of the bundled topology (found on its default identity)."""
+    return head_landmarks(load_head())
 
 
 def head_landmarks(head: Head) -> dict[str, int]:
@@ -260,7 +262,7 @@ def _register(vertices, faces, head, landmarks):
     """Rigid + non-rigid registration of the head's skin; returns (s, R, t, residual, skin ids,
     skin faces, registered skin (S, 3), user landmark ids by name)."""
     source = head.template.astype(np.float64)
-    marks = _bundled_landmarks() if head.num_vertices == 4766 else head_landmarks(head)
+    marks = _bundled_landmarks()  # every Head has the bundled topology
     given = {k: int(v) for k, v in (landmarks or {}).items()}
     _check_landmarks(given, len(vertices))
     pairs = None
@@ -386,7 +388,7 @@ def _classify(vertices, labels, head, scale, rotation, shift):
     ids} for those that follow a bundled eyeball or teeth rigidly. A component (not the largest)
     is taken for the bundled eyeball, teeth row or tongue whose centroid (after the rigid fit) is
     nearest its own, within PART_MATCH of that part's RMS radius and its size is within a factor
-    of two; everything else is skin."""
+    of two. The largest component is the skin; any other is OTHER (lashes, a separate scalp)."""
     placed = scale * head.template.astype(np.float64) @ rotation.T + shift
     head_labels = _components(head.faces.astype(np.int64), head.num_vertices)
     parts = []
@@ -396,9 +398,9 @@ def _classify(vertices, labels, head, scale, rotation, shift):
         if part != SKIN:
             rms = np.sqrt(((placed[ids] - placed[ids].mean(0)) ** 2).sum(1).mean())
             parts.append((ids, part, placed[ids].mean(0), rms))
-    part_of = np.full(len(vertices), SKIN)
-    follow: dict[int, np.ndarray] = {}
     sizes = np.bincount(labels)
+    part_of = np.where(labels == np.argmax(sizes), SKIN, OTHER)
+    follow: dict[int, np.ndarray] = {}
     for label in np.flatnonzero(sizes):
         if label == np.argmax(sizes):
             continue
