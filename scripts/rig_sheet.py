@@ -86,7 +86,8 @@ def main() -> None:
         rows.append(np.concatenate(cells, axis=1))
         print(f"{label}: {len(v)} vertices, units {rig.units}, up {rig.up_axis}", flush=True)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.concatenate(rows, axis=0)).save(args.output, optimize=True)
+    sheet = Image.fromarray(np.concatenate(rows, axis=0)).quantize(colors=128)  # small PNG
+    sheet.save(args.output, optimize=True)
     print(f"wrote {args.output}")
 
 

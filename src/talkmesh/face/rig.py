@@ -55,7 +55,7 @@ MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 NOT_A_HEAD = 0.08  # median registration distance over RMS radius beyond which it is no head
 SEALED_LIPS = 0.12  # surface path between the lips shorter than this x the RMS radius: no mouth
 METHODS = ("transfer", "closest")
-PART_MATCH = 0.3  # centroid distance over RMS radius within which a component is that part
+PART_MATCH = 0.3  # mean distance to a part over its RMS radius within which a component is it
 NOSE_WINDOW = 0.015  # metres around the rigid fit's nose tip searched for the real one
 SKIN, EYE, TEETH, TONGUE = 0, 1, 2, 3  # Regions.vertex_part
 OTHER = -1  # a separate component that is no bundled part: closest-point offsets
@@ -385,10 +385,11 @@ def rig_head(
 
 def _classify(vertices, labels, head, scale, rotation, shift):
     """What each user component is: (V,) part per vertex, and {component label: bundled vertex
-    ids} for those that follow a bundled eyeball or teeth rigidly. A component (not the largest)
-    is taken for the bundled eyeball, teeth row or tongue whose centroid (after the rigid fit) is
-    nearest its own, within PART_MATCH of that part's RMS radius and its size is within a factor
-    of two. The largest component is the skin; any other is OTHER (lashes, a separate scalp)."""
+    ids} for those that follow a bundled eyeball or teeth rigidly. The largest component is the
+    skin. Another is taken for the bundled eyeball, teeth row or tongue (as placed by the rigid
+    fit) it overlaps best: the smallest mean distance from each one's vertices to the other's
+    nearest, both ways, within PART_MATCH of that part's RMS radius. Any other component is OTHER
+    (lashes, a separate scalp)."""
     placed = scale * head.template.astype(np.float64) @ rotation.T + shift
     head_labels = _components(head.faces.astype(np.int64), head.num_vertices)
     parts = []
@@ -397,23 +398,22 @@ def _classify(vertices, labels, head, scale, rotation, shift):
         part = int(head.regions.vertex_part[ids[0]])
         if part != SKIN:
             rms = np.sqrt(((placed[ids] - placed[ids].mean(0)) ** 2).sum(1).mean())
-            parts.append((ids, part, placed[ids].mean(0), rms))
+            parts.append((ids, part, cKDTree(placed[ids]), rms))
     sizes = np.bincount(labels)
     part_of = np.where(labels == np.argmax(sizes), SKIN, OTHER)
     follow: dict[int, np.ndarray] = {}
     for label in np.flatnonzero(sizes):
         if label == np.argmax(sizes):
             continue
-        mine = labels == label
-        centre = vertices[mine].mean(0)
-        rms = np.sqrt(((vertices[mine] - centre) ** 2).sum(1).mean())
+        mine = np.flatnonzero(labels == label)
+        own = cKDTree(vertices[mine])
         fits = [
-            (np.linalg.norm(centre - c) / r, ids, part)
-            for ids, part, c, r in parts
-            if 0.5 < rms / r < 2.0
+            ((tree.query(vertices[mine])[0].mean() + own.query(placed[ids])[0].mean()) / 2 / r, i)
+            for i, (ids, _, tree, r) in enumerate(parts)
         ]
-        if fits and min(fits, key=lambda x: x[0])[0] < PART_MATCH:
-            _, ids, part = min(fits, key=lambda x: x[0])
+        score, best = min(fits) if fits else (np.inf, 0)
+        if score < PART_MATCH:
+            ids, part = parts[best][:2]
             part_of[mine] = part
             if part != TONGUE:  # the tongue bends (tongueOut): closest-point offsets
                 follow[int(label)] = ids
