@@ -27,7 +27,7 @@ ROWS: list[list[tuple[str, str]]] = [
     [("models", "one interface, a file per family"), ("datasets", "readers, synthetic corpus")],
     [("output", "formats registry, renderer")],
     [("pipeline", "animate()"), ("retarget", "retarget, dub")],
-    [("training", "recipes, Lightning system")],
+    [("training", "recipes, Lightning system"), ("batch", "libraries, Ray cluster")],
     [("evaluation", "metrics, evaluate, benchmark")],
     [("serve", "open_stream, server, viewer")],
     [("cli", "talkmesh COMMAND")],

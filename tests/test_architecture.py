@@ -30,6 +30,7 @@ LEVELS: dict[str, int] = {
     "pipeline": 6,
     "retarget": 6,
     "training": 7,
+    "batch": 7,
     "evaluation": 8,
     "serve": 9,
     "cli": 10,

@@ -131,10 +131,10 @@ def test_bad_audio_gives_one_line_error_and_writes_nothing(tmp_path, name, conte
         assert src.read_bytes() == content  # the input is untouched
 
 
-def test_directory_as_audio(tmp_path, capsys):
+def test_folder_without_speech_as_audio(tmp_path, capsys):
     rc = main(["animate", str(tmp_path), "-o", str(tmp_path / "x.npy")])
-    assert rc == 1
-    assert_one_line_error(capsys.readouterr().err, str(tmp_path))
+    assert rc == 2  # a folder is a library (tests/test_batch.py); this one has no speech
+    assert_one_line_error(capsys.readouterr().err, str(tmp_path), "no speech files")
 
 
 def test_one_bad_file_among_good_ones_is_reported_at_the_end(speech, tmp_path, capsys):
@@ -220,8 +220,9 @@ def test_unknown_identity_and_model(speech, tmp_path, capsys):
     )
     assert_one_line_error(capsys.readouterr().err, "nobody")
     rc = main(["animate", str(speech), "--model", "nothing", "-o", str(tmp_path / "b.npy"), "-q"])
-    assert rc == 1
+    assert rc == 2  # refused before any file is animated
     assert_one_line_error(capsys.readouterr().err, "nothing")
+    assert not (tmp_path / "b.npy").exists()
 
 
 def test_export_and_render_bad_animation_files(tmp_path, capsys):
@@ -295,9 +296,9 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
 COMMANDS = {
     "animate": (
         ["audio"],
-        "--avatar --camera --fps --identity --int8 --lip-closure --model --no-blinks "
+        "--avatar --camera --cluster --fps --identity --int8 --lip-closure --model --no-blinks "
         "--no-pause-gate --output --overwrite --procedural-mix --quiet --seed --size --style "
-        "--template --text",
+        "--summary --template --text --workers",
     ),
     "render": (["anim"], "--audio --camera --fps --labels --output --overwrite --quiet --size"),
     "export": (["anim"], "--camera --fps --output --overwrite --quiet --size"),

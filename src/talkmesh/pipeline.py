@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,6 +21,9 @@ from talkmesh.face.lipsync import (
     phones_to_weights,
     replace_eye_motion,
 )
+
+if TYPE_CHECKING:
+    from talkmesh.models.base import MotionModel
 
 DEFAULT_FPS = MOTION_FPS
 MAX_FPS = 240.0
@@ -64,7 +68,7 @@ def animate(
     fps: float = DEFAULT_FPS,
     seed: int = 0,
     style: SpeakingStyle | None = None,
-    model: str | None = None,
+    model: str | MotionModel | None = None,
     style_mix: dict[str, float] | None = None,
     blinks: bool = True,
     int8: str | None = None,
@@ -83,7 +87,8 @@ def animate(
         fps: output frame rate.
         seed: seed of the audio-independent motion (blinks, brow drift, gaze).
         style: the speaker's style.
-        model: ``procedural`` or a learned model: a bundled name or a ``.safetensors`` release
+        model: ``procedural`` or a learned model: a bundled name, a ``.safetensors`` release or
+            a model already loaded with ``load_model`` (so that many files load it once)
             (default: the bundled CodeTalker, ``codetalker-synth``; ``procedural`` without it).
         style_mix: learned models: weights over the training speakers (``{"A": 0.7, "B": 0.3}``);
             default the mean of all of them (the model has never heard this speaker).
@@ -120,7 +125,8 @@ def animate(
     if model != "procedural":
         if text is not None or phones is not None:
             raise TalkmeshError(
-                f"--text and phones drive the procedural animator, not {model}: drop them or "
+                f"--text and phones drive the procedural animator, not {model_name(model)}: drop "
+                "them or "
                 "pass --model procedural"
             )
         corrections = Corrections(pause_gate, lip_closure, procedural_mix)
@@ -201,10 +207,15 @@ def parse_style(text: str | None) -> dict[str, float] | None:
     return out
 
 
+def model_name(model: str | Path | MotionModel) -> str:
+    """How messages name ``model``: its name or path, or its class for a loaded model."""
+    return str(model) if isinstance(model, (str, Path)) else type(model).__name__
+
+
 def animate_learned(
     wave: np.ndarray,
     head: Head,
-    model: str,
+    model: str | Path | MotionModel,
     *,
     fps: float,
     style_mix: dict[str, float] | None,
@@ -212,17 +223,18 @@ def animate_learned(
     int8: str | None = None,
 ) -> Animation:
     """Animate with a released learned model (any family of talkmesh.models.registry) on
-    ``head``'s neutral face; ``int8`` (CodeTalker: speech, decoders or all) as in :func:`animate`."""
+    ``head``'s neutral face (``model``: a name, a release file or a loaded model); ``int8``
+    (CodeTalker: speech, decoders or all) as in :func:`animate`."""
     try:
         import torch
     except ImportError:
         raise TalkmeshError("learned models need torch: run `make setup`") from None
     from talkmesh.models.release import load_model
 
-    net = load_model(model)
+    net = load_model(model) if isinstance(model, (str, Path)) else model
     if net.num_vertices != head.num_vertices:
         raise TalkmeshError(
-            f"model {model} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
+            f"model {model_name(model)} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
         )
     if int8 is not None:
         net = net.int8_copy(int8)
@@ -232,7 +244,7 @@ def animate_learned(
         weights = np.full(len(styles), 1.0 / len(styles), np.float32)
     if style_mix:
         if not styles:
-            raise TalkmeshError(f"--style: model {model} has no speaker styles")
+            raise TalkmeshError(f"--style: model {model_name(model)} has no speaker styles")
         unknown = sorted(set(style_mix) - set(styles))
         if unknown:
             raise TalkmeshError(

@@ -4,6 +4,7 @@ videos and files, a plain head mesh to a rigged .glb."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -17,20 +18,26 @@ from talkmesh.cli.common import (
     parse_outputs,
 )
 from talkmesh.constants import INT8_LAYERS, MOTION_FPS
-from talkmesh.errors import TalkmeshError, os_error_message
+from talkmesh.errors import TalkmeshError
 from talkmesh.face.corrections import MIX
 from talkmesh.output import write_animation
 
 
 def add_animate(sub: Subparsers) -> None:
-    a = sub.add_parser("animate", help="animate a face from speech files")
-    a.add_argument("audio", nargs="+", help="speech files (wav, flac, ogg, mp3, ...)")
+    a = sub.add_parser("animate", help="animate a face from speech files, folders or lists")
+    a.add_argument(
+        "audio",
+        nargs="+",
+        help="speech files (wav, flac, ogg, mp3, ...), folders of them (searched recursively) "
+        "or text files listing them (.txt .lst, one path a line)",
+    )
     a.add_argument(
         "-o",
         "--output",
         action="append",
         help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv .json); "
-        "repeat for several; {stem} is the input name (default {stem}.mp4)",
+        "repeat for several; {stem} is the input name (default {stem}.mp4); a folder (out/) "
+        "takes {stem}.mp4 for each input, mirroring the subfolders of an input folder",
     )
     who = a.add_mutually_exclusive_group()
     who.add_argument("--identity", help="a bundled identity (see `talkmesh info`)")
@@ -92,75 +99,139 @@ def add_animate(sub: Subparsers) -> None:
         help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
         "(faster on CPUs, not exact: see docs/results/codetalker.md)",
     )
+    add_batch_options(a)
     add_output_options(a)
     a.set_defaults(func=cmd_animate)
 
 
+def add_batch_options(a: argparse.ArgumentParser) -> None:
+    a.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="processes animating files at once, each loading the model once (default 1; with "
+        "--cluster, one per CPU of the cluster)",
+    )
+    a.add_argument(
+        "--cluster",
+        metavar="ADDRESS",
+        help="run the files on a Ray cluster: HOST:PORT of its head (`ray start --head`), "
+        "ray://HOST:PORT, auto, or local for one on this machine (docs/guide/scale.md)",
+    )
+    a.add_argument(
+        "--summary",
+        metavar="CSV",
+        help="write a row per file (file, duration, frames, seconds, status, error); default "
+        "summary.csv in the output folder when an input is a folder or a list",
+    )
+
+
 def cmd_animate(args: argparse.Namespace) -> int:
+    """Folders and lists are a library: files whose outputs exist are skipped (the run resumes)
+    and a summary CSV is written; files named one by one refuse existing outputs as before."""
     from tqdm import tqdm
 
-    from talkmesh.face.assets import load_head, load_template
-    from talkmesh.pipeline import animate, parse_style
+    from talkmesh.batch import animate_batch, find_inputs, is_batch_source, write_summary
+    from talkmesh.batch.summary import read_summary, with_earlier
 
-    inputs = [Path(a) for a in args.audio]
+    sources = [Path(a) for a in args.audio]
+    library = any(is_batch_source(p) for p in sources)
+    found = find_inputs(sources)
+    inputs = [f.audio for f in found]
     avatar = Path(args.avatar) if args.avatar else None
     default = DEFAULT_OUTPUT if avatar is None else "{stem}" + avatar.suffix.lower()
-    outputs = parse_outputs(args.output or [default], inputs)
-    check_outputs(outputs, inputs + ([avatar] if avatar else []), args.overwrite, bool(avatar))
+    outputs = parse_outputs(args.output or [default], inputs, [f.stem for f in found])
+    resume = library and not args.overwrite  # existing outputs are done files, not conflicts
+    check_outputs(
+        outputs, inputs + ([avatar] if avatar else []), args.overwrite or resume, bool(avatar)
+    )
+    if args.workers is not None and args.workers < 1:
+        raise TalkmeshError(f"--workers {args.workers}: give 1 or more")
+    summary = Path(args.summary) if args.summary else (summary_path(outputs) if library else None)
+    if args.cluster:
+        from talkmesh.batch.cluster import check_reachable
+
+        check_reachable(args.cluster)
     if avatar is not None:
         from talkmesh.output.avatar import bind_avatar, read_glb
 
         binding = bind_avatar(read_glb(avatar)[0], str(avatar))  # fails before the model runs
         if not args.quiet:
             print(f"avatar {avatar}: {binding.summary()}")
-    head = load_template(args.template) if args.template else load_head(args.identity)
-    failures: list[str] = []
+    written = {str(a): paths for a, paths in zip(inputs, outputs)}
     bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
-    for audio, paths in zip(inputs, outputs):
-        bar.set_description(audio.name)
-        try:
-            anim = animate(
-                audio,
-                head=head,
-                text=args.text,
-                fps=args.fps,
-                seed=args.seed,
-                model=args.model,
-                style_mix=parse_style(args.style),
-                blinks=not args.no_blinks,
-                pause_gate=not args.no_pause_gate,
-                lip_closure=args.lip_closure,
-                procedural_mix=args.procedural_mix,
-                int8=args.int8,
-            )
-            for p in paths:
-                if avatar is not None and p.suffix.lower() in (".glb", ".vrm"):
-                    _write_avatar(anim, avatar, p, args.overwrite)
-                else:
-                    write_animation(
-                        anim, p, overwrite=args.overwrite, size=args.size, camera=args.camera
-                    )
-                if not args.quiet:
-                    tqdm.write(f"wrote {p} ({anim.num_frames} frames, {anim.duration:.2f} s)")
-        except TalkmeshError as e:
-            failures.append(str(e) if str(audio) in str(e) else f"{audio}: {e}")
-        except OSError as e:  # e.g. the input went away: this file's failure, not the batch's
-            failures.append(f"{audio}: {os_error_message(e, action='use')}")
+
+    def on_row(row) -> None:
         bar.update()
-    bar.close()
-    for f in failures:
-        print(f"talkmesh: error: {f}", file=sys.stderr)
-    if failures:
-        print(f"talkmesh: {len(failures)} of {len(inputs)} files failed", file=sys.stderr)
-    return 1 if failures else 0
+        if row.status == "ok" and not args.quiet:
+            names = ", ".join(str(p) for p in written[row.file])
+            tqdm.write(f"wrote {names} ({row.frames} frames, {row.duration:.2f} s)")
+
+    try:
+        result = animate_batch(
+            inputs,
+            outputs,
+            animate_settings(args),
+            workers=args.workers or (None if args.cluster else 1),
+            cluster=args.cluster,
+            on_row=on_row,
+        )
+    finally:
+        bar.close()
+    if summary is not None:
+        write_summary(summary, with_earlier(result.rows, read_summary(summary)))
+    return report_batch(result, summary, args.quiet)
 
 
-def _write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
-    from talkmesh.face.arkit import to_arkit_order
-    from talkmesh.output.avatar import animate_avatar
+def animate_settings(args: argparse.Namespace):
+    """The options of ``talkmesh animate`` as :class:`talkmesh.batch.AnimateSettings`."""
+    from talkmesh.batch import AnimateSettings
+    from talkmesh.pipeline import default_model, parse_style
 
-    weights = to_arkit_order(anim.weights, anim.weight_names)
-    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite)
+    model = args.model or ("procedural" if args.text is not None else default_model())
+    return AnimateSettings(
+        model=model,
+        identity=args.identity,
+        template=args.template,
+        avatar=args.avatar,
+        text=args.text,
+        fps=args.fps,
+        seed=args.seed,
+        style_mix=parse_style(args.style),
+        blinks=not args.no_blinks,
+        pause_gate=not args.no_pause_gate,
+        lip_closure=args.lip_closure,
+        procedural_mix=args.procedural_mix,
+        int8=args.int8,
+        size=args.size,
+        camera=args.camera,
+        overwrite=args.overwrite,
+    )
+
+
+def summary_path(outputs: list[list[Path]]) -> Path:
+    """``summary.csv`` in the folder that holds every output."""
+    folders = [str(p.parent.absolute()) for paths in outputs for p in paths]
+    return Path(os.path.commonpath(folders)) / "summary.csv"
+
+
+def report_batch(result, summary: Path | None, quiet: bool) -> int:
+    """Each failure on a line of its own, then a summary line; 1 when any file failed."""
+    failed = result.failed
+    for r in failed:
+        print(f"talkmesh: error: {r.error}", file=sys.stderr)
+    skipped = sum(r.status == "skipped" for r in result.rows)
+    done = len(result.rows) - skipped - len(failed)
+    where = f"; summary {summary}" if summary is not None else ""
+    if failed:
+        print(
+            f"talkmesh: {len(failed)} of {len(result.rows)} files failed ({done} animated, "
+            f"{skipped} already done){where}",
+            file=sys.stderr,
+        )
+    elif not quiet and (len(result.rows) > 1 or summary is not None):
+        print(f"animated {done} files in {result.seconds:.1f} s ({skipped} already done){where}")
+    return 1 if failed else 0
 
 
 def add_render(sub: Subparsers) -> None:

@@ -58,25 +58,51 @@ def add_dataset(sp: argparse.ArgumentParser) -> None:
 # Output paths
 
 
-def parse_outputs(patterns: list[str], inputs: list[Path]) -> list[list[Path]]:
+def parse_outputs(
+    patterns: list[str], inputs: list[Path], stems: list[str] | None = None
+) -> list[list[Path]]:
     """Expand ``-o`` values into output paths per input.
 
     Each value is a file path (its extension picks the format), a pattern with ``{stem}`` (the
-    input's file name without extension) or, for several inputs, a directory ending in ``/``
-    (then ``DIR/{stem}.mp4``).
+    input's file name without extension, or ``stems[k]`` when given, e.g. ``alice/line001`` for
+    a file in a subfolder of an input folder) or, for several inputs, a directory ending in
+    ``/`` (then ``DIR/{stem}.mp4``).
     """
+    stems = stems if stems is not None else [a.stem for a in inputs]
     out: list[list[Path]] = [[] for _ in inputs]
     for pattern in patterns:
         if pattern.endswith(("/", os.sep)) or (Path(pattern).is_dir() and not Path(pattern).suffix):
             pattern = os.path.join(pattern, DEFAULT_OUTPUT)
         if len(inputs) > 1 and "{stem}" not in pattern:
+            if Path(pattern).is_file():
+                raise TalkmeshError(
+                    f"-o {pattern}: that is a file, not a folder: give a folder for the outputs "
+                    "of several inputs (-o out/)"
+                )
             raise TalkmeshError(
                 f"-o {pattern}: several inputs need a directory (-o out/) or a pattern "
                 "with {stem} (-o out/{stem}.glb)"
             )
-        for k, audio in enumerate(inputs):
-            out[k].append(Path(pattern.replace("{stem}", audio.stem)))
+        for k in range(len(inputs)):
+            out[k].append(Path(pattern.replace("{stem}", stems[k])))
     return out
+
+
+def check_folders(outputs: list[list[Path]]) -> None:
+    """Refuse outputs whose folder is (or lies under) an existing file, before any work."""
+    checked: set[Path] = set()
+    for paths in outputs:
+        for p in paths:
+            for folder in p.parents:
+                if folder in checked:
+                    break
+                checked.add(folder)
+                if folder.exists():
+                    if not folder.is_dir():
+                        raise TalkmeshError(
+                            f"{folder}: the output folder is a file: choose another -o"
+                        )
+                    break
 
 
 def check_outputs(
@@ -91,6 +117,7 @@ def check_outputs(
     known = set(EXPORTERS) | set(VIDEO_SUFFIXES)
     if avatar:
         known |= set(AVATAR_SUFFIXES)
+    check_folders(outputs)
     resolved_inputs = {p.resolve() for p in inputs}
     seen: set[Path] = set()
     for paths in outputs:

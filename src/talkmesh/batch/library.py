@@ -1,0 +1,235 @@
+"""Animate a library of speech files: each worker loads the head and the model once, then takes
+file after file; a file whose outputs all exist is done and skipped; a file that fails is
+reported in its summary row and the batch goes on.
+
+Workers are local processes (``workers``) or Ray actors (:mod:`talkmesh.batch.cluster`); either
+way they run :class:`Animator`, so a file gives the same outputs wherever it is animated.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+from talkmesh.constants import MOTION_FPS
+from talkmesh.errors import TalkmeshError, os_error_message
+from talkmesh.face.corrections import MIX
+from talkmesh.output import VIDEO_SIZE, write_animation
+
+OK, SKIPPED, FAILED = "ok", "skipped", "failed"
+
+
+@dataclass(frozen=True)
+class AnimateSettings:
+    """What every file of a batch is animated with (the options of ``talkmesh animate``).
+
+    ``model`` is ``procedural``, a bundled model's name or a release file; ``identity`` or
+    ``template`` picks the face; ``avatar`` makes .glb/.vrm outputs copies of that character.
+    """
+
+    model: str = "procedural"
+    identity: str | None = None
+    template: str | None = None
+    avatar: str | None = None
+    text: str | None = None
+    fps: float = MOTION_FPS
+    seed: int = 0
+    style_mix: dict[str, float] | None = field(default=None, hash=False)
+    blinks: bool = True
+    pause_gate: bool = True
+    lip_closure: bool = False
+    procedural_mix: float = MIX
+    int8: str | None = None
+    size: int = VIDEO_SIZE
+    camera: str = "front"
+    overwrite: bool = False
+
+
+class Job(NamedTuple):
+    """One speech file and the outputs still to write for it."""
+
+    audio: Path
+    outputs: tuple[Path, ...]
+
+
+class Row(NamedTuple):
+    """One line of the summary: the speech file, its length (s), the frames written, the wall
+    time it took (s), ``ok`` / ``skipped`` (outputs already there) / ``failed``, and the error."""
+
+    file: str
+    duration: float | None
+    frames: int | None
+    seconds: float
+    status: str
+    error: str = ""
+
+
+class Animator:
+    """What one worker holds: the face and the model, loaded once; called once per file.
+
+    ``threads`` caps torch's threads, so that workers sharing a machine do not fight over it.
+    """
+
+    def __init__(self, settings: AnimateSettings, threads: int | None = None):
+        from talkmesh.face.assets import load_head, load_template
+
+        self.settings = settings
+        if threads is not None:
+            _set_threads(threads)
+        s = settings
+        self.head = load_template(s.template) if s.template else load_head(s.identity)
+        self.model: object = s.model
+        self.int8 = s.int8
+        if s.model != "procedural":
+            from talkmesh.models.release import load_model
+
+            net = load_model(s.model)
+            self.model, self.int8 = (net.int8_copy(s.int8) if s.int8 else net), None
+
+    def __call__(self, job: Job) -> Row:
+        from talkmesh.pipeline import animate
+
+        s = self.settings
+        start = time.perf_counter()
+        try:
+            anim = animate(
+                job.audio,
+                head=self.head,
+                text=s.text,
+                fps=s.fps,
+                seed=s.seed,
+                model=self.model,
+                style_mix=s.style_mix,
+                blinks=s.blinks,
+                pause_gate=s.pause_gate,
+                lip_closure=s.lip_closure,
+                procedural_mix=s.procedural_mix,
+                int8=self.int8,
+            )
+            for p in job.outputs:
+                if s.avatar is not None and p.suffix.lower() in (".glb", ".vrm"):
+                    write_avatar(anim, Path(s.avatar), p, s.overwrite)
+                else:
+                    write_animation(anim, p, overwrite=s.overwrite, size=s.size, camera=s.camera)
+        except TalkmeshError as e:
+            return _failed(job, start, str(e))
+        except OSError as e:  # e.g. the input went away: this file's failure, not the batch's
+            return _failed(job, start, os_error_message(e, action="use"))
+        except Exception as e:  # a bug on one file must not stop a library of thousands
+            return _failed(job, start, f"internal error: {type(e).__name__}: {e}")
+        seconds = time.perf_counter() - start
+        return Row(str(job.audio), anim.duration, anim.num_frames, seconds, OK)
+
+
+def write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
+    """``anim``'s ARKit weights as the animation clip of a copy of ``avatar`` at ``path``."""
+    from talkmesh.face.arkit import to_arkit_order
+    from talkmesh.output.avatar import animate_avatar
+
+    weights = to_arkit_order(anim.weights, anim.weight_names)
+    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite)
+
+
+def _failed(job: Job, start: float, message: str) -> Row:
+    message = message.strip().splitlines()[0] if message.strip() else "failed"
+    if str(job.audio) not in message:
+        message = f"{job.audio}: {message}"
+    return Row(str(job.audio), None, None, time.perf_counter() - start, FAILED, message)
+
+
+def _set_threads(threads: int) -> None:
+    try:
+        import torch
+    except ImportError:
+        return
+    torch.set_num_threads(max(1, threads))
+
+
+def plan_jobs(
+    audio: list[Path], outputs: list[list[Path]], overwrite: bool
+) -> tuple[list[Job], list[Row]]:
+    """The files still to animate (with the outputs they lack) and the rows of those done.
+
+    Without ``overwrite``, a file whose outputs all exist is done; one with some of them (a
+    batch stopped between two formats) writes only the missing ones. Outputs are renamed into
+    place complete, so an existing output is never a partial one.
+    """
+    jobs: list[Job] = []
+    done: list[Row] = []
+    for a, paths in zip(audio, outputs):
+        todo = tuple(paths) if overwrite else tuple(p for p in paths if not p.exists())
+        if todo:
+            jobs.append(Job(a, todo))
+        else:
+            done.append(Row(str(a), None, None, 0.0, SKIPPED))
+    return jobs, done
+
+
+def run_local(jobs: list[Job], settings: AnimateSettings, workers: int = 1) -> Iterator[Row]:
+    """Animate ``jobs`` in this process (``workers`` 1) or in that many processes, each with its
+    own :class:`Animator` and an equal share of the cores; rows come in the order files finish."""
+    if workers <= 1 or len(jobs) <= 1:
+        animator = Animator(settings)
+        for job in jobs:
+            yield animator(job)
+        return
+    import multiprocessing
+
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    # spawn: a forked copy of a process that has started torch's thread pools can hang
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(
+        max_workers=min(workers, len(jobs)),
+        mp_context=ctx,
+        initializer=_start_worker,
+        initargs=(settings, threads),
+    ) as pool:
+        futures = {pool.submit(_work, job): job for job in jobs}
+        for future in as_completed(futures):
+            job = futures[future]
+            try:
+                yield future.result()
+            except BrokenProcessPool:
+                message = (
+                    f"{job.audio}: a worker process died (out of memory?): rerun the batch to "
+                    "resume, with fewer --workers"
+                )
+                yield Row(str(job.audio), None, None, 0.0, FAILED, message)
+
+
+# The worker process's own Animator (or why it could not be made), set by _start_worker.
+_ANIMATOR: Animator | str | None = None
+
+
+def _start_worker(settings: AnimateSettings, threads: int) -> None:
+    global _ANIMATOR
+    try:
+        _ANIMATOR = Animator(settings, threads)
+    except Exception as e:  # reported on every file it was given, instead of a dead pool
+        _ANIMATOR = str(e) or type(e).__name__
+
+
+def _work(job: Job) -> Row:
+    if not isinstance(_ANIMATOR, Animator):
+        return _failed(job, time.perf_counter(), f"the worker could not start: {_ANIMATOR}")
+    return _ANIMATOR(job)
+
+
+def check_settings(settings: AnimateSettings) -> None:
+    """Fail on a missing model, face or avatar once, before any worker starts."""
+    from talkmesh.face.assets import load_head, load_template
+
+    if settings.template:
+        load_template(settings.template)
+    else:
+        load_head(settings.identity)
+    if settings.model != "procedural":
+        from talkmesh.models.release import resolve
+
+        resolve(settings.model)
