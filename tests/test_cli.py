@@ -315,7 +315,10 @@ COMMANDS = {
     "convert-whisper": (["source"], "--out --overwrite --quiet"),
     "import-checkpoint": (["files"], "--dataset --family --out --overwrite --quiet"),
     "train": (["recipe", "overrides"], "--devices --num-nodes --quiet --resume --stage"),
-    "benchmark": (["config"], "--dry-run --only --quiet --skip-ablation --skip-video"),
+    "benchmark": (
+        ["config"],
+        "--cluster --cpus-per-task --dry-run --only --quiet --skip-ablation --skip-video",
+    ),
     "retarget": (
         [],
         "--anim --audio --model --output --overwrite --quiet --source-template --template",

@@ -97,3 +97,40 @@ def test_unreachable_or_malformed_cluster_is_one_line(library, tmp_path, capsys)
         lines = [ln for ln in err.splitlines() if ln.startswith("talkmesh: error:")]
         assert len(lines) == 1 and fragment in lines[0] and address in lines[0], err
     assert not Path(out).exists()
+
+
+VOCA = """\
+task: voca
+model:
+  preset: small
+  speech: {kind: mel, dim: 16}
+  conv_channels: [8, 8]
+  hidden: 16
+  latent: 4
+data: {kind: synth, root: not/the/benchmark/corpus, batch_size: 2, max_seconds: 1.0}
+train: {lr: 1.0e-3, epochs: 1, accelerator: cpu, out_dir: runs/tiny_voca}
+"""
+
+
+def test_benchmark_cells_on_the_cluster_then_nothing_left_locally(head, tmp_path):
+    from talkmesh.datasets.synth import make_corpus
+    from talkmesh.evaluation.benchmark import run_benchmark
+
+    make_corpus(tmp_path / "corpus", subjects=3, sentences=3, seed=3, workers=1, progress=False)
+    (tmp_path / "voca.yaml").write_text(VOCA)
+    config = tmp_path / "bench.yaml"
+    config.write_text(
+        f"name: tiny\ndata: {{kind: synth, root: {tmp_path / 'corpus'}, split: test}}\n"
+        f"seeds: [0, 1]\nwork_dir: {tmp_path / 'work'}\ndocs_dir: {tmp_path / 'docs'}\n"
+        f"baselines: [static]\nmethods:\n  voca: {{recipe: {tmp_path / 'voca.yaml'}}}\n"
+        "speed: {seconds: [1], repeats: 1}\nsamples: 1\nvideo: false\n"
+    )
+    lines: list[str] = []
+    result = run_benchmark(config, cluster=head, log=lines.append, progress=False)
+    assert sorted(p.parent.name for p in result.trained) == ["seed0", "seed1"]
+    where = [ln for ln in lines if ": ran on " in ln]
+    assert len(where) == 2
+    assert all(int(ln.rsplit("pid ", 1)[1]) != os.getpid() for ln in where)  # Ray workers did it
+    assert result.json.exists() and "voca" in result.markdown.read_text()
+    again = run_benchmark(config, quiet=True)  # a local run finds every cell done
+    assert again.trained == [] and again.predicted == []

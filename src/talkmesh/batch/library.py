@@ -181,9 +181,12 @@ def run_local(jobs: list[Job], settings: AnimateSettings, workers: int = 1) -> I
         return
     import multiprocessing
 
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    # spawn: a forked copy of a process that has started torch's thread pools can hang
-    ctx = multiprocessing.get_context("spawn")
+    threads = max(1, usable_cpus() // workers)
+    # fork where there is one: workers start with talkmesh, torch and pocketsphinx already
+    # imported (spawn re-imports them in every worker: seconds of CPU each, measured in
+    # bench/batch_throughput.py); torch resets its CPU thread pool in forked children
+    methods = multiprocessing.get_all_start_methods()
+    ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
     with ProcessPoolExecutor(
         max_workers=min(workers, len(jobs)),
         mp_context=ctx,
@@ -201,6 +204,14 @@ def run_local(jobs: list[Job], settings: AnimateSettings, workers: int = 1) -> I
                     "resume, with fewer --workers"
                 )
                 yield Row(str(job.audio), None, None, 0.0, FAILED, message)
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity, e.g. under taskset), else all of them."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
 
 
 # The worker process's own Animator (or why it could not be made), set by _start_worker.

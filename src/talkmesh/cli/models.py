@@ -131,6 +131,19 @@ def add_benchmark(sub: Subparsers) -> None:
     bm.add_argument(
         "--dry-run", action="store_true", help="print every step and its directory, run nothing"
     )
+    bm.add_argument(
+        "--cluster",
+        metavar="ADDRESS",
+        help="train and predict the method x seed cells on a Ray cluster: HOST:PORT of its head, "
+        "ray://HOST:PORT, auto or local (work and docs folders on a shared file system; "
+        "docs/guide/scale.md)",
+    )
+    bm.add_argument(
+        "--cpus-per-task",
+        type=float,
+        default=1,
+        help="with --cluster: CPUs each cell asks of the cluster (default 1)",
+    )
     add_quiet(bm)
     bm.set_defaults(func=cmd_benchmark)
 
@@ -144,7 +157,19 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
         for line in plan_lines(load_benchmark(args.config), **flags):
             print(line)
         return 0
-    result = run_benchmark(args.config, **flags, quiet=args.quiet)
+    if args.cluster:
+        from talkmesh.batch.cluster import check_reachable
+
+        if args.cpus_per_task <= 0:
+            raise TalkmeshError(f"--cpus-per-task {args.cpus_per_task:g}: give more than 0")
+        check_reachable(args.cluster)
+    result = run_benchmark(
+        args.config,
+        **flags,
+        quiet=args.quiet,
+        cluster=args.cluster,
+        cpus_per_task=args.cpus_per_task,
+    )
     if not args.quiet:
         print(f"wrote {result.markdown} and {result.json}")
     return 0

@@ -3,6 +3,8 @@ step after the other, each resumable (see the package docstring for the resume r
 
 from __future__ import annotations
 
+import os
+import socket
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -137,8 +139,16 @@ def run_benchmark(
     progress: bool = True,
     quiet: bool = False,
     log: Callable[[str], None] | None = None,
+    cluster: str | None = None,
+    cpus_per_task: float = 1,
 ) -> BenchmarkResult:
-    """Run (or resume) the benchmark of ``config`` and write its markdown, JSON and figures."""
+    """Run (or resume) the benchmark of ``config`` and write its markdown, JSON and figures.
+
+    ``cluster`` (a Ray address or ``local``, :mod:`talkmesh.batch.cluster`) trains and predicts
+    the method x seed cells as Ray tasks of ``cpus_per_task`` CPUs; baselines, scores, the
+    ablation, speed and the report stay on this machine. Work and docs folders must then be on a
+    file system every node shares.
+    """
     from talkmesh.version import __version__
 
     cfg = load_benchmark(config)
@@ -150,7 +160,10 @@ def run_benchmark(
     fig_dir = docs / cfg.name
     run = _Run(cfg, open_split(cfg), log, progress)
     baselines = _baselines(run)
-    _train_and_predict(run, methods)
+    if cluster is None:
+        _train_and_predict(run, methods)
+    else:
+        _train_and_predict_on_cluster(run, methods, cluster, cpus_per_task)
     results = _score_methods(run, methods)
     claims = check_claims(
         {m: r["aggregate"] for m, r in results.items()},
@@ -269,12 +282,55 @@ def _train_and_predict(run: _Run, methods: list[str]) -> None:
     stopped part of the way already compares every method; scoring then only reads."""
     for seed in run.cfg.seeds:
         for method in methods:
-            plans = method_stages(run.cfg, method, seed)
-            for p in plans:
-                run.stage(p, f"{method} seed {seed} {p.stage}")
-            pred = Path(run.cfg.work_dir) / method / f"seed{seed}" / "pred"
-            if not predictions_done(pred, plans[-1].release):
-                run.predict(plans[-1].release, pred, f"{method} seed {seed}")
+            _cell(run, method, seed)
+
+
+def _cell(run: _Run, method: str, seed: int) -> None:
+    """One method x seed: its stages in order, then its predictions (each skipped when done)."""
+    plans = method_stages(run.cfg, method, seed)
+    for p in plans:
+        run.stage(p, f"{method} seed {seed} {p.stage}")
+    pred = Path(run.cfg.work_dir) / method / f"seed{seed}" / "pred"
+    if not predictions_done(pred, plans[-1].release):
+        run.predict(plans[-1].release, pred, f"{method} seed {seed}")
+
+
+class CellResult(NamedTuple):
+    """What a cell run elsewhere reports: its log lines, the stage and prediction folders it
+    made, and where it ran (``host pid N``)."""
+
+    lines: list[str]
+    trained: list[Path]
+    predicted: list[Path]
+    where: str
+
+
+def run_cell(cfg: BenchmarkConfig, method: str, seed: int, cwd: str) -> CellResult:
+    """One method x seed cell in this process, from the driver's folder ``cwd`` (relative paths
+    of the config mean the same there): a Ray task of ``run_benchmark(cluster=...)``."""
+    os.chdir(cwd)
+    lines: list[str] = []
+    run = _Run(cfg, None, lines.append, progress=False)
+    _cell(run, method, seed)
+    return CellResult(
+        lines, run.trained, run.predicted, f"{socket.gethostname()} pid {os.getpid()}"
+    )
+
+
+def _train_and_predict_on_cluster(
+    run: _Run, methods: list[str], cluster: str, cpus_per_task: float
+) -> None:
+    """The cells of :func:`_train_and_predict` as Ray tasks, all at once; their logs as each ends."""
+    from talkmesh.batch.cluster import map_tasks
+
+    calls = [(run.cfg, m, s, os.getcwd()) for s in run.cfg.seeds for m in methods]
+    run.log(f"cluster {cluster}: {len(calls)} cells, {cpus_per_task:g} CPUs each")
+    for (_, method, seed, _), cell in map_tasks(run_cell, calls, cluster, num_cpus=cpus_per_task):
+        for line in cell.lines:
+            run.log(line)
+        run.log(f"{method} seed {seed}: ran on {cell.where}")
+        run.trained += cell.trained
+        run.predicted += cell.predicted
 
 
 def _score_methods(run: _Run, methods: list[str]) -> dict[str, Any]:
