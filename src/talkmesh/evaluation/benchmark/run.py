@@ -142,13 +142,8 @@ def run_benchmark(
     cluster: str | None = None,
     cpus_per_task: float = 1,
 ) -> BenchmarkResult:
-    """Run (or resume) the benchmark of ``config`` and write its markdown, JSON and figures.
-
-    ``cluster`` (a Ray address or ``local``, :mod:`talkmesh.batch.cluster`) trains and predicts
-    the method x seed cells as Ray tasks of ``cpus_per_task`` CPUs; baselines, scores, the
-    ablation, speed and the report stay on this machine. Work and docs folders must then be on a
-    file system every node shares.
-    """
+    """Run (or resume) the benchmark of ``config`` and write its markdown, JSON and figures;
+    ``cluster`` (a Ray address) trains and predicts the cells there (:func:`_train_and_predict`)."""
     from talkmesh.version import __version__
 
     cfg = load_benchmark(config)
@@ -160,10 +155,7 @@ def run_benchmark(
     fig_dir = docs / cfg.name
     run = _Run(cfg, open_split(cfg), log, progress)
     baselines = _baselines(run)
-    if cluster is None:
-        _train_and_predict(run, methods)
-    else:
-        _train_and_predict_on_cluster(run, methods, cluster, cpus_per_task)
+    _train_and_predict(run, methods, cluster, cpus_per_task)
     results = _score_methods(run, methods)
     claims = check_claims(
         {m: r["aggregate"] for m, r in results.items()},
@@ -277,9 +269,17 @@ def _baselines(run: _Run) -> dict[str, Any]:
     return out
 
 
-def _train_and_predict(run: _Run, methods: list[str]) -> None:
+def _train_and_predict(
+    run: _Run, methods: list[str], cluster: str | None = None, cpus_per_task: float = 1
+) -> None:
     """Every stage and prediction, seed-major (seed 0 of every method first), so that a run
-    stopped part of the way already compares every method; scoring then only reads."""
+    stopped part of the way already compares every method; scoring then only reads. With
+    ``cluster`` (a Ray address or ``local``, :mod:`talkmesh.batch.cluster`) the method x seed
+    cells are Ray tasks of ``cpus_per_task`` CPUs; baselines, scores, the ablation, speed and the
+    report stay on this machine, so work and docs folders must be on a shared file system."""
+    if cluster is not None:
+        _train_and_predict_on_cluster(run, methods, cluster, cpus_per_task)
+        return
     for seed in run.cfg.seeds:
         for method in methods:
             _cell(run, method, seed)
