@@ -11,7 +11,7 @@ Axis letters: B batch, S audio samples (16 kHz), T motion frames, V vertices, K 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 from torch import Tensor, nn
@@ -48,6 +48,38 @@ class FrameStream(ABC):
     def frame(self, buffer: np.ndarray, buffer_start: int, frame: int) -> np.ndarray:
         """The next frame's motion, (V * 3,) float32 offsets from the template; frames are asked
         for in order, each once, when :meth:`audio_needed` samples have arrived."""
+
+    def frames_together(self, requests: list[FrameRequest]) -> np.ndarray:
+        """The next frame of each request's stream (streams of this one's ``engine``, each at
+        most once) -> (B, V * 3), what each stream's :meth:`frame` gives alone. This default
+        computes them one by one; a family whose streams share an engine runs them as a batch."""
+        return np.stack([r.stream.frame(r.buffer, r.buffer_start, r.frame) for r in requests])
+
+
+class FrameRequest(NamedTuple):
+    """The next frame of one stream, and the stream's audio buffer (first sample
+    ``buffer_start``), as :meth:`FrameStream.frame` takes them."""
+
+    stream: FrameStream
+    buffer: np.ndarray
+    buffer_start: int
+    frame: int
+
+
+def next_frames(requests: list[FrameRequest]) -> list[np.ndarray]:
+    """The next frame of several streams (each at most once) -> each (V * 3,), as each stream's
+    :meth:`FrameStream.frame` computes it alone; streams that share an ``engine`` (the streams
+    of one loaded model) compute theirs in one batch."""
+    groups: dict[int, list[int]] = {}
+    for i, r in enumerate(requests):
+        engine = getattr(r.stream, "engine", None)
+        groups.setdefault(id(r.stream) if engine is None else id(engine), []).append(i)
+    out: list[np.ndarray] = [np.empty(0)] * len(requests)
+    for members in groups.values():
+        group = [requests[i] for i in members]
+        for i, motion in zip(members, group[0].stream.frames_together(group)):
+            out[i] = motion
+    return out
 
 
 class MotionModel(nn.Module, ABC):

@@ -15,7 +15,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from talkmesh.models.base import FrameStream
+from talkmesh.models.base import FrameRequest, FrameStream
+from talkmesh.models.codetalker_batch import frame_batch
 from talkmesh.models.codetalker_vq import DecoderStep, Quantized
 from talkmesh.models.layers import KVCache, folded_linear, sinusoid, window_bias
 from talkmesh.models.speech import MelFeatureStream
@@ -292,15 +293,17 @@ class FrameGenerator:
 
 class CodeTalkerStream(FrameStream):
     """A streaming CodeTalker (causal VQ decoder, mel speech encoder) one frame per step: the
-    frame's speech feature from the stream's audio (:class:`MelFeatureStream`), then
-    :meth:`FrameGenerator.step` with its key/value caches, exactly what ``generate`` computes."""
+    frame's speech feature from the stream's audio (:class:`MelFeatureStream`), then the model's
+    step with key/value caches, exactly what ``generate`` computes. The streams of one model
+    share its :class:`talkmesh.models.codetalker_batch.FrameBatch`, where each holds a slot, and
+    compute their frames together (:meth:`frames_together`)."""
 
     def __init__(self, model: nn.Module, style: Tensor, features: MelFeatureStream) -> None:
         """``model``: a CodeTalker; ``style`` (1, d) its style vector."""
         self.model, self.features = model, features
         self.fps, self.lookahead_ms = model.motion_fps, features.lookahead_ms
-        with torch.inference_mode():
-            self.generator = FrameGenerator(model, style)
+        self.engine = frame_batch(model)
+        self.slot = self.engine.open(self, style[0])
 
     def audio_needed(self, frame: int) -> float:
         return self.features.audio_needed(frame)
@@ -309,7 +312,7 @@ class CodeTalkerStream(FrameStream):
         return self.features.first_sample(frame)
 
     def frame(self, buffer: np.ndarray, buffer_start: int, frame: int) -> np.ndarray:
-        with torch.inference_mode():
-            token = self.model.audio_map(self.features.feature(buffer, buffer_start, frame))
-            _, motion = self.generator.step(self.model.cross_terms(token[:, None]))
-        return motion[0].numpy()
+        return self.engine.step([FrameRequest(self, buffer, buffer_start, frame)])[0]
+
+    def frames_together(self, requests: list[FrameRequest]) -> np.ndarray:
+        return self.engine.step(requests)

@@ -341,6 +341,11 @@ class MelFeatureStream:
 
     def feature(self, buffer: np.ndarray, buffer_start: int, frame: int) -> Tensor:
         """The speech feature (1, dim) of ``frame``; frames are asked for in order."""
+        return self.encode(self.window(buffer, buffer_start, frame)[None], [self.shift])
+
+    def window(self, buffer: np.ndarray, buffer_start: int, frame: int) -> Tensor:
+        """The log-mel frames (n_mels, receptive_field) that ``frame``'s feature reads; frames are
+        asked for in order."""
         mel = self.mel
         last = self.last_mel(frame)
         first = last - mel.receptive_field + 1
@@ -353,10 +358,15 @@ class MelFeatureStream:
                 self.cache = torch.cat([self.cache, new], dim=1)
             self.cache = self.cache[:, first - self.first :]
             self.first = first
-        x = self.encoder.convolve(self.cache[None, :, : mel.receptive_field])[:, :, -1]
+        return self.cache[:, : mel.receptive_field]
+
+    def encode(self, windows: Tensor, shifts: list[int]) -> Tensor:
+        """windows (B, n_mels, receptive_field) of :meth:`window`, the look-ahead shift of each
+        (B streams of one model) -> their speech features (B, dim)."""
+        x = self.encoder.convolve(windows)[:, :, -1]
         feats = self.encoder.norm(self.encoder.output(x))
         if self.speech.max_shift:
-            feats = feats + self.speech.shift_embedding.weight[self.shift]
+            feats = feats + self.speech.shift_embedding.weight[shifts]
         return feats
 
 
