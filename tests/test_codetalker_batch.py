@@ -6,13 +6,12 @@ import gc
 
 import numpy as np
 import torch
+from test_stream import SR, tiny_model
 
 from talkmesh.models.base import FrameRequest, next_frames
 from talkmesh.models.codetalker_batch import frame_batch, ring_bias
 from talkmesh.models.layers import window_bias
 from talkmesh.models.release import load_model
-
-from test_stream import SR, tiny_model
 
 FRAMES = 40
 
