@@ -327,9 +327,9 @@ COMMANDS = {
     "rig": (["mesh"], "--landmark --landmarks --output --overwrite --quiet"),
     "serve": (
         [],
-        "--avatar --first-message-timeout --host --idle-timeout --jobs --max-message-bytes "
-        "--max-queue --max-seconds --max-sessions --max-upload-mb --model --port --quiet "
-        "--request-timeout",
+        "--avatar --batch-wait-ms --first-message-timeout --host --idle-timeout --jobs "
+        "--max-message-bytes --max-queue --max-seconds --max-sessions --max-upload-mb --model "
+        "--port --quiet --request-timeout --torch-threads",
     ),
     "info": ([], ""),
 }

@@ -215,6 +215,8 @@ def test_bad_sessions_do_not_disturb_a_good_one(client, pcm, alone):
 
 def test_one_session_too_many_is_refused_until_one_ends(client):
     health = client.get("/health").json()
+    ticks, batched = health.pop("ticks"), health.pop("batched")  # the scheduler's work so far
+    assert batched >= ticks > 0
     assert health == {
         "status": "ok",
         "sessions": 0,
@@ -368,3 +370,39 @@ def test_cli_serves_and_stops_cleanly(pcm, stop):
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+
+
+def test_model_sessions_at_once_get_the_frames_of_a_session_alone(tmp_path, pcm):
+    """Sessions of a streaming model share its steps (serve.batching): frames as if alone."""
+    from test_stream import tiny_model
+
+    path = tiny_model(tmp_path, num_vertices=load_head().num_vertices)
+    chunks = [pcm[i : i + CHUNK] for i in range(0, len(pcm), CHUNK)]
+    with TestClient(create_app([str(path)], batch_wait_ms=20)) as client:
+
+        def session(*others):
+            with client.websocket_connect("/ws/stream?lookahead_ms=100") as ws:
+                ws.receive_json()
+                for k, chunk in enumerate(chunks):
+                    ws.send_bytes(chunk)
+                    for other in others:  # other sessions, one chunk behind
+                        if k:
+                            other.send_bytes(chunks[k - 1])
+                ws.send_json({"type": "end"})
+                return read_until_close(ws)
+
+        alone = session()
+        with (
+            client.websocket_connect("/ws/stream?lookahead_ms=100") as b,
+            client.websocket_connect("/ws/stream?lookahead_ms=100") as c,
+        ):
+            b.receive_json()
+            c.receive_json()
+            together = session(b, c)
+            for other in (b, c):
+                other.send_bytes(chunks[-1])
+                other.send_json({"type": "end"})
+                assert len(read_until_close(other).frames) == len(alone.frames)
+    assert together.texts == alone.texts and len(alone.frames) == 90
+    for a, b in zip(together.frames, alone.frames):
+        np.testing.assert_allclose(a.weights, b.weights, atol=1e-4)

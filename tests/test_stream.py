@@ -19,7 +19,7 @@ from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Confi
 from talkmesh.models.codetalker_vq import VQConfig
 from talkmesh.models.release import save_model
 from talkmesh.models.speech import SpeechEncoderConfig
-from talkmesh.serve.stream import open_stream
+from talkmesh.serve.stream import open_stream, push_together
 
 SR = 16_000
 V = 20
@@ -38,11 +38,11 @@ def tiny_head() -> Head:
     )
 
 
-def tiny_model(tmp_path: Path, causal: bool = True) -> Path:
+def tiny_model(tmp_path: Path, causal: bool = True, num_vertices: int = V) -> Path:
     torch.manual_seed(0)
     cfg = CodeTalkerConfig(
         vq=VQConfig(
-            num_vertices=V,
+            num_vertices=num_vertices,
             hidden=32,
             layers=1,
             heads=2,
@@ -195,3 +195,56 @@ def test_stream_errors(tmp_path):
     assert len(stream.flush()) == 1  # 10 ms of audio: one frame
     with pytest.raises(TalkmeshError, match="flushed"):
         stream.push(np.zeros(160, np.float32))
+
+
+def test_streams_pushed_together_get_the_frames_they_get_alone(tmp_path, monkeypatch):
+    from talkmesh.models.codetalker_batch import FrameBatch
+
+    path, head = tiny_model(tmp_path), tiny_head()
+    rng = np.random.default_rng(3)
+    audios = [rng.normal(0, 0.1, int(s * SR)).astype(np.float32) for s in (1.5, 0.9, 1.2)]
+    chunkings = [[320, 1600], [480], [3200, 160, 800]]
+
+    def open_all():
+        streams = [
+            open_stream(path, lookahead_ms=la, head=head, offsets=True, seed=k)
+            for k, la in enumerate((0.0, 100.0, 200.0))
+        ]
+        return [*streams, open_stream("procedural", head=head, seed=3)]
+
+    alone = [
+        stream_all(s, a, c)
+        for s, a, c in zip(open_all(), [*audios, audios[0]], [*chunkings, [320]])
+    ]
+    sizes = []
+    step = FrameBatch.step
+    monkeypatch.setattr(FrameBatch, "step", lambda self, r: sizes.append(len(r)) or step(self, r))
+    streams = open_all()
+    together = [[] for _ in streams]
+    ticks = [[] for _ in streams]  # each stream's chunks, dealt out to ticks of 100 ms
+    for k, (audio, chunks) in enumerate(zip([*audios, audios[0]], [*chunkings, [320]])):
+        i, n = 0, 0
+        while i < len(audio):
+            size = chunks[n % len(chunks)]
+            tick = int(i / (SR / 10))
+            ticks[k] += [[] for _ in range(tick + 1 - len(ticks[k]))]
+            ticks[k][tick].append(audio[i : i + size])
+            i, n = i + size, n + 1
+    for tick in range(max(map(len, ticks)) + 1):
+        work = [
+            (s, ticks[k][tick] if tick < len(ticks[k]) else [], tick == len(ticks[k]) - 1)
+            for k, s in enumerate(streams)
+            if tick < len(ticks[k])
+        ]
+        for (s, _, _), frames in zip(work, push_together(work)):
+            together[streams.index(s)] += frames
+    assert max(sizes) == 3  # the model's three streams stepped together
+    for a, b in zip(alone, together):
+        assert [f.index for f in a] == [f.index for f in b]
+        np.testing.assert_allclose(
+            np.stack([f.weights for f in b]), np.stack([f.weights for f in a]), atol=1e-4
+        )
+        if a[0].offsets is not None:
+            np.testing.assert_allclose(
+                np.stack([f.offsets for f in b]), np.stack([f.offsets for f in a]), atol=1e-5
+            )

@@ -64,6 +64,18 @@ def add_serve(sub: Subparsers) -> None:
     )  # docs/security.md
     for flag, kind, default, what in limits:
         sv.add_argument(flag, type=kind, default=default, help=f"{what} (default {default:g})")
+    sv.add_argument(
+        "--batch-wait-ms",
+        type=float,
+        default=0.0,
+        help="wait this long after a stream's audio arrives to compute it together with other "
+        "streams' (default 0: every tick takes what has arrived)",
+    )
+    sv.add_argument(
+        "--torch-threads",
+        type=int,
+        help="threads of the batched model steps (default: PyTorch's, one per core)",
+    )
     add_quiet(sv, "log only warnings and errors")
     sv.set_defaults(func=cmd_serve)
 
@@ -92,6 +104,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         max_queue=args.max_queue,
         request_timeout=args.request_timeout,
         first_message_timeout=args.first_message_timeout,
+        batch_wait_ms=args.batch_wait_ms,
+        torch_threads=args.torch_threads,
     )
     return 0
 

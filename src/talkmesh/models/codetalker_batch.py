@@ -45,12 +45,15 @@ class RingView:
 
     def __init__(self, k: Tensor, v: Tensor, slots: Tensor, rows: Tensor) -> None:
         self.k, self.v, self.slots, self.rows = k, v, slots, rows
+        # the slots of a step are sorted: consecutive ones are read as a view, without a copy
+        first, last = int(slots[0]), int(slots[-1])
+        self.span = slice(first, last + 1) if last - first + 1 == len(slots) else slots
 
     def append(self, k: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
         """k, v (B, heads, 1, dh) of the current frames -> the rings (B, heads, W, dh)."""
         self.k[self.slots, :, self.rows] = k[:, :, 0]
         self.v[self.slots, :, self.rows] = v[:, :, 0]
-        return self.k[self.slots], self.v[self.slots]
+        return self.k[self.span], self.v[self.span]
 
 
 class FrameBatch:
@@ -122,6 +125,8 @@ class FrameBatch:
         Long because it is the model's step in one piece: speech features, stage 2, the VQ
         decoder, the fed-back input."""
         model, dec, S = self.model, self.dec, self.state
+        order = sorted(range(len(requests)), key=lambda i: requests[i].stream.slot)
+        requests = [requests[i] for i in order]
         with self.lock, torch.inference_mode():
             slots = torch.tensor([r.stream.slot for r in requests])
             if len(set(slots.tolist())) != len(requests):
@@ -163,7 +168,9 @@ class FrameBatch:
             motion = dec.out(h[:, 0]) * dec.scale
             for r in requests:
                 self.t[r.stream.slot] += 1
-        return motion.numpy()
+        out = np.empty((len(requests), motion.shape[1]), np.float32)
+        out[order] = motion.numpy()
+        return out
 
 
 _CREATE = threading.Lock()

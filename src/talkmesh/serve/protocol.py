@@ -1,7 +1,47 @@
 """The WebSocket wire format of ``talkmesh serve``: one binary message per frame, and the close
 codes. Layout of a frame message (little-endian): a 16-byte header (magic ``TMF1``, frame index
 uint32, time float32 in s, number of weights uint16, flags uint16), the ARKit weights as float32,
-then, with flag ``FLAG_OFFSETS``, the (V, 3) vertex offsets as float16."""
+then, with flag ``FLAG_OFFSETS``, the (V, 3) vertex offsets as float16.
+
+Streaming protocol
+==================
+
+``GET /ws/stream?model=procedural&lookahead_ms=100&offsets=0`` upgrades to a WebSocket. All three
+parameters are optional: ``model`` is one of the names the server was started with (``procedural``,
+or a ``--model`` .safetensors file by its stem; default the first ``--model``), ``lookahead_ms``
+the audio a frame waits for after its time (default 100, at most 300), ``offsets=1`` asks for the
+vertex offsets of every frame as well as its weights. Clients never name files on the server.
+
+1. On accept the server sends one text message::
+
+       {"type": "hello", "fps": 30.0, "sample_rate": 16000, "lookahead_ms": 100.0,
+        "model": "procedural", "names": [the 52 ARKit blendshape names]}
+
+2. Client -> server:
+
+   * binary: raw mono 16 kHz PCM, signed 16-bit little-endian, any length up to the message limit
+     (an odd number of bytes is an error);
+   * text ``{"type": "end"}``: the end of the audio; the server flushes the remaining frames.
+
+3. Server -> client, one binary message per frame, all little-endian::
+
+       offset  size  field
+       0       4     magic b"TMF1"
+       4       4     uint32  frame index (0, 1, 2, ... with no gaps)
+       8       4     float32 frame time in seconds (index / fps)
+       12      2     uint16  number of weights N (52)
+       14      2     uint16  flags: bit 0 = vertex offsets follow
+       16      4N    float32 weights in [0, 1], in the order of the hello's ``names``
+       16+4N   6V    (flag bit 0 only) float16 vertex offsets from the neutral face, (V, 3), metres
+
+   After the flush: text ``{"type": "end", "frames": N}`` and a normal close (1000).
+
+4. Errors end the session: text ``{"type": "error", "message": "<what is wrong and what to do>"}``
+   then a close with code 1008 (bad input: garbage, odd byte count, invalid JSON, unknown model or
+   bad look-ahead, no message for ``--idle-timeout`` seconds), 1009 (a message over
+   ``--max-message-bytes``), 1011 (a bug in the server) or 1013 (all ``--max-sessions`` are busy).
+   On shutdown (Ctrl-C, SIGTERM) open sessions are closed with 1001 and no error message.
+"""
 
 from __future__ import annotations
 

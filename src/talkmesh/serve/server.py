@@ -1,50 +1,19 @@
 """``talkmesh serve``: face animation streamed over WebSocket, files over HTTP (starlette + uvicorn).
 
-Streaming protocol
-==================
+Streaming
+=========
 
-``GET /ws/stream?model=procedural&lookahead_ms=100&offsets=0`` upgrades to a WebSocket. All three
-parameters are optional: ``model`` is one of the names the server was started with (``procedural``,
-or a ``--model`` .safetensors file by its stem; default the first ``--model``), ``lookahead_ms``
-the audio a frame waits for after its time (default 100, at most 300), ``offsets=1`` asks for the
-vertex offsets of every frame as well as its weights. Clients never name files on the server.
-
-1. On accept the server sends one text message::
-
-       {"type": "hello", "fps": 30.0, "sample_rate": 16000, "lookahead_ms": 100.0,
-        "model": "procedural", "names": [the 52 ARKit blendshape names]}
-
-2. Client -> server:
-
-   * binary: raw mono 16 kHz PCM, signed 16-bit little-endian, any length up to the message limit
-     (an odd number of bytes is an error);
-   * text ``{"type": "end"}``: the end of the audio; the server flushes the remaining frames.
-
-3. Server -> client, one binary message per frame, all little-endian::
-
-       offset  size  field
-       0       4     magic b"TMF1"
-       4       4     uint32  frame index (0, 1, 2, ... with no gaps)
-       8       4     float32 frame time in seconds (index / fps)
-       12      2     uint16  number of weights N (52)
-       14      2     uint16  flags: bit 0 = vertex offsets follow
-       16      4N    float32 weights in [0, 1], in the order of the hello's ``names``
-       16+4N   6V    (flag bit 0 only) float16 vertex offsets from the neutral face, (V, 3), metres
-
-   After the flush: text ``{"type": "end", "frames": N}`` and a normal close (1000).
-
-4. Errors end the session: text ``{"type": "error", "message": "<what is wrong and what to do>"}``
-   then a close with code 1008 (bad input: garbage, odd byte count, invalid JSON, unknown model or
-   bad look-ahead, no message for ``--idle-timeout`` seconds), 1009 (a message over
-   ``--max-message-bytes``), 1011 (a bug in the server) or 1013 (all ``--max-sessions`` are busy).
-   On shutdown (Ctrl-C, SIGTERM) open sessions are closed with 1001 and no error message.
+``GET /ws/stream?model=procedural&lookahead_ms=100&offsets=0`` upgrades to a WebSocket: a hello,
+16-bit PCM in, one binary message per frame out; the protocol, message by message, is in
+:mod:`talkmesh.serve.protocol`.
 
 HTTP
 ====
 
 * ``GET /``: the browser viewer (``talkmesh/serve/static``), or a 503 page where it is not installed.
 * ``GET /health``: ``{"status": "ok", "sessions": n, "max_sessions": m, "jobs": running /animate
-  jobs, "queued": waiting ones, "models": [...]}``.
+  jobs, "queued": waiting ones, "models": [...], "ticks": the streaming scheduler's ticks so far,
+  "batched": the session-ticks they computed}`` (batched / ticks: the mean batch).
 * ``GET /head.glb``: the bundled head with its 52 ARKit morph targets (named in
   ``meshes[0].extras.targetNames``), a one-frame neutral animation.
 * ``GET /avatar.glb``: the ``--avatar`` file as it is (.glb or .vrm), 404 without one; ``/health``
@@ -60,8 +29,10 @@ body must each arrive within ``--request-timeout`` seconds (default 30) or the c
 with one log line; a client that leaves mid-upload is one log line; a WebSocket session must send
 its first message within ``--first-message-timeout`` seconds (default 2) of the hello.
 
-Each session runs its ``push``/``flush`` in a worker thread, one call at a time, so one session's
-computing never holds up another's socket, and a misbehaving client only ends its own session.
+The sessions' audio is computed in ticks by one scheduler (:mod:`talkmesh.serve.batching`): each
+tick runs the ready audio of every session in one worker-thread call, the streams of one model in
+shared model steps, so the event loop stays free and a misbehaving client only ends its own
+session.
 """
 
 from __future__ import annotations
@@ -90,6 +61,7 @@ from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
 from talkmesh.serve import limits as lim
+from talkmesh.serve.batching import Scheduler, Work, frames_of
 from talkmesh.serve.limits import JobQueue, QueueFull
 from talkmesh.serve.protocol import (
     CLOSE_BUSY,
@@ -240,7 +212,13 @@ class Limits:
 class Service:
     """The endpoints, sharing the models, the limits and the session registry."""
 
-    def __init__(self, models: dict[str, str], limits: Limits, avatar: Path | None = None):
+    def __init__(
+        self,
+        models: dict[str, str],
+        limits: Limits,
+        avatar: Path | None = None,
+        batch_wait_s: float = 0.0,
+    ):
         self.avatar_name, self.avatar_glb = None, None
         if avatar is not None:  # checked now: a bad avatar stops the server before it starts
             from talkmesh.output.avatar import bind_avatar, read_glb
@@ -251,6 +229,7 @@ class Service:
         self.default_model = next(iter(models))
         self.limits = limits
         self.sessions = Sessions(limits.max_sessions)
+        self.scheduler = Scheduler(batch_wait_s)
         self.head = load_head()
         self.queue = JobQueue(limits.jobs, limits.max_queue, lim.DEFAULT_SHORT_SECONDS)
         self._head_glb: bytes | None = None
@@ -306,22 +285,40 @@ class Service:
             "names": list(stream.names),
         }
         await ws.send_json(hello)
-        sent, timeout = 0, self.limits.first_message_timeout  # a silent client frees its slot soon
-        while True:
-            pcm = await self._receive_audio(ws, timeout)
-            timeout = self.limits.idle_timeout
-            # one call at a time per session, in a worker thread: the event loop stays free
-            if pcm is None:
-                frames = await anyio.to_thread.run_sync(stream.flush)
-            else:
-                frames = await anyio.to_thread.run_sync(stream.push, pcm)
-            for frame in frames:
-                await ws.send_bytes(encode_frame(frame))
-            sent += len(frames)
-            if pcm is None:
-                await ws.send_json({"type": "end", "frames": sent})
-                await ws.close(CLOSE_NORMAL)
-                return
+        work = self.scheduler.join(stream)
+        failure: Exception | None = None
+        try:
+            async with anyio.create_task_group() as tasks:
+                tasks.start_soon(self._receive_loop, ws, work)
+                try:  # errors leave the task group as themselves, not as a group
+                    sent = 0
+                    async for frames in frames_of(work):
+                        for frame in frames:
+                            await ws.send_bytes(encode_frame(frame))
+                        sent += len(frames)
+                    await ws.send_json({"type": "end", "frames": sent})
+                    await ws.close(CLOSE_NORMAL)
+                except Exception as e:
+                    failure = e
+                tasks.cancel_scope.cancel()
+        finally:
+            self.scheduler.leave(work)
+        if failure is not None:
+            raise failure
+
+    async def _receive_loop(self, ws: WebSocket, work: Work) -> None:
+        """A session's audio into the scheduler until its end message; what ends the session
+        early (bad input, silence, the client gone) goes into its frames' queue instead."""
+        timeout = self.limits.first_message_timeout  # a silent client frees its slot soon
+        try:
+            while True:
+                pcm = await self._receive_audio(ws, timeout)
+                timeout = self.limits.idle_timeout
+                await self.scheduler.submit(work, pcm)
+                if pcm is None:
+                    return
+        except Exception as e:
+            work.send.send_nowait(e)
 
     async def _receive_audio(self, ws: WebSocket, timeout: float) -> np.ndarray | None:
         """The next message: (S,) float32 audio, or None for the end message.
@@ -393,6 +390,8 @@ class Service:
                 "queued": len(self.queue.waiting),
                 "models": list(self.models),
                 "avatar": self.avatar_name,
+                "ticks": self.scheduler.ticks,  # the scheduler's ticks, and the sessions they
+                "batched": self.scheduler.stepped,  # computed in all (their ratio: batch size)
             }
         )
 
@@ -585,17 +584,22 @@ def create_app(
     idle_timeout: float = DEFAULT_IDLE_TIMEOUT_S,
     static_dir: Path | None = STATIC_DIR,
     avatar: str | Path | None = None,
+    batch_wait_ms: float = 0.0,
     **limit_options,
 ) -> Starlette:
     """The ASGI app. Every model is opened once here, so a bad one fails now, not per client.
 
     ``avatar``: a .glb/.vrm with ARKit morph targets that the viewer shows instead of the head;
     ``limit_options``: the other fields of :class:`Limits` (max_seconds, jobs, max_queue,
-    request_timeout, first_message_timeout)."""
+    request_timeout, first_message_timeout); ``batch_wait_ms``: how long the scheduler waits after
+    a session's audio arrives to gather others' into the same tick (:mod:`talkmesh.serve.batching`)."""
     limits = Limits(
         max_sessions, max_message_bytes, max_upload_bytes, float(idle_timeout), **limit_options
     )
-    service = Service(resolve_models(models), limits, None if avatar is None else Path(avatar))
+    if not 0.0 <= batch_wait_ms <= 1000.0:
+        raise TalkmeshError(f"--batch-wait-ms must be 0 to 1000, got {batch_wait_ms:g}")
+    avatar = None if avatar is None else Path(avatar)
+    service = Service(resolve_models(models), limits, avatar, batch_wait_ms / 1000)
     for source in service.models.values():
         open_stream(source, head=service.head)
     routes = [
@@ -639,13 +643,21 @@ def serve(
     port: int = 8000,
     *,
     quiet: bool = False,
+    torch_threads: int | None = None,
     **app_options,
 ) -> None:
-    """Run :func:`create_app` with uvicorn until Ctrl-C or SIGTERM, then close the sessions (1001)."""
+    """Run :func:`create_app` with uvicorn until Ctrl-C or SIGTERM, then close the sessions (1001);
+    ``torch_threads``: PyTorch's threads for the model steps (None: its default)."""
     try:
         import uvicorn
     except ImportError:
         raise MissingDependencyError("uvicorn", "serve", "talkmesh serve") from None
+    if torch_threads is not None:
+        if torch_threads < 1:
+            raise TalkmeshError(f"--torch-threads must be at least 1, got {torch_threads}")
+        import torch
+
+        torch.set_num_threads(torch_threads)
 
     app = create_app(**app_options)
     service: Service = app.state.service

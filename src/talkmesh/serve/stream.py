@@ -61,6 +61,18 @@ class StreamFrame:
     offsets: np.ndarray | None  # (V, 3) float32 vertex offsets from the neutral face
 
 
+def as_audio(pcm: np.ndarray) -> np.ndarray:
+    """An audio chunk (float in [-1, 1], or int16) -> (S,) float32, non-finite samples zeroed."""
+    audio = np.asarray(pcm)
+    if audio.ndim != 1:
+        raise TalkmeshError(f"audio chunks must be 1-D mono samples, got shape {audio.shape}")
+    if audio.dtype == np.int16:
+        audio = audio.astype(np.float32) / 32768.0
+    elif audio.dtype.kind != "f":
+        raise TalkmeshError(f"audio chunks must be float or int16 samples, got {audio.dtype}")
+    return np.nan_to_num(audio.astype(np.float32, copy=False), nan=0.0, posinf=0.0, neginf=0.0)
+
+
 class Streamer:
     """Common part: audio bookkeeping and the emission schedule. Subclasses say how far past a
     frame's time the audio must reach (:meth:`_audio_needed`) and compute frames."""
@@ -84,32 +96,32 @@ class Streamer:
         """16 kHz mono audio (float in [-1, 1], or int16) -> the frames it completes."""
         if self.closed:
             raise TalkmeshError("this stream was flushed: open a new one to stream more audio")
-        audio = np.asarray(pcm)
-        if audio.ndim != 1:
-            raise TalkmeshError(f"audio chunks must be 1-D mono samples, got shape {audio.shape}")
-        if audio.dtype == np.int16:
-            audio = audio.astype(np.float32) / 32768.0
-        elif audio.dtype.kind != "f":
-            raise TalkmeshError(f"audio chunks must be float or int16 samples, got {audio.dtype}")
-        audio = np.nan_to_num(audio.astype(np.float32, copy=False), nan=0.0, posinf=0.0, neginf=0.0)
+        audio = as_audio(pcm)
         frames: list[StreamFrame] = []
         for i in range(0, len(audio), PIECE):  # long pushes in pieces: state stays bounded
             piece = audio[i : i + PIECE]
             self._receive(piece)
             self.samples += len(piece)
-            ready = self.next_frame
-            while self._audio_needed(ready) <= self.samples:
-                ready += 1
-            frames += self._emit(ready, final=False)
+            frames += self._emit(self._ready(), final=False)
         return frames
+
+    def _ready(self) -> int:
+        """The frame after the last one whose audio has arrived."""
+        ready = self.next_frame
+        while self._audio_needed(ready) <= self.samples:
+            ready += 1
+        return ready
+
+    def _total(self) -> int:
+        """Frames of the whole stream once it ends (at least one)."""
+        return max(1, int(round(self.samples / SAMPLE_RATE * self.fps)), self.next_frame)
 
     def flush(self) -> list[StreamFrame]:
         """End of the stream: every remaining frame of the audio received (at least one)."""
         if self.closed:
             return []
         self.closed = True
-        total = max(1, int(round(self.samples / SAMPLE_RATE * self.fps)))
-        return self._emit(max(total, self.next_frame), final=True)
+        return self._emit(self._total(), final=True)
 
     def _emit(self, end: int, final: bool) -> list[StreamFrame]:
         if end <= self.next_frame:
@@ -257,7 +269,8 @@ class ProceduralStreamer(Streamer):
 
 class ModelStreamer(Streamer):
     """A learned model's release that streams (:meth:`talkmesh.models.base.MotionModel.open_frame_stream`),
-    one frame per step; its eye motion becomes procedural blinks and gaze (module docstring)."""
+    one frame per step; its eye motion becomes procedural blinks and gaze (module docstring).
+    :func:`push_together` computes the frames of many such streams in shared model steps."""
 
     def __init__(
         self,
@@ -279,7 +292,7 @@ class ModelStreamer(Streamer):
                 f"{path} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
             )
         super().__init__(self.stream.fps, self.stream.lookahead_ms, head, offsets)
-        self.fitter = WeightFitter(head.blendshapes, iterations=50)
+        self.fitter = _weight_fitter(head)
         self.blinks = (
             UpperFace(self.fps, seed, SpeakingStyle(), [INDEX[n] for n in BLINK_GAZE])
             if blinks
@@ -295,18 +308,115 @@ class ModelStreamer(Streamer):
         return self.stream.audio_needed(frame)
 
     def _frames(self, start: int, end: int, final: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        motion = np.empty((end - start, self.head.num_vertices * 3), np.float32)
-        for k, t in enumerate(range(start, end)):
-            motion[k] = self.stream.frame(self.buffer, self.buffer_start, t)
-        drop = self.stream.first_sample(end) - self.buffer_start  # audio no later frame reads
+        motion = np.stack([self.stream.frame(*self._request(t)[1:]) for t in range(start, end)])
+        weights = self.fitter(motion)
+        replace_eye_motion(motion, weights, self._eyes(start, end, weights), self.basis)
+        return self._finish(start, end, motion, weights)
+
+    def _eyes(self, start: int, end: int, weights: np.ndarray) -> np.ndarray:
+        """The eyes frames start..end-1 get: procedural blinks and gaze, or the model's own
+        (``weights``, the ARKit weights fitted to its motion) without blinks."""
+        return weights if self.blinks is None else self.blinks(start, end)
+
+    def _request(self, frame: int):
+        from talkmesh.models.base import FrameRequest  # torch: only where a model streams
+
+        return FrameRequest(self.stream, self.buffer, self.buffer_start, frame)
+
+    def _take(self, chunks: list[np.ndarray], end: bool) -> range:
+        """Receive ``chunks`` (and the end of the stream) -> the frames now due, for the caller
+        to compute (:func:`push_together`)."""
+        if self.closed:
+            raise TalkmeshError("this stream was flushed: open a new one to stream more audio")
+        for audio in map(as_audio, chunks):
+            self._receive(audio)
+            self.samples += len(audio)
+        self.closed = end
+        start, self.next_frame = self.next_frame, self._total() if end else self._ready()
+        return range(start, self.next_frame)
+
+    def _finish(
+        self, start: int, end: int, motion: np.ndarray, weights: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Frames start..end-1 from their motion (T, V * 3) and ARKit weights, the eye motion
+        replaced: the audio no later frame reads is dropped."""
+        drop = self.stream.first_sample(end) - self.buffer_start
         if drop > 0:
             self.buffer = self.buffer[drop:]
             self.buffer_start += drop
-        weights = self.fitter(motion)
-        if self.blinks is not None:  # the model's own eye motion becomes procedural eyes
-            replace_eye_motion(motion, weights, self.blinks(start, end), self.basis)
         offsets = motion.reshape(len(motion), -1, 3) if self.offsets else None
         return weights, offsets
+
+
+def push_together(
+    work: list[tuple[Streamer, list[np.ndarray], bool]],
+) -> list[list[StreamFrame] | TalkmeshError]:
+    """Many streams' new audio at once: for each (streamer, chunks, end) the frames that pushing
+    each chunk in turn (then flushing, if ``end``) would return, or the TalkmeshError that ended
+    it. The streams of one model compute their frames together: one model step per frame index
+    for all streams that have that many frames due, each stream's frames what it computes alone
+    (the procedural animator has no shared model: its streams run one after another).
+
+    Long because it is the one schedule of the batch: receive, step together, finish together.
+    """
+    out: list = [None] * len(work)
+    due: dict[int, range] = {}  # model streams: the frames to compute
+    for i, (streamer, chunks, end) in enumerate(work):
+        try:
+            if isinstance(streamer, ModelStreamer):
+                due[i] = streamer._take(chunks, end)
+            else:
+                frames = [f for chunk in chunks for f in streamer.push(chunk)]
+                out[i] = frames + (streamer.flush() if end else [])
+        except TalkmeshError as e:
+            out[i] = e
+    if due:
+        from talkmesh.models.base import next_frames
+    motion: dict[int, list[np.ndarray]] = {i: [] for i in due}
+    for k in range(max((len(r) for r in due.values()), default=0)):
+        rows = [i for i, r in due.items() if k < len(r)]
+        requests = [work[i][0]._request(due[i][k]) for i in rows]
+        for i, m in zip(rows, next_frames(requests)):
+            motion[i].append(m)
+    fitters: dict[int, list[int]] = {}  # streams sharing a weight fitter fit in one call
+    for i in due:
+        fitters.setdefault(id(work[i][0].fitter), []).append(i)
+    for members in fitters.values():
+        members = [i for i in members if len(due[i])]
+        if not members:
+            continue
+        stacked = np.concatenate([np.stack(motion[i]) for i in members])
+        first = work[members[0]][0]
+        weights = first.fitter(stacked)
+        cuts = np.cumsum([len(due[i]) for i in members])[:-1]
+        eyes = [
+            work[i][0]._eyes(due[i].start, due[i].stop, w)
+            for i, w in zip(members, np.split(weights, cuts))
+        ]
+        replace_eye_motion(stacked, weights, np.concatenate(eyes), first.basis)
+        for i, part, w in zip(members, np.split(stacked, cuts), np.split(weights, cuts)):
+            streamer, r = work[i][0], due[i]
+            w, offsets = streamer._finish(r.start, r.stop, part, w)
+            out[i] = [
+                StreamFrame(t, t / streamer.fps, w[k], None if offsets is None else offsets[k])
+                for k, t in enumerate(r)
+            ]
+    for i in due:
+        if out[i] is None:
+            out[i] = []
+    return out
+
+
+_FITTERS: dict[int, tuple[Head, WeightFitter]] = {}
+
+
+def _weight_fitter(head: Head) -> WeightFitter:
+    """One fitter per face (its factorised basis is megabytes), shared by the streams."""
+    if id(head) not in _FITTERS:
+        if len(_FITTERS) >= 4:
+            _FITTERS.clear()
+        _FITTERS[id(head)] = (head, WeightFitter(head.blendshapes, iterations=50))
+    return _FITTERS[id(head)][1]
 
 
 _MODELS: dict[tuple[str, float], object] = {}

@@ -1,0 +1,138 @@
+"""The server's scheduler: the streaming sessions' work in ticks, one worker-thread call per tick.
+
+Each session's receiving coroutine hands its audio to the :class:`Scheduler` as it arrives
+(:meth:`Scheduler.submit`) and keeps reading. The scheduler's loop takes the audio of every
+session that has some and computes all of it in one call of
+:func:`talkmesh.serve.stream.push_together` in a worker thread: the streams of one model step
+together, one model step per frame index for all sessions with that frame due. While a tick
+computes, the next chunks of every session queue up for the next one, so the batches grow with
+the load: a busy server runs fewer, larger steps instead of falling behind. Each session's frames
+come back through its own queue (:class:`Work`), which its sending coroutine drains.
+
+Knobs (``talkmesh serve`` flags): ``--batch-wait-ms`` waits that long after the first ready
+chunk before a tick, to gather more sessions into it (more throughput, that much latency);
+``--torch-threads`` sets the threads of the batched model steps.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+
+import anyio
+import numpy as np
+
+from talkmesh.serve.stream import Streamer, StreamFrame, push_together
+
+log = logging.getLogger(__name__)
+
+MAX_TICK_S = 1.0  # audio of one session computed per tick at most: others are not held up long
+MAX_PENDING_S = 5.0  # a session that sends faster than it is computed waits at this backlog
+
+
+class Work:
+    """One session's place in the scheduler: audio waiting to be computed, the frames computed.
+
+    The outbox carries, in order: lists of frames, then ``None`` after the last frames of an
+    ended stream; or an exception that ends the session."""
+
+    def __init__(self, stream: Streamer) -> None:
+        self.stream = stream
+        self.inbox: list[np.ndarray] = []
+        self.pending = 0  # samples in the inbox
+        self.end = False  # the end message came: flush after the inbox
+        self.taken_end = False
+        self.send, self.outbox = anyio.create_memory_object_stream(math.inf)
+        self.drained = anyio.Event()
+
+    def take(self) -> tuple[list[np.ndarray], bool]:
+        """The chunks for this tick (at most ``MAX_TICK_S`` of audio) and whether the stream ends
+        with them."""
+        chunks, n = [], 0
+        while self.inbox and (not chunks or n + len(self.inbox[0]) <= MAX_TICK_S * 16_000):
+            chunk = self.inbox.pop(0)
+            chunks.append(chunk)
+            n += len(chunk)
+        self.pending -= n
+        end = self.end and not self.inbox
+        self.taken_end = self.taken_end or end
+        if self.pending <= MAX_PENDING_S * 16_000:
+            self.drained.set()
+        return chunks, end
+
+    @property
+    def ready(self) -> bool:
+        return bool(self.inbox) or (self.end and not self.taken_end)
+
+
+class Scheduler:
+    """Ticks over the sessions' work (module docstring); runs while sessions are open."""
+
+    def __init__(self, batch_wait_s: float = 0.0) -> None:
+        self.batch_wait_s = batch_wait_s
+        self.works: list[Work] = []
+        self.wake = anyio.Event()
+        self.runner: asyncio.Task | None = None
+        self.ticks = 0
+        self.stepped = 0  # session-ticks computed (their mean per tick: the batch size)
+
+    def join(self, stream: Streamer) -> Work:
+        work = Work(stream)
+        self.works.append(work)
+        if self.runner is None or self.runner.done():
+            self.runner = asyncio.get_running_loop().create_task(self._run())
+        return work
+
+    def leave(self, work: Work) -> None:
+        if work in self.works:
+            self.works.remove(work)
+        self.wake.set()  # the loop ends once no session is left
+
+    async def submit(self, work: Work, audio: np.ndarray | None) -> None:
+        """Queue a session's audio (None: its end); waits while its backlog is too long."""
+        if audio is None:
+            work.end = True
+        else:
+            work.inbox.append(audio)
+            work.pending += len(audio)
+        self.wake.set()
+        while work.pending > MAX_PENDING_S * 16_000:
+            work.drained = anyio.Event()
+            await work.drained.wait()
+
+    async def _run(self) -> None:
+        while self.works:
+            await self.wake.wait()
+            self.wake = anyio.Event()
+            if self.batch_wait_s:
+                await anyio.sleep(self.batch_wait_s)
+            ready = [w for w in self.works if w.ready]
+            if not ready:
+                continue
+            jobs = [(w.stream, *w.take()) for w in ready]
+            try:
+                results = await anyio.to_thread.run_sync(push_together, jobs)
+            except Exception as e:  # a bug: end the sessions of this tick, keep serving
+                log.exception("a streaming tick failed")
+                results = [e] * len(ready)
+            self.ticks += 1
+            self.stepped += len(ready)
+            for work, (_, _, end), result in zip(ready, jobs, results):
+                work.send.send_nowait(result)
+                if end and not isinstance(result, Exception):
+                    work.send.send_nowait(None)
+            if any(w.ready for w in self.works):
+                self.wake.set()
+
+
+async def frames_of(work: Work):
+    """A session's computed frames, list by list, until its stream ends; raises what ended it
+    (the receiving side's error, or the computation's)."""
+    async for item in work.outbox:
+        if item is None:
+            return
+        if isinstance(item, BaseException):
+            raise item
+        frames: list[StreamFrame] = item
+        yield frames
