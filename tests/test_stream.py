@@ -197,7 +197,8 @@ def test_stream_errors(tmp_path):
         stream.push(np.zeros(160, np.float32))
 
 
-def test_streams_pushed_together_get_the_frames_they_get_alone(tmp_path, monkeypatch):
+@pytest.mark.parametrize("offsets", [True, False])  # False: the model projects onto the basis
+def test_streams_pushed_together_get_the_frames_they_get_alone(tmp_path, monkeypatch, offsets):
     from talkmesh.models.codetalker_batch import FrameBatch
 
     path, head = tiny_model(tmp_path), tiny_head()
@@ -207,7 +208,7 @@ def test_streams_pushed_together_get_the_frames_they_get_alone(tmp_path, monkeyp
 
     def open_all():
         streams = [
-            open_stream(path, lookahead_ms=la, head=head, offsets=True, seed=k)
+            open_stream(path, lookahead_ms=la, head=head, offsets=offsets, seed=k)
             for k, la in enumerate((0.0, 100.0, 200.0))
         ]
         return [*streams, open_stream("procedural", head=head, seed=3)]
@@ -218,7 +219,9 @@ def test_streams_pushed_together_get_the_frames_they_get_alone(tmp_path, monkeyp
     ]
     sizes = []
     step = FrameBatch.step
-    monkeypatch.setattr(FrameBatch, "step", lambda self, r: sizes.append(len(r)) or step(self, r))
+    monkeypatch.setattr(
+        FrameBatch, "step", lambda self, r, basis=None: sizes.append(len(r)) or step(self, r, basis)
+    )
     streams = open_all()
     together = [[] for _ in streams]
     ticks = [[] for _ in streams]  # each stream's chunks, dealt out to ticks of 100 ms

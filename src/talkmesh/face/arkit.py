@@ -130,6 +130,11 @@ class WeightFitter:
 
     def __call__(self, offsets: np.ndarray) -> np.ndarray:
         proj = np.asarray(offsets, np.float64).reshape(len(offsets), -1) @ self.basis.T
+        return self.from_projection(proj)
+
+    def from_projection(self, proj: np.ndarray) -> np.ndarray:
+        """The fit from the offsets' projections onto the basis, (T, 52) ``offsets @ basis.T``
+        (a model can compute those without the offsets themselves)."""
         w = np.clip(proj @ self.inverse.T, 0.0, 1.0)
         for _ in range(self.iterations):
             w = np.clip(w - self.step * (w @ self.gram - proj), 0.0, 1.0)

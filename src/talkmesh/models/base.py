@@ -49,11 +49,16 @@ class FrameStream(ABC):
         """The next frame's motion, (V * 3,) float32 offsets from the template; frames are asked
         for in order, each once, when :meth:`audio_needed` samples have arrived."""
 
-    def frames_together(self, requests: list[FrameRequest]) -> np.ndarray:
+    def frames_together(
+        self, requests: list[FrameRequest], basis: np.ndarray | None = None
+    ) -> np.ndarray:
         """The next frame of each request's stream (streams of this one's ``engine``, each at
-        most once) -> (B, V * 3), what each stream's :meth:`frame` gives alone. This default
-        computes them one by one; a family whose streams share an engine runs them as a batch."""
-        return np.stack([r.stream.frame(r.buffer, r.buffer_start, r.frame) for r in requests])
+        most once) -> (B, V * 3), what each stream's :meth:`frame` gives alone; with ``basis``
+        (K, V * 3) only the frames' projections onto it, (B, K) float64 (an engine can compute
+        them without the V * 3 coordinates). This default computes the frames one by one; a
+        family whose streams share an engine runs them as a batch."""
+        motion = np.stack([r.stream.frame(r.buffer, r.buffer_start, r.frame) for r in requests])
+        return motion if basis is None else motion.astype(np.float64) @ basis.T
 
 
 class FrameRequest(NamedTuple):
@@ -66,10 +71,11 @@ class FrameRequest(NamedTuple):
     frame: int
 
 
-def next_frames(requests: list[FrameRequest]) -> list[np.ndarray]:
+def next_frames(requests: list[FrameRequest], basis: np.ndarray | None = None) -> list[np.ndarray]:
     """The next frame of several streams (each at most once) -> each (V * 3,), as each stream's
-    :meth:`FrameStream.frame` computes it alone; streams that share an ``engine`` (the streams
-    of one loaded model) compute theirs in one batch."""
+    :meth:`FrameStream.frame` computes it alone, or with ``basis`` (K, V * 3) its projection
+    (K,) onto it; streams that share an ``engine`` (the streams of one loaded model) compute
+    theirs in one batch."""
     groups: dict[int, list[int]] = {}
     for i, r in enumerate(requests):
         engine = getattr(r.stream, "engine", None)
@@ -77,7 +83,7 @@ def next_frames(requests: list[FrameRequest]) -> list[np.ndarray]:
     out: list[np.ndarray] = [np.empty(0)] * len(requests)
     for members in groups.values():
         group = [requests[i] for i in members]
-        for i, motion in zip(members, group[0].stream.frames_together(group)):
+        for i, motion in zip(members, group[0].stream.frames_together(group, basis)):
             out[i] = motion
     return out
 

@@ -88,6 +88,7 @@ class FrameBatch:
             ring = (vq.heads, vq.causal_window, vq.hidden // vq.heads)
             self.shapes[f"vq_k{n}"] = self.shapes[f"vq_v{n}"] = ring
         self.state = {name: torch.zeros(0, *shape) for name, shape in self.shapes.items()}
+        self._projection = None
         self.t: list[int] = []  # per slot: frames computed
         self.free: list[int] = []
 
@@ -118,9 +119,11 @@ class FrameBatch:
         return len(self.t) - len(self.free)
 
     # -- one step
-    def step(self, requests: list[FrameRequest]) -> np.ndarray:
+    def step(self, requests: list[FrameRequest], basis: np.ndarray | None = None) -> np.ndarray:
         """The next frame of each request's stream (each stream at most once) -> motion
-        (B, V * 3) float32 offsets from the template, in the order of ``requests``.
+        (B, V * 3) float32 offsets from the template, in the order of ``requests``; with
+        ``basis`` (K, V * 3) their projections onto it (B, K) float64 instead, through the
+        output map folded with the basis (:meth:`projection`), without the V * 3 coordinates.
 
         Long because it is the model's step in one piece: speech features, stage 2, the VQ
         decoder, the fed-back input."""
@@ -165,12 +168,29 @@ class FrameBatch:
             h = dec.norm(h)
             # the next frame's input, and this frame's motion
             S["x_in"][slots] = self.fold(h) + S["style"][slots][:, None]
-            motion = dec.out(h[:, 0]) * dec.scale
             for r in requests:
                 self.t[r.stream.slot] += 1
-        out = np.empty((len(requests), motion.shape[1]), np.float32)
-        out[order] = motion.numpy()
+            if basis is None:
+                result = (dec.out(h[:, 0]) * dec.scale).numpy()
+            else:
+                weight, bias = self.projection(basis)
+                result = h[:, 0].double().numpy() @ weight + bias
+        out = np.empty_like(result)
+        out[order] = result
         return out
+
+    def projection(self, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The VQ decoder's output map followed by the projection onto ``basis`` (K, V * 3) as
+        one affine map of its hidden states: weight (hidden, K), bias (K,), float64. Kept for
+        the last basis asked for (a server has one face)."""
+        key = (id(basis), basis.shape)
+        if self._projection is None or self._projection[0] != key:
+            out, scale = self.dec.out, self.dec.scale.double()
+            scaled = basis.astype(np.float64) * scale.numpy()  # (K, V * 3)
+            weight = out.weight.double().numpy().T @ scaled.T
+            bias = scaled @ out.bias.double().numpy()
+            self._projection = (key, (weight, bias), basis)
+        return self._projection[1]
 
 
 _CREATE = threading.Lock()

@@ -314,5 +314,7 @@ class CodeTalkerStream(FrameStream):
     def frame(self, buffer: np.ndarray, buffer_start: int, frame: int) -> np.ndarray:
         return self.engine.step([FrameRequest(self, buffer, buffer_start, frame)])[0]
 
-    def frames_together(self, requests: list[FrameRequest]) -> np.ndarray:
-        return self.engine.step(requests)
+    def frames_together(
+        self, requests: list[FrameRequest], basis: np.ndarray | None = None
+    ) -> np.ndarray:
+        return self.engine.step(requests, basis)

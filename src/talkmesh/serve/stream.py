@@ -50,6 +50,7 @@ PAUSE_S = 0.3
 UPPER_FACE_SEGMENT_S = 30.0  # blinks, gaze and drift are drawn this many seconds at a time
 PHONE_MEMORY_S = 2.0  # finished phones kept for coarticulation
 FRAME_SAMPLES = SAMPLE_RATE // FRAME_RATE
+EYES = [INDEX[n] for n in BLINK_GAZE]  # the ARKit channels of procedural blinks and gaze
 PIECE = SAMPLE_RATE // 5  # longer pushes are processed 200 ms at a time
 
 
@@ -293,11 +294,7 @@ class ModelStreamer(Streamer):
             )
         super().__init__(self.stream.fps, self.stream.lookahead_ms, head, offsets)
         self.fitter = _weight_fitter(head)
-        self.blinks = (
-            UpperFace(self.fps, seed, SpeakingStyle(), [INDEX[n] for n in BLINK_GAZE])
-            if blinks
-            else None
-        )
+        self.blinks = UpperFace(self.fps, seed, SpeakingStyle(), EYES) if blinks else None
         self.buffer = np.zeros(0, np.float32)
         self.buffer_start = 0  # stream sample of buffer[0]
 
@@ -354,11 +351,9 @@ def push_together(
     """Many streams' new audio at once: for each (streamer, chunks, end) the frames that pushing
     each chunk in turn (then flushing, if ``end``) would return, or the TalkmeshError that ended
     it. The streams of one model compute their frames together: one model step per frame index
-    for all streams that have that many frames due, each stream's frames what it computes alone
-    (the procedural animator has no shared model: its streams run one after another).
-
-    Long because it is the one schedule of the batch: receive, step together, finish together.
-    """
+    for all streams that have that many frames due (:func:`_model_frames`), each stream's frames
+    what it computes alone. The procedural animator has no shared model: its streams run one
+    after another."""
     out: list = [None] * len(work)
     due: dict[int, range] = {}  # model streams: the frames to compute
     for i, (streamer, chunks, end) in enumerate(work):
@@ -370,40 +365,53 @@ def push_together(
                 out[i] = frames + (streamer.flush() if end else [])
         except TalkmeshError as e:
             out[i] = e
-    if due:
-        from talkmesh.models.base import next_frames
-    motion: dict[int, list[np.ndarray]] = {i: [] for i in due}
-    for k in range(max((len(r) for r in due.values()), default=0)):
-        rows = [i for i, r in due.items() if k < len(r)]
-        requests = [work[i][0]._request(due[i][k]) for i in rows]
-        for i, m in zip(rows, next_frames(requests)):
-            motion[i].append(m)
-    fitters: dict[int, list[int]] = {}  # streams sharing a weight fitter fit in one call
-    for i in due:
-        fitters.setdefault(id(work[i][0].fitter), []).append(i)
-    for members in fitters.values():
-        members = [i for i in members if len(due[i])]
-        if not members:
-            continue
-        stacked = np.concatenate([np.stack(motion[i]) for i in members])
-        first = work[members[0]][0]
-        weights = first.fitter(stacked)
-        cuts = np.cumsum([len(due[i]) for i in members])[:-1]
-        eyes = [
-            work[i][0]._eyes(due[i].start, due[i].stop, w)
-            for i, w in zip(members, np.split(weights, cuts))
-        ]
-        replace_eye_motion(stacked, weights, np.concatenate(eyes), first.basis)
-        for i, part, w in zip(members, np.split(stacked, cuts), np.split(weights, cuts)):
-            streamer, r = work[i][0], due[i]
-            w, offsets = streamer._finish(r.start, r.stop, part, w)
-            out[i] = [
-                StreamFrame(t, t / streamer.fps, w[k], None if offsets is None else offsets[k])
+    groups: dict[int, list[int]] = {}  # model streams that share a face fit their weights together
+    for i, frames in due.items():
+        if len(frames):
+            groups.setdefault(id(work[i][0].fitter), []).append(i)
+        else:
+            out[i] = []
+    for members in groups.values():
+        computed = _model_frames([work[i][0] for i in members], [due[i] for i in members])
+        for i, frames in zip(members, computed):
+            out[i] = frames
+    return out
+
+
+def _model_frames(streamers: list[ModelStreamer], due: list[range]) -> list[list[StreamFrame]]:
+    """The frames ``due`` of model streams that share a face: one model step per frame index,
+    one weight fit, one eye replacement for them all."""
+    from talkmesh.models.base import next_frames  # torch: only where a model streams
+
+    first = streamers[0]
+    # without vertex offsets to send, the model gives only the frames' projections onto the
+    # blendshapes, all the weight fit needs (and cheaper than the V * 3 coordinates)
+    basis = None if any(s.offsets for s in streamers) else first.fitter.basis
+    rows: list[list[np.ndarray]] = [[] for _ in streamers]
+    for k in range(max(map(len, due))):
+        active = [j for j, frames in enumerate(due) if k < len(frames)]
+        requests = [streamers[j]._request(due[j][k]) for j in active]
+        for j, row in zip(active, next_frames(requests, basis)):
+            rows[j].append(row)
+    stacked = np.concatenate([np.stack(r) for r in rows])
+    weights = first.fitter(stacked) if basis is None else first.fitter.from_projection(stacked)
+    cuts = np.cumsum([len(frames) for frames in due])[:-1]
+    eyes = np.concatenate(
+        [s._eyes(r.start, r.stop, w) for s, r, w in zip(streamers, due, np.split(weights, cuts))]
+    )
+    if basis is None:
+        replace_eye_motion(stacked, weights, eyes, first.basis)
+    else:  # what replace_eye_motion does to the weights
+        weights[:, EYES] = eyes[:, EYES]
+    out = []
+    for s, r, part, w in zip(streamers, due, np.split(stacked, cuts), np.split(weights, cuts)):
+        w, offsets = s._finish(r.start, r.stop, part, w)
+        out.append(
+            [
+                StreamFrame(t, t / s.fps, w[k], None if offsets is None else offsets[k])
                 for k, t in enumerate(r)
             ]
-    for i in due:
-        if out[i] is None:
-            out[i] = []
+        )
     return out
 
 
