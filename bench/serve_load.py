@@ -24,7 +24,9 @@ Per row:
   (after the first second); the worst session's. A backlog that grows shows here;
 * peak RSS: the server's high-water mark (VmHWM) over the run; per session: that minus the
   server's RSS before the sessions came, divided by the sessions;
-* batch: the mean sessions per scheduler tick, and the server's CPU use in cores.
+* batch: the mean sessions per scheduler tick; the server's CPU use in cores over the run, and
+  its CPU time per second of one session's audio (what a session costs, whatever else runs: on
+  a quiet machine with C cores about C / that many sessions fit, less what the clients take).
 """
 
 from __future__ import annotations
@@ -220,11 +222,12 @@ def run_config(args, model: str, name: str, n: int, pcm: bytes) -> str:
     ticks = max(1, health.get("ticks", 0) - health0.get("ticks", 0))
     batch = (health.get("batched", 0) - health0.get("batched", 0)) / ticks
     cpu = (used["cpu"] - idle["cpu"]) / wall
+    per_cpu = 100 * (used["cpu"] - idle["cpu"]) / (n * len(pcm) / 2 / SAMPLE_RATE)
     peak, per = used["VmHWM"] / 2**20, (used["VmHWM"] - idle["VmRSS"]) / 2**20 / n
     return (
         f"| {n} | {expected} / {received} | {dropped} | {np.median(lat):.0f} "
         f"| {np.percentile(lat, 95):.0f} | {lat.max():.0f} | {drift:+.0f} | {peak:.0f} "
-        f"| {per:.1f} | {batch:.1f} | {cpu:.2f} |"
+        f"| {per:.1f} | {batch:.1f} | {cpu:.2f} | {per_cpu:.1f} |"
     )
 
 
@@ -271,9 +274,9 @@ def main() -> None:
     print(
         "| sessions | frames expected / received | dropped | latency p50 (ms) | p95 (ms) "
         "| max (ms) | worst drift (ms) | server peak RSS (MB) | per session (MB) | batch "
-        "| server CPU (cores) |"
+        "| server CPU (cores) | server CPU per session (% of a core) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
 
 
