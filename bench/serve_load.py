@@ -145,7 +145,8 @@ async def one_stream(url: str, pcm: bytes, chunk_ms: float, delay: float) -> Str
     await asyncio.sleep(delay)
     chunk = 2 * int(SAMPLE_RATE * chunk_ms / 1000)
     arrivals: list[tuple[int, float]] = []
-    async with connect(url, max_size=None) as ws:
+    # no keep-alive pings from the client: a loaded machine must not end sessions by itself
+    async with connect(url, max_size=None, open_timeout=120, ping_interval=None) as ws:
         hello = json.loads(await ws.recv())
         fps, lookahead = hello["fps"], hello["lookahead_ms"] / 1000
         start = time.perf_counter()  # sample 0 is "captured" now

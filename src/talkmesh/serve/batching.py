@@ -27,7 +27,7 @@ from talkmesh.serve.stream import Streamer, StreamFrame, push_together
 
 log = logging.getLogger(__name__)
 
-MAX_TICK_S = 1.0  # audio of one session computed per tick at most: others are not held up long
+MAX_TICK_S = 0.25  # audio of one session computed per tick at most: ticks stay short
 MAX_PENDING_S = 5.0  # a session that sends faster than it is computed waits at this backlog
 
 
