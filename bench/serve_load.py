@@ -3,6 +3,7 @@
     python bench/serve_load.py --sessions 16,32 --model procedural --minutes 5
     python bench/serve_load.py --sessions 16 --model codetalker-stream --minutes 5
     python bench/serve_load.py --sessions 1,2 --minutes 0.2               # quick look
+    python bench/serve_load.py --sessions 1,16 --model codetalker-stream --compute-only
 
 For each session count a fresh ``talkmesh serve`` starts on a free loopback port in a subprocess
 (``--max-sessions`` = the count). Each client streams speech (the pocketsphinx test recordings,
@@ -27,6 +28,9 @@ Per row:
 * batch: the mean sessions per scheduler tick; the server's CPU use in cores over the run, and
   its CPU time per second of one session's audio (what a session costs, whatever else runs: on
   a quiet machine with C cores about C / that many sessions fit, less what the clients take).
+
+``--compute-only`` leaves out the server and the clients: the sessions' computation alone, in
+this process, timed in CPU seconds (what batching saves, measurable on a busy machine).
 """
 
 from __future__ import annotations
@@ -232,6 +236,26 @@ def run_config(args, model: str, name: str, n: int, pcm: bytes) -> str:
     )
 
 
+def compute_only(model: str, n: int, pcm: bytes, chunk_ms: float, lookahead_ms: float) -> str:
+    """The server's computation without the server: ``n`` streams pushed together
+    (:func:`talkmesh.serve.stream.push_together`) in ticks of two chunks, in this process ->
+    a table row of CPU time per frame and per second of one session's audio."""
+    from talkmesh.face.assets import load_head
+    from talkmesh.serve.stream import open_stream, push_together
+
+    head = load_head()
+    streams = [open_stream(model, lookahead_ms=lookahead_ms, head=head, seed=k) for k in range(n)]
+    audio = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+    step = int(SAMPLE_RATE * chunk_ms / 1000)
+    frames, cpu = 0, time.process_time()
+    for i in range(0, len(audio), 2 * step):
+        chunks = [audio[i : i + step], audio[i + step : i + 2 * step]]
+        frames += sum(len(r) for r in push_together([(s, chunks, False) for s in streams]))
+    cpu = time.process_time() - cpu
+    seconds = len(audio) / SAMPLE_RATE
+    return f"| {n} | {frames} | {1000 * cpu / frames:.2f} | {100 * cpu / (n * seconds):.1f} |"
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument(
@@ -254,6 +278,11 @@ def main() -> None:
     p.add_argument("--batch-wait-ms", type=float, default=0.0, help="the server's (default 0)")
     p.add_argument("--torch-threads", type=int, help="the server's (default PyTorch's)")
     p.add_argument("--wav", help="speech to stream (default: the pocketsphinx test recordings)")
+    p.add_argument(
+        "--compute-only",
+        action="store_true",
+        help="no server, no clients: the sessions' computation in this process, CPU time only",
+    )
     args = p.parse_args()
     seconds = args.seconds or 60 * (args.minutes or 1 / 3)
     counts = [int(s) for s in args.sessions.split(",")]
@@ -262,6 +291,17 @@ def main() -> None:
         model = args.model
         if model == "codetalker-stream":
             model = str(untrained_stream_model(Path(tmp)))
+        if args.compute_only:
+            if args.torch_threads:
+                import torch
+
+                torch.set_num_threads(args.torch_threads)
+            rows = [compute_only(model, n, pcm, args.chunk_ms, args.lookahead_ms) for n in counts]
+            print(f"\n{args.model}, {seconds:g} s per session, computed in ticks of two chunks\n")
+            print("| sessions | frames | CPU per frame (ms) | CPU per session (% of a core) |")
+            print("|---|---|---|---|")
+            print("\n".join(rows))
+            return
         name = "procedural" if model == "procedural" else Path(model).stem
         rows = []
         for n in counts:
