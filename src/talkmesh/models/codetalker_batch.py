@@ -64,7 +64,8 @@ class FrameBatch:
     def __init__(self, model: nn.Module) -> None:
         s2, vq = model.cfg.stage2, model.cfg.vq
         self.model = model
-        self.lock = threading.Lock()
+        # reentrant: a stream garbage-collected during a step frees its slot from that thread
+        self.lock = threading.RLock()
         self.dec = model.vqvae.decoder
         self.fold = folded_linear(
             model, self.dec.out, model.motion_map, int8=getattr(model, "int8", False)
