@@ -222,6 +222,67 @@ def test_a_few_steps_lower_the_loss_and_self_feedback_acts_in_training_only():
         replace(model.cfg, self_feedback=1.5)
 
 
+def own_batch(audio, verts, templ) -> object:
+    from talkmesh.training.trainer import TorchBatch
+
+    B, T = verts.shape[:2]
+    lengths = torch.full((B,), audio.shape[1])
+    return TorchBatch(
+        ["x"] * B,
+        audio,
+        lengths,
+        verts,
+        templ,
+        torch.ones(B, T, dtype=torch.bool),
+        torch.zeros(B, dtype=torch.long),
+    )
+
+
+def test_training_on_own_predictions_is_the_generation_loop_and_learns():
+    from talkmesh.training.faceformer import FACEFORMER, own_predictions
+
+    model = tiny(teacher_forcing=False, dropout=0.0)
+    audio, verts = clip(12)
+    templ = torch.randn(1, V, 3) * 0.1
+    verts = templ[:, None] + torch.linspace(0, 0.05, 12)[None, :, None, None]  # a drift to learn
+    batch = own_batch(audio, verts, templ)
+    with torch.no_grad():
+        pred, loss = own_predictions(model, batch)
+    # without dropout, the training loop's prediction is what generation feeds back and returns
+    gen = model.generate(audio, templ, styles=torch.tensor([0]), num_frames=12, mode="naive")
+    torch.testing.assert_close(pred.view(1, 12, V, 3) * model.scale + templ[:, None], gen)
+    teacher = model(audio, None, verts, templ, torch.tensor([0])).loss
+    assert not torch.allclose(loss, teacher)  # not the teacher-forced loss
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(25):
+        opt.zero_grad()
+        step_loss = FACEFORMER.step(model, batch).loss  # the task's step runs the own-loop
+        step_loss.backward()
+        opt.step()
+        losses.append(step_loss.item())
+    assert losses[-1] < 0.5 * losses[0]
+    with pytest.raises(ValueError, match="teacher_forcing False"):
+        replace(model.cfg, self_feedback=0.5)
+
+
+def test_own_predictions_send_gradients_through_the_fed_back_frames():
+    from talkmesh.training.faceformer import own_predictions
+
+    model = tiny(teacher_forcing=False, dropout=0.0)
+    audio, verts = clip(6)
+    templ = torch.zeros(1, V, 3)
+    pred, _ = own_predictions(model, own_batch(audio, verts, templ))
+    # teacher forced, d(last frame)/d(motion decoder bias) is the identity (a sum of ones); here
+    # the bias also reaches the last frame through every frame fed back before it
+    (grad,) = torch.autograd.grad(pred[0, -1].sum(), model.out.bias)
+    assert not torch.allclose(grad, torch.ones_like(grad))
+    tf = model(audio, None, verts, templ, torch.tensor([0])).motion
+    (grad,) = torch.autograd.grad(tf[0, -1].sum(), model.out.bias)
+    torch.testing.assert_close(grad, torch.ones_like(grad) * model.scale)
+
+
 @pytest.mark.parametrize("name", ["faceformer_synth", "faceformer_vocaset"])
 def test_recipes_map_onto_the_config(name):
     from talkmesh.training.faceformer import build_config

@@ -180,3 +180,63 @@ def test_imported_models_count_frames_as_the_official_code():
         counts[dataset] = len(fixture(f"faceformer_{dataset}")["vertices"])
         assert model.default_frames(samples) == counts[dataset]  # what animate generates
     assert counts["vocaset"] == 38 != round(samples / 16000 * 30)  # not the duration's 39
+
+
+@pytest.mark.parametrize("dataset", ["vocaset", "biwi"])
+def test_training_on_own_predictions_is_the_official_training_loop(dataset):
+    """The official trainer's pass (``teacher_forcing=False``) runs its predict loop on the
+    sequence's frame count, then the MSE: without dropout (eval), talkmesh's loop on the imported
+    model gives the official output and that loss."""
+    from talkmesh.training.faceformer import own_predictions
+    from talkmesh.training.trainer import TorchBatch
+
+    model = import_checkpoint([FIXTURES / f"faceformer_{dataset}.pth"], "faceformer", dataset)
+    fx = fixture(f"faceformer_{dataset}")
+    audio = torch.from_numpy(load_audio(FIXTURES / "speech.wav"))[None]
+    ref, template = fx["vertices"], torch.from_numpy(fx["template"])
+    T = len(ref)
+    target = torch.from_numpy(ref)[None] + 0.01 * torch.randn(1, *ref.shape)
+    style = torch.tensor([list(model.styles).index(str(fx["condition"]))])
+    lengths = torch.tensor([audio.shape[1]])
+    mask = torch.ones(1, T, dtype=torch.bool)
+    batch = TorchBatch(["x"], audio, lengths, target, template[None], mask, style)
+    with torch.no_grad():
+        pred, loss = own_predictions(model.eval(), batch)
+    ours = pred[0].view(T, -1, 3).numpy() + fx["template"]
+    scale = np.abs(ref - fx["template"]).max()
+    assert np.abs(ours - ref).max() / scale <= TOLERANCE
+    want = (torch.from_numpy(ref)[None] - target).pow(2).mean()
+    assert loss.item() == pytest.approx(want.item(), rel=1e-4)
+
+
+@pytest.mark.slow  # 26 s of speech through the generation loops
+@pytest.mark.parametrize(
+    "family, dataset, modes",
+    [
+        ("faceformer", "vocaset", ("fast", "naive")),
+        ("faceformer", "biwi", ("fast", "naive")),
+        ("codetalker", "vocaset", ("exact",)),
+        ("codetalker", "biwi", ("exact",)),
+    ],
+)
+def test_imported_models_run_past_the_official_600_frames(family, dataset, modes):
+    """The official code stops at 600 frames (26 s here is 780 frames at 30 fps, 650 at 25):
+    talkmesh attends over the last 600 frames, and the motion stays like the motion before."""
+    files = [f"faceformer_{dataset}.pth"] if family == "faceformer" else None
+    paths = [FIXTURES / f for f in files] if files else codetalker_files(dataset)
+    model = import_checkpoint(paths, family, dataset)
+    clip = load_audio(FIXTURES / "speech.wav")
+    audio = torch.from_numpy(np.tile(clip, int(np.ceil(26 * 16000 / len(clip))))[: 26 * 16000])
+    template = torch.from_numpy(fixture(f"{family}_{dataset}")["template"])
+    frames = model.default_frames(len(audio))
+    assert frames > 600
+    outs = [
+        model.generate(audio[None], template[None], styles=torch.tensor([0]), mode=m)[0].numpy()
+        for m in modes
+    ]
+    motion = outs[0] - template.numpy()
+    assert outs[0].shape[0] == frames and np.isfinite(outs[0]).all()
+    before, after = np.abs(motion[:600]).max(), np.abs(motion[600:]).max()
+    assert 0.2 * before < after < 5 * before
+    for other in outs[1:]:  # the key/value cache keeps the same 600-frame window
+        assert np.abs(other - outs[0]).max() <= TOLERANCE * before

@@ -65,7 +65,7 @@ def animate(
     head: Head | None = None,
     text: str | None = None,
     phones: list[Phone] | None = None,
-    fps: float = DEFAULT_FPS,
+    fps: float | None = None,
     seed: int = 0,
     style: SpeakingStyle | None = None,
     model: str | MotionModel | None = None,
@@ -80,11 +80,15 @@ def animate(
 
     Args:
         audio: a speech file (any format ffmpeg reads) or a (S,) float32 waveform at 16 kHz.
-        head: the face to animate (default: the bundled default identity).
+        head: the face to animate (default: the bundled default identity); a face of another
+            topology (:func:`talkmesh.face.assets.plain_head`, a learned model's own) is animated
+            by the model alone: no pause gate, blinks or ARKit weights, which need the bundled
+            blendshapes and regions.
         text: the transcript, if known: phones are then force-aligned instead of recognised
             (procedural animator; with ``model`` None it selects it).
         phones: timed phones, if already known (skips recognition).
-        fps: output frame rate.
+        fps: output frame rate (default: a learned model's own, e.g. 25 for BIWI models; 30 for
+            the procedural animator).
         seed: seed of the audio-independent motion (blinks, brow drift, gaze).
         style: the speaker's style.
         model: ``procedural`` or a learned model: a bundled name, a ``.safetensors`` release or
@@ -110,7 +114,7 @@ def animate(
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
     """
-    if not (0 < fps <= MAX_FPS):
+    if fps is not None and not (0 < fps <= MAX_FPS):
         raise TalkmeshError(f"--fps must be in (0, {MAX_FPS:g}], got {fps:g}")
     head = head or load_head()
     wave = load_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
@@ -147,7 +151,10 @@ def _finish_learned(
     seed: int,
 ) -> Animation:
     """A learned model's animation as :func:`animate` returns it: the mouth corrected by the
-    phone recogniser, ARKit weights fitted, the eye motion made procedural (with ``blinks``)."""
+    phone recogniser, ARKit weights fitted, the eye motion made procedural (with ``blinks``);
+    on another topology than the bundled head's (the model's own), the model's motion as it is."""
+    if not head.rigged:
+        return anim
     wave, fps = anim.audio, anim.fps
     if corrections != NONE:  # the recogniser corrects the model's mouth
         phones = recognize_phones(wave, SAMPLE_RATE)
@@ -169,11 +176,17 @@ def animate_procedural(
     *,
     text: str | None,
     phones: list[Phone] | None,
-    fps: float,
+    fps: float | None,
     seed: int,
     style: SpeakingStyle | None,
 ) -> Animation:
     """The phone-driven animator on ``head`` (arguments as in :func:`animate`)."""
+    fps = DEFAULT_FPS if fps is None else fps
+    if not head.rigged:
+        raise TalkmeshError(
+            f"the procedural animator drives the bundled head's topology, not {head.name}'s "
+            f"{head.num_vertices} vertices: pass a learned model of this topology (--model)"
+        )
     if phones is None:
         phones = recognize_phones(wave, SAMPLE_RATE, text=text)
     num_frames = num_frames_for(len(wave), SAMPLE_RATE, fps)
@@ -217,14 +230,15 @@ def animate_learned(
     head: Head,
     model: str | Path | MotionModel,
     *,
-    fps: float,
+    fps: float | None,
     style_mix: dict[str, float] | None,
     seed: int = 0,
     int8: str | None = None,
 ) -> Animation:
     """Animate with a released learned model (any family of talkmesh.models.registry) on
-    ``head``'s neutral face (``model``: a name, a release file or a loaded model); ``int8``
-    (CodeTalker: speech, decoders or all) as in :func:`animate`."""
+    ``head``'s neutral face at ``fps`` (None: the model's own frame rate; ``model``: a name, a
+    release file or a loaded model); ``int8`` (CodeTalker: speech, decoders or all) as in
+    :func:`animate`."""
     try:
         import torch
     except ImportError:
@@ -234,7 +248,9 @@ def animate_learned(
     net = load_model(model) if isinstance(model, (str, Path)) else model
     if net.num_vertices != head.num_vertices:
         raise TalkmeshError(
-            f"model {model_name(model)} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
+            f"model {model_name(model)} animates {net.num_vertices}-vertex meshes but the face "
+            f"has {head.num_vertices}: pass --template with a neutral face of the model's topology "
+            "(e.g. VOCASET's templates.pkl:SUBJECT or FLAME_sample.ply, BIWI's BIWI.ply)"
         )
     if int8 is not None:
         net = net.int8_copy(int8)
@@ -256,6 +272,7 @@ def animate_learned(
         weights = np.array([style_mix.get(s, 0.0) / total for s in styles], np.float32)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     fps_model = net.motion_fps
+    fps = fps_model if fps is None else fps
     frames = net.default_frames(len(wave))  # imported official models count as the official code
     with torch.inference_mode():
         verts = net.generate(

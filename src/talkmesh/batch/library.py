@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
-from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError, os_error_message
 from talkmesh.face.corrections import MIX
 from talkmesh.output import VIDEO_SIZE, write_animation
@@ -38,7 +37,7 @@ class AnimateSettings:
     template: str | None = None
     avatar: str | None = None
     text: str | None = None
-    fps: float = MOTION_FPS
+    fps: float | None = None  # None: the model's own (30 for the procedural animator)
     seed: int = 0
     style_mix: dict[str, float] | None = field(default=None, hash=False)
     blinks: bool = True
@@ -77,13 +76,13 @@ class Animator:
     """
 
     def __init__(self, settings: AnimateSettings, threads: int | None = None):
-        from talkmesh.face.assets import load_head, load_template
+        from talkmesh.face.assets import load_head
 
         self.settings = settings
         if threads is not None:
             _set_threads(threads)
         s = settings
-        self.head = load_template(s.template) if s.template else load_head(s.identity)
+        self.head = face_for(s) if s.template else load_head(s.identity)
         self.model: object = s.model
         self.int8 = s.int8
         if s.model != "procedural":
@@ -234,13 +233,23 @@ def _work(job: Job) -> Row:
 
 def check_settings(settings: AnimateSettings) -> None:
     """Fail on a missing model, face or avatar once, before any worker starts."""
-    from talkmesh.face.assets import load_head, load_template
+    from talkmesh.face.assets import load_head
 
     if settings.template:
-        load_template(settings.template)
+        face_for(settings)
     else:
         load_head(settings.identity)
     if settings.model != "procedural":
         from talkmesh.models.release import resolve
 
         resolve(settings.model)
+
+
+def face_for(settings):
+    """``settings.template`` on any topology (:mod:`talkmesh.datasets.templates`): a
+    templates.pkl without :SUBJECT takes the subject the style mix names alone."""
+    from talkmesh.datasets.templates import load_face_template
+
+    mix = settings.style_mix
+    alone = next(iter(mix)) if mix and len(mix) == 1 else None
+    return load_face_template(settings.template, subject=alone)

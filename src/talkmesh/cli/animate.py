@@ -17,7 +17,7 @@ from talkmesh.cli.common import (
     load_input,
     parse_outputs,
 )
-from talkmesh.constants import INT8_LAYERS, MOTION_FPS
+from talkmesh.constants import INT8_LAYERS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.corrections import MIX
 from talkmesh.output import write_animation
@@ -42,7 +42,10 @@ def add_animate(sub: Subparsers) -> None:
     who = a.add_mutually_exclusive_group()
     who.add_argument("--identity", help="a bundled identity (see `talkmesh info`)")
     who.add_argument(
-        "--template", help="your own neutral mesh with the bundled topology (.obj .ply .npy)"
+        "--template",
+        help="your own neutral face (.obj .ply .npy): the bundled topology, or a learned model's "
+        "own with its triangles (VOCASET: templates.pkl[:SUBJECT] beside FLAME_sample.ply; "
+        "BIWI: BIWI.ply, a .vl frame or a rigid scan .obj)",
     )
     a.add_argument(
         "--avatar",
@@ -53,12 +56,7 @@ def add_animate(sub: Subparsers) -> None:
         "--text", help="transcript of the speech (forced alignment instead of recognition)"
     )
     a.add_argument("--seed", type=int, default=0, help="seed of blinks and other free motion")
-    a.add_argument(
-        "--fps",
-        type=float,
-        default=MOTION_FPS,
-        help=f"frames per second (default {MOTION_FPS:g})",
-    )
+    a.add_argument("--fps", type=float, help="frames per second (default: the model's own)")
     a.add_argument(
         "--model",
         default=None,
@@ -158,6 +156,9 @@ def cmd_animate(args: argparse.Namespace) -> int:
         binding = bind_avatar(read_glb(avatar)[0], str(avatar))  # fails before the model runs
         if not args.quiet:
             print(f"avatar {avatar}: {binding.summary()}")
+    from talkmesh.pipeline import parse_style
+
+    _face(args, parse_style(args.style), outputs, avatar)  # what cannot work fails before any run
     written = {str(a): paths for a, paths in zip(inputs, outputs)}
     bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
 
@@ -181,6 +182,41 @@ def cmd_animate(args: argparse.Namespace) -> int:
     if summary is not None:
         write_summary(summary, with_earlier(result.rows, read_summary(summary)))
     return report_batch(result, summary, args.quiet)
+
+
+def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar: Path | None):
+    """The face to animate: ``--template`` on any topology (a templates.pkl without :SUBJECT
+    takes the subject --style names alone) or a bundled identity; a template of another topology
+    than the bundled head's is refused with the bundled models and for ARKit outputs."""
+    from talkmesh.datasets.templates import load_face_template
+    from talkmesh.face.assets import load_head
+    from talkmesh.pipeline import available_models
+
+    if not args.template:
+        return load_head(args.identity)
+    alone = next(iter(style_mix)) if style_mix and len(style_mix) == 1 else None
+    head = load_face_template(args.template, subject=alone)
+    if head.rigged:
+        return head
+    if args.model is None or args.model in available_models():
+        raise TalkmeshError(
+            f"{args.template}: {head.num_vertices} vertices, not the bundled head's "
+            f"{load_head().num_vertices}: the procedural animator and the bundled models "
+            "animate the bundled topology; pass --model FILE.safetensors of this topology"
+        )
+    weight_files = [p for ps in outputs for p in ps if p.suffix.lower() in (".csv", ".json")]
+    if weight_files or avatar is not None:
+        what = weight_files[0] if weight_files else f"--avatar {avatar}"
+        raise TalkmeshError(
+            f"{what}: ARKit weights need the bundled head's topology, not {head.name}'s "
+            f"{head.num_vertices} vertices: write .npz, .npy, .glb, .obj or a video"
+        )
+    if not args.quiet:
+        print(
+            f"template {head.name}: {head.num_vertices} vertices, {len(head.faces)} triangles "
+            "(not the bundled topology: the model's motion as it is, no ARKit weights)"
+        )
+    return head
 
 
 def animate_settings(args: argparse.Namespace):

@@ -51,21 +51,27 @@ class Head:
         name: identity name (or the template file's stem).
         template: (V, 3) float32 neutral vertices in metres.
         faces: (F, 3) int32 triangles.
-        blendshapes: (52, V, 3) float32 ARKit blendshape offsets in metres.
-        blendshape_names: the 52 ARKit names, in the order of ``blendshapes``.
-        regions: vertex regions.
+        blendshapes: (52, V, 3) float32 ARKit blendshape offsets in metres; None for a face of
+            another topology (:func:`plain_head`: a learned model's own, e.g. FLAME's).
+        blendshape_names: the 52 ARKit names, in the order of ``blendshapes`` (empty without).
+        regions: vertex regions (None without blendshapes).
     """
 
     name: str
     template: np.ndarray
     faces: np.ndarray
-    blendshapes: np.ndarray
+    blendshapes: np.ndarray | None
     blendshape_names: tuple[str, ...]
-    regions: Regions
+    regions: Regions | None
 
     @property
     def num_vertices(self) -> int:
         return int(self.template.shape[0])
+
+    @property
+    def rigged(self) -> bool:
+        """Whether the head has the bundled blendshapes and regions (the bundled topology)."""
+        return self.blendshapes is not None
 
     def vertices_from_weights(self, weights: np.ndarray) -> np.ndarray:
         """(T, 52) blendshape weights -> (T, V, 3) vertex positions."""
@@ -87,6 +93,21 @@ class Head:
         return Head(
             name, template, self.faces, self.blendshapes, self.blendshape_names, self.regions
         )
+
+
+def plain_head(template: np.ndarray, faces: np.ndarray, name: str) -> Head:
+    """A neutral face of another topology than the bundled head's (a learned model's own: FLAME's
+    5023 vertices for VOCASET models, BIWI's 23370): (V, 3) vertices and (F, 3) triangles, no
+    blendshapes or regions, so learned models animate it and the motion is exported as it is."""
+    template = np.asarray(template, dtype=np.float32)
+    faces = np.asarray(faces, dtype=np.int32)
+    if template.ndim != 2 or template.shape[1] != 3 or not len(template):
+        raise TalkmeshError(f"{name}: a template must be (V, 3) vertices, got {template.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or not len(faces):
+        raise TalkmeshError(f"{name}: the mesh needs triangles (F, 3), got {faces.shape}")
+    if faces.min() < 0 or faces.max() >= len(template):
+        raise TalkmeshError(f"{name}: a face points past the {len(template)} vertices")
+    return Head(name, template, faces, None, (), None)
 
 
 @lru_cache(maxsize=1)

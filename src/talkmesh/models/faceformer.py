@@ -21,10 +21,12 @@ The model (paper Sec. 3, Fig. 2), one decoder step per motion frame t:
 Differences from the paper and the official code, and why:
 
 * Training. The paper trains autoregressively on its own predictions: T decoder passes per
-  sequence, too slow for CPU training. Here ``forward`` is teacher forced in one pass, and
-  ``self_feedback`` (a fraction) of the fed-back frames are replaced by the model's own
-  predictions from a first teacher-forced pass, detached (parallel scheduled sampling, Duckworth
-  et al. 2019), so that it learns to continue from its own, imperfect motion (exposure bias).
+  sequence. ``teacher_forcing=False`` does that (the official training loop, run by the training
+  task, training/faceformer.py; the paper recipes switch it on). By default ``forward`` is
+  teacher forced in one pass, and ``self_feedback`` (a fraction) of the fed-back frames are
+  replaced by the model's own predictions from a first teacher-forced pass, detached (parallel
+  scheduled sampling, Duckworth et al. 2019), so that it learns to continue from its own,
+  imperfect motion (exposure bias) at the cost of two passes instead of T.
 * Layers are talkmesh's pre-LN ``Block`` (GELU, a final LayerNorm, no dropout inside) where the
   official code uses PyTorch's post-LN ``TransformerDecoderLayer`` (ReLU, dropout 0.1);
   ``dropout`` acts on the decoder input, like the official PPE's dropout.
@@ -98,6 +100,8 @@ class FaceFormerConfig:
     attention_window: int = 600  # frames of self-attention (the official length cap)
     self_feedback: float = 0.0  # training: fraction of fed-back frames that are the model's own
     # one-pass predictions instead of the truth (0: plain teacher forcing; see the module doc)
+    teacher_forcing: bool = True  # training: False feeds back every frame's own prediction, as
+    # the paper and the official loop do (T decoder passes per sequence; training/faceformer.py)
     # official-exact options (on in models imported from the released weights; docs/guide/official.md):
     postnorm: bool = False  # the official decoder layers: post-norm, ReLU, dropout inside, real
     # attention over the frame's k aligned audio tokens, no final norm (models/postnorm.py)
@@ -129,6 +133,11 @@ class FaceFormerConfig:
             raise ValueError("dropout must be in [0, 1)")
         if not 0.0 <= self.self_feedback <= 1.0:
             raise ValueError("self_feedback must be in [0, 1]")
+        if not self.teacher_forcing and self.self_feedback:
+            raise ValueError(
+                "self_feedback mixes teacher forcing with own predictions: with "
+                "teacher_forcing False every fed-back frame is already the model's own"
+            )
         rate = self.motion_fps * self.audio_tokens_per_frame
         if abs(self.speech.frame_rate - rate) > 1e-6:
             raise ValueError(
@@ -197,6 +206,16 @@ def decoder_bias(
     i = torch.arange(q_len, device=device)[:, None] + q_offset
     j = torch.arange(k_len, device=device)[None]
     return bias.masked_fill((j <= i - window)[None], float("-inf"))
+
+
+def masked_mse(pred: Tensor, target: Tensor, mask: Tensor | None) -> Tensor:
+    """pred, target (B, T, D), mask (B, T) bool or None -> () mean squared error over the
+    valid frames."""
+    err = (pred - target).pow(2)
+    if mask is None:
+        return err.mean()
+    w = mask[:, :, None].to(err.dtype)
+    return (err * w).sum() / (w.sum() * err.shape[-1]).clamp(min=1)
 
 
 class FaceFormerOutput(NamedTuple):
@@ -407,13 +426,7 @@ class FaceFormer(MotionModel):
             pick = torch.rand(B, T, 1, device=motion.device) < self.cfg.self_feedback
             fed_back = torch.where(pick, own, motion)
         pred = run(fed_back)
-        err = (pred - motion).pow(2)
-        if motion_mask is None:
-            loss = err.mean()
-        else:
-            w = motion_mask[:, :, None].to(err.dtype)
-            loss = (err * w).sum() / (w.sum() * err.shape[-1]).clamp(min=1)
-        return FaceFormerOutput(pred * self.scale, loss)
+        return FaceFormerOutput(pred * self.scale, masked_mse(pred, motion, motion_mask))
 
     # -- generation -----------------------------------------------------------------------------
 
