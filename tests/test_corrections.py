@@ -14,6 +14,7 @@ from talkmesh.face.corrections import (
     NONE,
     Corrections,
     correct_mouth,
+    correct_mouth_chunks,
     near_closures,
 )
 from talkmesh.face.lipsync import phones_to_weights
@@ -109,6 +110,22 @@ def test_mix_moves_toward_procedural_but_keeps_the_models_closures():
     assert far.sum() > 10
     np.testing.assert_allclose(mixed[far], 0.5 * (bare[far] + procedural[far]), atol=0.3)
     np.testing.assert_allclose(mixed[19:22], bare[19:22], rtol=1e-6)  # the closure is kept
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 19, 20, 21, 22, 59])
+def test_chunks_are_corrected_as_the_whole_clip(size):
+    """Chunk edges next to the near-closure at frame 20: the look-ahead must see its neighbours."""
+    head = load_head()
+    every = Corrections(pause_gate=True, lip_closure=True, mix=0.5)
+    whole = correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, every)
+    verts = _dipping(head)
+    chunks = (verts[i : i + size] for i in range(0, T, size))
+    got = list(correct_mouth_chunks(chunks, T, head, PHONES, _wave(), FPS, every))
+    assert [len(c) for c in got] == [len(verts[i : i + size]) for i in range(0, T, size)]
+    np.testing.assert_allclose(np.concatenate(got), whole, rtol=0, atol=1e-7)
+    bare = _mm(head, _dipping(head))
+    assert abs(_mm(head, whole)[20] - _mm(head, head.template[None])[0]) < 0.05
+    np.testing.assert_allclose(_mm(head, whole)[19:22:2], bare[19:22:2], rtol=1e-6)  # kept
 
 
 def test_pause_gate_shuts_the_mouth_in_pauses():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -75,3 +76,50 @@ class Animation:
     def duration(self) -> float:
         """Length in seconds of the motion."""
         return self.num_frames / self.fps
+
+
+@dataclass
+class AnimationBlocks:
+    """An :class:`Animation` made a block of frames at a time, so that long audio never holds all
+    its (T, V, 3) vertices: what every field means is as in :class:`Animation`; ``blocks`` yields
+    the consecutive frames as Animations (vertices and, when ``weight_names`` is set, weights),
+    once. File writers stream it (:func:`talkmesh.output.streaming.save_blocks`); :meth:`collect`
+    makes the whole Animation."""
+
+    blocks: Iterator[Animation]
+    num_frames: int
+    faces: np.ndarray
+    fps: float
+    audio: np.ndarray | None = None
+    sample_rate: int = SAMPLE_RATE
+    weight_names: list[str] = field(default_factory=list)
+    template: np.ndarray | None = None
+    basis: np.ndarray | None = None
+
+    def collect(self) -> Animation:
+        """All frames as one :class:`Animation` (filled in place: one copy of the vertices)."""
+        vertices: np.ndarray | None = None
+        weights: np.ndarray | None = None
+        t = 0
+        for block in self.blocks:
+            if vertices is None:
+                vertices = np.empty((self.num_frames, block.num_vertices, 3), np.float32)
+                if block.weights is not None:
+                    weights = np.empty((self.num_frames, block.weights.shape[1]), np.float32)
+            n = block.num_frames
+            vertices[t : t + n] = block.vertices
+            if weights is not None:
+                weights[t : t + n] = block.weights
+            t += n
+        assert vertices is not None and t == self.num_frames, (t, self.num_frames)
+        return Animation(
+            vertices=vertices,
+            faces=self.faces,
+            fps=self.fps,
+            audio=self.audio,
+            sample_rate=self.sample_rate,
+            weights=weights,
+            weight_names=list(self.weight_names) if weights is not None else [],
+            template=self.template,
+            basis=self.basis,
+        )

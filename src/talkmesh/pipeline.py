@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from talkmesh.animation import Animation
+from talkmesh.animation import Animation, AnimationBlocks
 from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 from talkmesh.audio.phonemes import Phone, recognize_phones
 from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
-from talkmesh.face.arkit import ARKIT_NAMES, fit_weights
+from talkmesh.face.arkit import ARKIT_NAMES, WeightFitter
 from talkmesh.face.assets import Head, load_head
-from talkmesh.face.corrections import MIX, NONE, Corrections, correct_mouth
+from talkmesh.face.corrections import MIX, NONE, Corrections, correct_mouth_chunks
 from talkmesh.face.lipsync import (
     SpeakingStyle,
     blink_gaze_weights,
@@ -29,7 +30,7 @@ DEFAULT_FPS = MOTION_FPS
 MAX_FPS = 240.0
 INT8_MODES = INT8_LAYERS  # animate(int8=...): CodeTalker layers run in int8
 MODELS = ("procedural",)
-BLOCK = 2048  # frames processed at once on long animations
+BLOCK = 1024  # frames made at once (about 58 MB of vertices on the bundled head)
 
 
 DEFAULT_MODEL = "codetalker-synth"  # the bundled CodeTalker (src/talkmesh/data/models/)
@@ -114,8 +115,50 @@ def animate(
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
     """
+    return animate_blocks(
+        audio,
+        head=head,
+        text=text,
+        phones=phones,
+        fps=fps,
+        seed=seed,
+        style=style,
+        model=model,
+        style_mix=style_mix,
+        blinks=blinks,
+        int8=int8,
+        pause_gate=pause_gate,
+        lip_closure=lip_closure,
+        procedural_mix=procedural_mix,
+    ).collect()
+
+
+def animate_blocks(
+    audio: str | Path | np.ndarray,
+    *,
+    head: Head | None = None,
+    text: str | None = None,
+    phones: list[Phone] | None = None,
+    fps: float | None = None,
+    seed: int = 0,
+    style: SpeakingStyle | None = None,
+    model: str | MotionModel | None = None,
+    style_mix: dict[str, float] | None = None,
+    blinks: bool = True,
+    int8: str | None = None,
+    pause_gate: bool = True,
+    lip_closure: bool = False,
+    procedural_mix: float = MIX,
+    block: int = BLOCK,
+) -> AnimationBlocks:
+    """:func:`animate` a ``block`` of frames at a time (arguments as there): memory does not grow
+    with the audio (its waveform aside) when the model generates in chunks (the procedural
+    animator, CodeTalker models with a causal VQ decoder); write it with
+    :func:`talkmesh.output.streaming.save_blocks`. The frames are :func:`animate`'s."""
     if fps is not None and not (0 < fps <= MAX_FPS):
         raise TalkmeshError(f"--fps must be in (0, {MAX_FPS:g}], got {fps:g}")
+    if block < 1:
+        raise TalkmeshError(f"block must be at least 1 frame, got {block}")
     head = head or load_head()
     wave = load_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
     if wave.ndim != 1 or not len(wave):
@@ -126,48 +169,78 @@ def animate(
         raise TalkmeshError(f"--int8 {int8}: use one of {', '.join(INT8_MODES)}")
     if model == "procedural" and int8 is not None:
         raise TalkmeshError("--int8 applies to CodeTalker models, not the procedural animator")
-    if model != "procedural":
-        if text is not None or phones is not None:
-            raise TalkmeshError(
-                f"--text and phones drive the procedural animator, not {model_name(model)}: drop "
-                "them or "
-                "pass --model procedural"
-            )
-        corrections = Corrections(pause_gate, lip_closure, procedural_mix)
-        anim = animate_learned(
-            wave, head, model, fps=fps, style_mix=style_mix, seed=seed, int8=int8
+    if model == "procedural":
+        return animate_procedural(
+            wave, head, text=text, phones=phones, fps=fps, seed=seed, style=style, block=block
         )
-        return _finish_learned(anim, head, corrections, blinks=blinks, style=style, seed=seed)
-    return animate_procedural(wave, head, text=text, phones=phones, fps=fps, seed=seed, style=style)
+    if text is not None or phones is not None:
+        raise TalkmeshError(
+            f"--text and phones drive the procedural animator, not {model_name(model)}: drop "
+            "them or pass --model procedural"
+        )
+    corrections = Corrections(pause_gate, lip_closure, procedural_mix)
+    net, weights = _learned_model(model, head, style_mix, int8)
+    fps = net.motion_fps if fps is None else fps
+    frames = net.default_frames(len(wave))  # imported official models count as the official code
+    if abs(fps - net.motion_fps) > 1e-6:
+        frames = num_frames_for(len(wave), SAMPLE_RATE, fps)
+    chunks = _learned_chunks(net, wave, head, weights, fps, frames, seed, block)
+    if not head.rigged:  # another topology (the model's own): the model's motion as it is
+        return AnimationBlocks(
+            blocks=(Animation(vertices=c, faces=head.faces, fps=fps) for c in chunks),
+            num_frames=frames,
+            faces=head.faces,
+            fps=fps,
+            audio=wave,
+            sample_rate=SAMPLE_RATE,
+            template=head.template,
+        )
+    if corrections != NONE:  # the recogniser corrects the model's mouth
+        phones = recognize_phones(wave, SAMPLE_RATE)
+        chunks = correct_mouth_chunks(
+            chunks, frames, head, phones, wave, fps, corrections, style=style, seed=seed
+        )
+    eyes = blink_gaze_weights(frames, fps, seed=seed, style=style) if blinks else None
+    return AnimationBlocks(
+        blocks=_finish_learned(chunks, head, fps, eyes),
+        num_frames=frames,
+        faces=head.faces,
+        fps=fps,
+        audio=wave,
+        sample_rate=SAMPLE_RATE,
+        weight_names=list(ARKIT_NAMES),
+        template=head.template,
+        basis=head.blendshapes,
+    )
 
 
 def _finish_learned(
-    anim: Animation,
+    chunks: Iterator[np.ndarray],
     head: Head,
-    corrections: Corrections,
-    *,
-    blinks: bool,
-    style: SpeakingStyle | None,
-    seed: int,
-) -> Animation:
-    """A learned model's animation as :func:`animate` returns it: the mouth corrected by the
-    phone recogniser, ARKit weights fitted, the eye motion made procedural (with ``blinks``);
-    on another topology than the bundled head's (the model's own), the model's motion as it is."""
-    if not head.rigged:
-        return anim
-    wave, fps = anim.audio, anim.fps
-    if corrections != NONE:  # the recogniser corrects the model's mouth
-        phones = recognize_phones(wave, SAMPLE_RATE)
-        correct_mouth(anim.vertices, head, phones, wave, fps, corrections, style=style, seed=seed)
-    # ARKit weights that best explain the motion, so ARKit exports work for learned models
-    anim.weights = fit_weights(anim.vertices, head.blendshapes, head.template)
-    if blinks:  # the model's own eye motion becomes procedural blinks and gaze
-        eyes = blink_gaze_weights(len(anim.vertices), fps, seed=seed, style=style)
-        basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
-        replace_eye_motion(anim.vertices, anim.weights, eyes, basis, block=BLOCK)
-    anim.weight_names = list(ARKIT_NAMES)
-    anim.basis = head.blendshapes
-    return anim
+    fps: float,
+    eyes: np.ndarray | None,
+) -> Iterator[Animation]:
+    """A learned model's vertices (their mouth corrected), a chunk at a time, made into
+    :func:`animate`'s frames: ARKit weights fitted (so ARKit exports work for learned models) and
+    the model's own eye motion replaced by procedural ``eyes``."""
+    fitter = WeightFitter(head.blendshapes)
+    basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
+    t = 0
+    for verts in chunks:
+        n = len(verts)
+        weights = fitter(np.asarray(verts, np.float64) - head.template.astype(np.float64))
+        if eyes is not None:
+            replace_eye_motion(verts, weights, eyes[t : t + n], basis)
+        yield Animation(
+            vertices=verts,
+            faces=head.faces,
+            fps=fps,
+            weights=weights,
+            weight_names=list(ARKIT_NAMES),
+            template=head.template,
+            basis=head.blendshapes,
+        )
+        t += n
 
 
 def animate_procedural(
@@ -179,8 +252,10 @@ def animate_procedural(
     fps: float | None,
     seed: int,
     style: SpeakingStyle | None,
-) -> Animation:
-    """The phone-driven animator on ``head`` (arguments as in :func:`animate`)."""
+    block: int = BLOCK,
+) -> AnimationBlocks:
+    """The phone-driven animator on ``head`` (arguments as in :func:`animate_blocks`): the weight
+    curves (T, 52) at once, the vertices a block at a time."""
     fps = DEFAULT_FPS if fps is None else fps
     if not head.rigged:
         raise TalkmeshError(
@@ -193,13 +268,25 @@ def animate_procedural(
     weights = phones_to_weights(
         phones, num_frames, fps, audio=wave, sr=SAMPLE_RATE, style=style, seed=seed
     )
-    return Animation(
-        vertices=head.vertices_from_weights(weights),
+
+    def blocks() -> Iterator[Animation]:
+        for t in range(0, num_frames, block):
+            w = weights[t : t + block]
+            yield Animation(
+                vertices=head.vertices_from_weights(w),
+                faces=head.faces,
+                fps=fps,
+                weights=w,
+                weight_names=list(ARKIT_NAMES),
+            )
+
+    return AnimationBlocks(
+        blocks=blocks(),
+        num_frames=num_frames,
         faces=head.faces,
         fps=fps,
         audio=wave,
         sample_rate=SAMPLE_RATE,
-        weights=weights,
         weight_names=list(ARKIT_NAMES),
         template=head.template,
         basis=head.blendshapes,
@@ -225,20 +312,15 @@ def model_name(model: str | Path | MotionModel) -> str:
     return str(model) if isinstance(model, (str, Path)) else type(model).__name__
 
 
-def animate_learned(
-    wave: np.ndarray,
-    head: Head,
+def _learned_model(
     model: str | Path | MotionModel,
-    *,
-    fps: float | None,
+    head: Head,
     style_mix: dict[str, float] | None,
-    seed: int = 0,
-    int8: str | None = None,
-) -> Animation:
-    """Animate with a released learned model (any family of talkmesh.models.registry) on
-    ``head``'s neutral face at ``fps`` (None: the model's own frame rate; ``model``: a name, a
-    release file or a loaded model); ``int8`` (CodeTalker: speech, decoders or all) as in
-    :func:`animate`."""
+    int8: str | None,
+) -> tuple[Any, np.ndarray | None]:
+    """A released learned model (any family of talkmesh.models.registry; ``model``: a name, a
+    release file or a loaded model) for ``head`` and its style weights (K,) over the training
+    speakers (None: the model has none)."""
     try:
         import torch
     except ImportError:
@@ -271,30 +353,50 @@ def animate_learned(
             raise TalkmeshError("--style weights must add up to more than 0")
         weights = np.array([style_mix.get(s, 0.0) / total for s in styles], np.float32)
     torch.set_num_threads(max(1, torch.get_num_threads()))
-    fps_model = net.motion_fps
-    fps = fps_model if fps is None else fps
-    frames = net.default_frames(len(wave))  # imported official models count as the official code
-    with torch.inference_mode():
-        verts = net.generate(
+    return net, weights
+
+
+def _learned_chunks(
+    net: Any,
+    wave: np.ndarray,
+    head: Head,
+    weights: np.ndarray | None,
+    fps: float,
+    frames: int,
+    seed: int,
+    block: int,
+) -> Iterator[np.ndarray]:
+    """The model's vertices (t, V, 3) in consecutive chunks, resampled from its frame rate to
+    ``frames`` frames at ``fps`` (linear interpolation) when they differ."""
+    import torch
+
+    chunks = (
+        c[0].numpy().astype(np.float32, copy=False)
+        for c in net.generate_chunks(
             torch.from_numpy(wave)[None],
             torch.from_numpy(head.template)[None],
             style_weights=None if weights is None else torch.from_numpy(weights)[None],
-            num_frames=frames,
+            num_frames=net.default_frames(len(wave)),
             seed=seed,
-        )[0].numpy()
-    if abs(fps - fps_model) > 1e-6:  # resample the motion to the requested frame rate
-        t_in = np.arange(len(verts)) / fps_model
-        t_out = np.arange(num_frames_for(len(wave), SAMPLE_RATE, fps)) / fps
-        pos = np.clip(t_out * fps_model, 0, len(t_in) - 1)
-        i0 = np.floor(pos).astype(int)
-        i1 = np.minimum(i0 + 1, len(t_in) - 1)
-        w = (pos - i0)[:, None, None].astype(np.float32)
-        verts = verts[i0] * (1 - w) + verts[i1] * w
-    return Animation(
-        vertices=verts.astype(np.float32, copy=False),
-        faces=head.faces,
-        fps=fps,
-        audio=wave,
-        sample_rate=SAMPLE_RATE,
-        template=head.template,
+            chunk=block,
+        )
     )
+    if abs(fps - net.motion_fps) <= 1e-6:
+        yield from chunks
+        return
+    n_in = net.default_frames(len(wave))
+    pos = np.clip(np.arange(frames) / fps * net.motion_fps, 0, n_in - 1)
+    i0 = np.floor(pos).astype(int)
+    i1 = np.minimum(i0 + 1, n_in - 1)
+    w = (pos - i0)[:, None, None].astype(np.float32)
+    buf, start, j = np.empty((0, head.num_vertices, 3), np.float32), 0, 0  # buf: frames start..
+    for c in chunks:
+        buf = np.concatenate([buf, c])
+        known = start + len(buf)
+        end = frames if known >= n_in else int(np.searchsorted(i1, known, "left"))
+        if end > j:
+            a, b, x = i0[j:end] - start, i1[j:end] - start, w[j:end]
+            yield buf[a] * (1 - x) + buf[b] * x
+            j = end
+        if j < frames:
+            buf, start = buf[i0[j] - start :], int(i0[j])

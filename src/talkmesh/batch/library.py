@@ -19,7 +19,7 @@ from typing import NamedTuple
 
 from talkmesh.errors import TalkmeshError, os_error_message
 from talkmesh.face.corrections import MIX
-from talkmesh.output import VIDEO_SIZE, write_animation
+from talkmesh.output import VIDEO_SIZE
 
 OK, SKIPPED, FAILED = "ok", "skipped", "failed"
 
@@ -92,12 +92,14 @@ class Animator:
             self.model, self.int8 = (net.int8_copy(s.int8) if s.int8 else net), None
 
     def __call__(self, job: Job) -> Row:
-        from talkmesh.pipeline import animate
+        from talkmesh.output.avatar import AVATAR_SUFFIXES
+        from talkmesh.output.streaming import save_blocks
+        from talkmesh.pipeline import animate_blocks
 
         s = self.settings
         start = time.perf_counter()
         try:
-            anim = animate(
+            anim = animate_blocks(
                 job.audio,
                 head=self.head,
                 text=s.text,
@@ -111,11 +113,18 @@ class Animator:
                 procedural_mix=s.procedural_mix,
                 int8=self.int8,
             )
-            for p in job.outputs:
-                if s.avatar is not None and p.suffix.lower() in (".glb", ".vrm"):
-                    write_avatar(anim, Path(s.avatar), p, s.overwrite)
-                else:
-                    write_animation(anim, p, overwrite=s.overwrite, size=s.size, camera=s.camera)
+            # .npz and .npy stream as frames are made; the other formats get the whole animation
+            rigged = [
+                p
+                for p in job.outputs
+                if s.avatar is not None and p.suffix.lower() in AVATAR_SUFFIXES
+            ]
+            plain = [p for p in job.outputs if p not in rigged]
+            whole = save_blocks(
+                anim, plain, overwrite=s.overwrite, size=s.size, camera=s.camera, keep=bool(rigged)
+            )
+            for p in rigged:
+                write_avatar(whole, Path(s.avatar), p, s.overwrite)
         except TalkmeshError as e:
             return _failed(job, start, str(e))
         except OSError as e:  # e.g. the input went away: this file's failure, not the batch's
@@ -123,7 +132,7 @@ class Animator:
         except Exception as e:  # a bug on one file must not stop a library of thousands
             return _failed(job, start, f"internal error: {type(e).__name__}: {e}")
         seconds = time.perf_counter() - start
-        return Row(str(job.audio), anim.duration, anim.num_frames, seconds, OK)
+        return Row(str(job.audio), anim.num_frames / anim.fps, anim.num_frames, seconds, OK)
 
 
 def write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:

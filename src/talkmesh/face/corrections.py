@@ -20,6 +20,7 @@ noise, and places some that are not there.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,20 +96,92 @@ def correct_mouth(
     """
     T, V, _ = vertices.shape
     assert V == head.num_vertices, (V, head.num_vertices)
-    mouth = head.regions.mouth_weight
-    opening = lip_opening(vertices, head.regions)
-    rest = float(lip_opening(head.template[None], head.regions)[0])
-    closures = near_closures(opening, rest, NEAR_CLOSED_MM / 1000.0)
-    if corrections.mix > 0:  # the model's closures (and a frame either side) keep their lips
-        kept = closures.copy()
-        kept[1:] |= closures[:-1]
-        kept[:-1] |= closures[1:]
-        pull = np.where(kept, 0.0, corrections.mix).astype(np.float32)
-        weights = phones_to_weights(phones, T, fps, audio=wave, style=style, seed=seed)
-        _blend(vertices, lambda b: head.vertices_from_weights(weights[b]), pull, mouth)
-    if corrections.lip_closure:
-        _blend(vertices, lambda b: head.template[None], closures.astype(np.float32), mouth)
-    if corrections.pause_gate:
-        gate = speech_gate(tail_pauses(phones, wave), T, fps)
-        gate_mouth(vertices, head.template, mouth, gate)
+    chunks = correct_mouth_chunks(
+        iter([vertices]), T, head, phones, wave, fps, corrections, style=style, seed=seed
+    )
+    for _ in chunks:
+        pass
     return vertices
+
+
+def correct_mouth_chunks(
+    chunks: Iterator[np.ndarray],
+    num_frames: int,
+    head: Head,
+    phones: list[Phone],
+    wave: np.ndarray,
+    fps: float,
+    corrections: Corrections = Corrections(),
+    *,
+    style: SpeakingStyle | None = None,
+    seed: int = 0,
+) -> Iterator[np.ndarray]:
+    """:func:`correct_mouth` on consecutive (t, V, 3) chunks of ``num_frames`` frames, each
+    corrected in place and yielded in order: the same frames as the whole clip at once.
+
+    The (T,) lip openings, the procedural weights (T, 52) and the pause gate (T,) are small and
+    kept for the clip; vertices are not. A near-closure compares a frame's opening with its
+    neighbours', and the mix spares a frame either side of one, so a chunk is held back until
+    the openings of the two frames after it are known (only with ``mix`` or ``lip_closure``).
+    """
+    rest = float(lip_opening(head.template[None], head.regions)[0])
+    look = 2 if corrections.mix > 0 or corrections.lip_closure else 0
+    weights = gate = None
+    if corrections.mix > 0:
+        weights = phones_to_weights(phones, num_frames, fps, audio=wave, style=style, seed=seed)
+    if corrections.pause_gate:
+        gate = speech_gate(tail_pauses(phones, wave), num_frames, fps)
+    opening: np.ndarray | None = None
+    pending: list[np.ndarray] = []
+    done = known = 0  # frames yielded, frames whose opening is known
+    for chunk in chunks:
+        if look:
+            o = lip_opening(chunk, head.regions)
+            if opening is None:  # the chunks' dtype, so the comparisons are the whole clip's
+                opening = np.full(num_frames, np.nan, o.dtype)  # NaN: not known yet
+            opening[known : known + len(chunk)] = o
+        known += len(chunk)
+        pending.append(chunk)
+        while pending and done + len(pending[0]) + look <= known:
+            chunk = pending.pop(0)
+            _correct(chunk, done, opening, rest, weights, gate, head, corrections)
+            done += len(chunk)
+            yield chunk
+    assert known == num_frames, (known, num_frames)
+    for chunk in pending:
+        _correct(chunk, done, opening, rest, weights, gate, head, corrections)
+        done += len(chunk)
+        yield chunk
+
+
+def _correct(
+    chunk: np.ndarray,
+    start: int,
+    opening: np.ndarray | None,
+    rest: float,
+    weights: np.ndarray | None,
+    gate: np.ndarray | None,
+    head: Head,
+    corrections: Corrections,
+) -> None:
+    """Frames ``start``.. of the clip (``chunk``) corrected in place: ``opening`` is known from
+    two frames before to two frames after them (or to the clip's ends)."""
+    mouth = head.regions.mouth_weight
+    end = start + len(chunk)
+    if opening is not None:  # closures from a frame before to a frame after the chunk
+        lo, hi = max(0, start - 2), min(len(opening), end + 2)
+        # the window's first and last frames lack a neighbour (unless at the clip's ends): they
+        # only decide kept frames outside the chunk
+        near = near_closures(opening[lo:hi], rest, NEAR_CLOSED_MM / 1000.0)
+        closures = near[start - lo : end - lo]
+    if corrections.mix > 0:  # the model's closures (and a frame either side) keep their lips
+        kept = near.copy()
+        kept[1:] |= near[:-1]
+        kept[:-1] |= near[1:]
+        pull = np.where(kept[start - lo : end - lo], 0.0, corrections.mix).astype(np.float32)
+        w = weights[start:end]
+        _blend(chunk, lambda b: head.vertices_from_weights(w[b]), pull, mouth)
+    if corrections.lip_closure:
+        _blend(chunk, lambda b: head.template[None], closures.astype(np.float32), mouth)
+    if gate is not None:
+        gate_mouth(chunk, head.template, mouth, gate[start:end])

@@ -11,6 +11,7 @@ Axis letters: B batch, S audio samples (16 kHz), T motion frames, V vertices, K 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
@@ -18,6 +19,8 @@ from torch import Tensor, nn
 
 from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
+
+CHUNK_FRAMES = 1024  # frames per chunk of generate_chunks (~58 MB of float32 vertices at V=4766)
 
 
 def frames_for_audio(samples: int, fps: float) -> int:
@@ -146,6 +149,32 @@ class MotionModel(nn.Module, ABC):
         duration at :attr:`motion_fps` (imported official models count them as the official code
         does, from the speech encoder's features)."""
         return frames_for_audio(samples, self.motion_fps)
+
+    def generate_chunks(
+        self,
+        audio: Tensor,
+        template: Tensor,
+        *,
+        style_weights: Tensor | None = None,
+        num_frames: int | None = None,
+        seed: int = 0,
+        mode: str = "fast",
+        chunk: int = CHUNK_FRAMES,
+    ) -> Iterator[Tensor]:
+        """:meth:`generate` for one sample, audio (1, S), template (1, V, 3), handed out as
+        vertices (1, t, V, 3) of consecutive frames, ``chunk`` at a time. Families that generate
+        incrementally override it so that memory does not grow with the audio; this default
+        generates the whole sequence first."""
+        verts = self.generate(
+            audio,
+            template,
+            style_weights=style_weights,
+            num_frames=num_frames,
+            seed=seed,
+            mode=mode,
+        )
+        for t in range(0, verts.shape[1], chunk):
+            yield verts[:, t : t + chunk]
 
     # -- optional verbs -----------------------------------------------------------------------
 

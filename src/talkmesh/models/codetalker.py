@@ -26,6 +26,7 @@ Here: the configs, stage 2 and :class:`CodeTalker` (training graph and ``generat
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -35,8 +36,14 @@ from torch import Tensor, nn
 
 from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.base import FrameStream, MotionModel, frames_for_audio
-from talkmesh.models.codetalker_generate import CodeTalkerStream, generate_exact, generate_fast
+from talkmesh.models.base import CHUNK_FRAMES, FrameStream, MotionModel, frames_for_audio
+from talkmesh.models.codetalker_generate import (
+    AheadWindow,
+    CodeTalkerStream,
+    fast_passes,
+    generate_exact,
+    generate_fast,
+)
 from talkmesh.models.codetalker_vq import MotionVQVAE, Quantized, VQConfig
 from talkmesh.models.int8 import quantize_int8
 from talkmesh.models.layers import Block, KVCache, padding_bias, periodic_encoding, temporal_bias
@@ -48,6 +55,7 @@ from talkmesh.models.speech import (
     build_speech_encoder,
     release_config,
 )
+from talkmesh.models.speech_chunks import FrameFeatures
 
 GENERATION_MODES = ("fast", "naive", "exact")  # CodeTalker.generate(mode=...)
 
@@ -296,7 +304,11 @@ class CodeTalker(MotionModel):
         """(B, S) -> (B, T, d) one token per motion frame (the alignment mask: frame t sees token t;
         with k tokens per frame their mean, which equals attending uniformly to them)."""
         k = self.cfg.stage2.audio_tokens_per_frame
-        feats = self.speech(audio, audio_lengths, num_frames * k)
+        return self._tokens(self.speech(audio, audio_lengths, num_frames * k), num_frames)
+
+    def _tokens(self, feats: Tensor, num_frames: int) -> Tensor:
+        """Speech features (B, T * k, D) of T frames -> their tokens, as :meth:`audio_tokens`."""
+        k = self.cfg.stage2.audio_tokens_per_frame
         feats = self.audio_map(feats)
         if self.cfg.stage2.postnorm:  # all k tokens, for the layers' attention
             return feats.view(feats.shape[0], num_frames, k, -1)
@@ -475,3 +487,57 @@ class CodeTalker(MotionModel):
             motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
         motion = motion.reshape(B, num_frames, vq.num_vertices, 3)  # a view: no copy
         return motion.add_(template[:, None])  # in place: 10 minutes are about 1 GB
+
+    def generate_chunks(
+        self,
+        audio: Tensor,
+        template: Tensor,
+        *,
+        style_weights: Tensor | None = None,
+        num_frames: int | None = None,
+        seed: int = 0,
+        mode: str = "fast",
+        chunk: int = CHUNK_FRAMES,
+    ) -> Iterator[Tensor]:
+        """Fast generation a chunk at a time (arguments as :meth:`generate`, one sample): speech
+        features computed window by window (:class:`~talkmesh.models.speech_chunks.FrameFeatures`)
+        and the frames of :func:`~talkmesh.models.codetalker_generate.fast_passes` handed out as
+        they become final, so memory does not grow with the audio. The passes are those of
+        :meth:`generate` (the audio terms are loaded ahead of them): the same vertices up to
+        float rounding. Models without a causal VQ decoder (their vertices come from a
+        bidirectional decode of all codes) and other modes generate the whole sequence."""
+        self.check_mode(mode)
+        vq, k = self.cfg.vq, self.cfg.stage2.audio_tokens_per_frame
+        if mode != "fast" or not vq.causal or vq.instance_norm or audio.shape[0] != 1:
+            yield from super().generate_chunks(
+                audio,
+                template,
+                style_weights=style_weights,
+                num_frames=num_frames,
+                seed=seed,
+                mode=mode,
+                chunk=chunk,
+            )
+            return
+        if num_frames is None:
+            num_frames = self.default_frames(audio.shape[1])
+        with torch.inference_mode():
+            style = self.style_vector(None, style_weights)
+            features = FrameFeatures(self.speech, audio, num_frames * k)
+            terms = AheadWindow(
+                lambda a, b: self.cross_terms(self._tokens(features(a * k, b * k), b - a)),
+                chunk,
+                num_frames,
+            )
+            ready: list[Tensor] = []
+            count = 0
+            for _, frames in fast_passes(self, style, terms, num_frames):
+                if frames is not None and frames.shape[1]:
+                    ready.append(frames)
+                    count += frames.shape[1]
+                if count >= chunk:
+                    motion = torch.cat(ready, dim=1)
+                    ready, count = [], 0
+                    yield motion.view(1, -1, vq.num_vertices, 3) + template[:, None]
+            if count:
+                yield torch.cat(ready, dim=1).view(1, -1, vq.num_vertices, 3) + template[:, None]

@@ -11,6 +11,8 @@ Axis letters: B batch, T frames, K frames of one pass, H face components, V vert
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+
 import numpy as np
 import torch
 from torch import Tensor, nn
@@ -70,31 +72,50 @@ def generate_fast(
     ``model.generate_block``), each pass guessing its codes from the previous one; ``block=1`` is
     the plain frame-by-frame loop. Either way the codes are those of the frame-by-frame loop.
     """
-    gen = FrameGenerator(model, style)
     vq = model.cfg.vq
     B = style.shape[0]
-    schedule = PassSchedule(max(1, block or model.generate_block))
     codes = torch.empty(B, num_frames, vq.components, dtype=torch.long, device=style.device)
-    motion = None
-    if gen.causal:
-        motion = style.new_empty(B, num_frames, vq.num_vertices * 3)
+    motion = style.new_empty(B, num_frames, vq.num_vertices * 3) if vq.causal else None
     done = moved = 0  # frames whose codes are final; frames whose motion is written
-    guesses = codes[:, :0]  # the latest codes passes gave for the frames after ``done``
+    passes = fast_passes(model, style, lambda a, b: [c[:, a:b] for c in cross], num_frames, block)
+    for kept, frames in passes:
+        codes[:, done : done + kept.shape[1]] = kept
+        done += kept.shape[1]
+        if frames is not None and motion is not None:
+            motion[:, moved : moved + frames.shape[1]] = frames
+            moved += frames.shape[1]
+    return codes, motion
+
+
+def fast_passes(
+    model: nn.Module,
+    style: Tensor,
+    cross: Callable[[int, int], list[Tensor]],
+    num_frames: int,
+    block: int | None = None,
+) -> Iterator[tuple[Tensor, Tensor | None]]:
+    """:func:`generate_fast`'s passes one at a time, for generation in chunks: ``cross(t0, t1)``
+    gives per decoder layer the (B, t1 - t0, d) audio terms of frames t0..t1-1 (asked for in
+    increasing order: ``t0`` never goes back). Yields each pass's kept codes (B, A, H) and, with a
+    causal VQ decoder, the motion (B, M, V*3) of the frames that became final (None otherwise);
+    the last frame's motion comes last, with no codes."""
+    gen = FrameGenerator(model, style)
+    B, H = style.shape[0], model.cfg.vq.components
+    schedule = PassSchedule(max(1, block or model.generate_block))
+    done = 0  # frames whose codes are final
+    # the latest codes passes gave for the frames after ``done``
+    guesses = torch.empty(B, 0, H, dtype=torch.long, device=style.device)
     while done < num_frames:
         K = schedule.length(done, num_frames - done)
         drafts = guesses[:, : K - 1]
-        kept, after, frames = gen.block([c[:, done : done + K] for c in cross], drafts)
+        kept, after, frames = gen.block(cross(done, done + K), drafts)
         guesses = torch.cat([after, guesses[:, K:]], dim=1)  # older ones past this pass stay
-        codes[:, done : done + kept.shape[1]] = kept
         done += kept.shape[1]
-        if frames is not None:
-            motion[:, moved : moved + frames.shape[1]] = frames
-            moved += frames.shape[1]
         if K > 1:
             schedule.update(kept.shape[1], drafts.shape[1])
+        yield kept, frames
     if gen.causal:  # the last frame's motion; a bidirectional decoder's feedback is not needed
-        motion[:, moved:] = gen.flush()
-    return codes, motion
+        yield guesses[:, :0], gen.flush()
 
 
 def generate_exact(model: nn.Module, style: Tensor, cross: list[Tensor], num_frames: int) -> Tensor:
@@ -113,6 +134,29 @@ def generate_exact(model: nn.Module, style: Tensor, cross: list[Tensor], num_fra
             z_q = model.vqvae.quantizer.lookup(codes[:, start : t + 1])
             gen.feed(model.vqvae.decoder.hidden(z_q, offset=start * vq.temporal_unit)[:, -1:])
     return codes
+
+
+class AheadWindow:
+    """The audio terms of :func:`fast_passes` for generation in chunks: ``load(t0, t1)`` computes
+    them for frames t0..t1-1, called ``chunk`` frames ahead of the passes at a time; the frames
+    before the current pass are dropped, so only about a chunk is held."""
+
+    def __init__(self, load: Callable[[int, int], list[Tensor]], chunk: int, total: int) -> None:
+        self.load, self.chunk, self.total = load, max(1, chunk), total
+        self.start = self.end = 0  # frames held: start..end-1
+        self.terms: list[Tensor] = []
+
+    def __call__(self, t0: int, t1: int) -> list[Tensor]:
+        assert self.start <= t0 <= self.end and t1 <= self.total, (t0, t1, self.start, self.end)
+        if t1 > self.end:
+            new = self.load(self.end, min(self.total, max(t1, self.end + self.chunk)))
+            if self.terms:
+                new = [
+                    torch.cat([old[:, t0 - self.start :], n], 1) for old, n in zip(self.terms, new)
+                ]
+                self.start = t0
+            self.terms, self.end = new, self.start + new[0].shape[1]
+        return [t[:, t0 - self.start : t1 - self.start] for t in self.terms]
 
 
 class FrameGenerator:

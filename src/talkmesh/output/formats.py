@@ -8,7 +8,10 @@ suffix     save    load    contents
 =========  ======  ======  =====================================================================
 ``.npy``   yes     yes     [T, V*3] float32 vertex positions (the VOCASET / FaceFormer layout);
                            loading needs ``faces=`` unless V matches the bundled head.
-``.npz``   yes     yes     everything in :class:`Animation` (no pickle).
+``.npz``   yes     yes     everything in :class:`Animation` (no pickle), deflated; the motion as
+                           float16 offsets from the template (format 2; format 1 files, float32
+                           vertices, still load). Written as frames arrive by
+                           :mod:`.streaming`.
 ``.obj``   yes     no      one OBJ per frame: ``out/talk.obj`` writes ``out/talk_00000.obj``, ...;
                            a directory (``out/``, with ``format="obj"``) gets ``frame_00000.obj``...
 ``.glb``   yes     yes     binary glTF 2.0: one mesh whose morph targets are the ARKit blendshapes

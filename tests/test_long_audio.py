@@ -1,0 +1,279 @@
+"""Long audio: generation and writing a chunk of frames at a time give the frames of the whole-audio
+path (small chunks on short clips, so the tests are fast), and the compact .npz reads back within
+its stated error, as do the files older talkmesh versions wrote."""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from talkmesh.animation import Animation, AnimationBlocks
+from talkmesh.errors import TalkmeshError
+from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
+from talkmesh.models.codetalker_generate import AheadWindow
+from talkmesh.models.codetalker_vq import VQConfig
+from talkmesh.models.release import save_model
+from talkmesh.models.speech import SpeechEncoderConfig, WhisperEncoder
+from talkmesh.models.speech_chunks import FrameFeatures
+from talkmesh.output.formats import load_animation, save_animation
+from talkmesh.output.streaming import save_blocks
+from talkmesh.pipeline import animate_blocks
+
+SPEECH = Path(__file__).parent / "fixtures" / "official" / "speech.wav"
+V = 20
+
+TINY_WHISPER = dict(
+    d_model=16,
+    encoder_layers=1,
+    encoder_attention_heads=2,
+    encoder_ffn_dim=32,
+    decoder_layers=1,
+    decoder_attention_heads=2,
+    decoder_ffn_dim=32,
+    num_mel_bins=80,
+    max_source_positions=1500,
+    vocab_size=64,
+)
+
+
+def tiny_whisper(window: int) -> WhisperEncoder:
+    """A random Whisper encoder whose windows are ``window`` features (20 ms each) long."""
+    pytest.importorskip("transformers")
+    torch.manual_seed(0)
+    enc = WhisperEncoder(SpeechEncoderConfig(kind="whisper", hf_config=TINY_WHISPER)).eval()
+    enc.features.window = window
+    return enc
+
+
+def tiny_codetalker(speech: SpeechEncoderConfig) -> CodeTalker:
+    torch.manual_seed(0)
+    cfg = CodeTalkerConfig(
+        vq=VQConfig(
+            num_vertices=V,
+            hidden=32,
+            layers=1,
+            heads=2,
+            ff=64,
+            components=4,
+            code_dim=8,
+            codebook_size=16,
+            causal=True,
+            causal_window=6,
+        ),
+        stage2=Stage2Config(
+            d_model=32,
+            heads=2,
+            ff=64,
+            layers=2,
+            period=5,
+            styles=("a", "b"),
+            attention_window=7,
+            speech=speech,
+        ),
+    )
+    model = CodeTalker(cfg).eval()
+    torch.nn.init.normal_(model.feat_map.weight, std=0.5)
+    return model
+
+
+def test_whisper_features_window_by_window_equal_the_whole_audio():
+    enc = tiny_whisper(window=7)  # 0.14 s windows: the 1.3 s clip spans ten of them
+    audio = torch.from_numpy(np.random.default_rng(0).standard_normal(20_777).astype(np.float32))
+    audio = audio[None] * 0.1
+    with torch.inference_mode():
+        whole = enc(audio, None, 41)
+        chunked = FrameFeatures(enc, audio, 41)
+        parts = torch.cat([chunked(a, min(a + 6, 41)) for a in range(0, 41, 6)], dim=1)
+        held = len(chunked.rows.cache)
+    torch.testing.assert_close(parts, whole, atol=1e-5, rtol=1e-5)
+    assert held <= 2  # only the windows of the last slice are kept
+
+
+def test_ahead_window_loads_ahead_and_forgets_behind():
+    loads = []
+
+    def load(a, b):
+        loads.append((a, b))
+        return [torch.arange(a, b)[None]]
+
+    window = AheadWindow(load, chunk=5, total=12)
+    assert window(0, 1)[0].tolist() == [[0]] and loads == [(0, 5)]
+    assert window(1, 4)[0].tolist() == [[1, 2, 3]] and loads == [(0, 5)]
+    assert window(4, 7)[0].tolist() == [[4, 5, 6]] and loads[-1] == (5, 10)
+    assert window.start == 4  # frames before the pass are gone
+    assert window(10, 12)[0].tolist() == [[10, 11]] and loads[-1] == (10, 12)
+
+
+@pytest.mark.parametrize("kind", ["mel", "whisper"])
+def test_codetalker_chunks_equal_whole_generation(kind):
+    speech = SpeechEncoderConfig(kind="mel", dim=16)
+    if kind == "whisper":
+        pytest.importorskip("transformers")
+        speech = SpeechEncoderConfig(kind="whisper", hf_config=TINY_WHISPER)
+    model = tiny_codetalker(speech)
+    if kind == "whisper":
+        model.speech.features.window = 9
+    audio = torch.from_numpy(np.random.default_rng(1).standard_normal(24_000).astype(np.float32))
+    audio = 0.1 * audio[None]
+    template = torch.randn(1, V, 3)
+    weights = torch.tensor([[0.3, 0.7]])
+    whole = model.generate(audio, template, style_weights=weights)
+    chunks = list(model.generate_chunks(audio, template, style_weights=weights, chunk=4))
+    assert all(c.shape[1] >= 4 for c in chunks[:-1])
+    torch.testing.assert_close(torch.cat(chunks, dim=1), whole, atol=1e-5, rtol=1e-5)
+
+
+def test_procedural_blocks_equal_one_block():
+    small = animate_blocks(SPEECH, model="procedural", block=7)
+    one = animate_blocks(SPEECH, model="procedural", block=10_000).collect()
+    got = small.collect()
+    np.testing.assert_array_equal(got.vertices, one.vertices)
+    np.testing.assert_array_equal(got.weights, one.weights)
+
+
+@pytest.mark.parametrize("fps", [30.0, 24.0])
+def test_learned_blocks_equal_one_block(tmp_path, fps):
+    from talkmesh.face.assets import load_head
+
+    head = load_head()
+    model = tiny_codetalker(SpeechEncoderConfig(kind="mel", dim=16))
+    model = CodeTalker(replace(model.cfg, vq=replace(model.cfg.vq, num_vertices=head.num_vertices)))
+    path = save_model(model.eval(), tmp_path / "m.safetensors")
+    one = animate_blocks(SPEECH, model=str(path), fps=fps, block=10_000).collect()
+    got = animate_blocks(SPEECH, model=str(path), fps=fps, block=5).collect()
+    assert got.num_frames == one.num_frames == round(1.298 * fps)
+    np.testing.assert_allclose(got.vertices, one.vertices, atol=1e-6)
+    np.testing.assert_allclose(got.weights, one.weights, atol=1e-5)
+
+
+def test_learned_blocks_correct_the_mouth_as_the_whole_clip(tmp_path):
+    """Blocks of 2 frames with every mouth correction on give the bare whole clip corrected at
+    once (face/corrections.correct_mouth); the corrections change the frames."""
+    from talkmesh.audio.loading import load_audio
+    from talkmesh.audio.phonemes import recognize_phones
+    from talkmesh.face.assets import load_head
+    from talkmesh.face.corrections import Corrections, correct_mouth
+    from talkmesh.pipeline import animate
+
+    head = load_head()
+    model = tiny_codetalker(SpeechEncoderConfig(kind="mel", dim=16))
+    model = CodeTalker(replace(model.cfg, vq=replace(model.cfg.vq, num_vertices=head.num_vertices)))
+    path = str(save_model(model.eval(), tmp_path / "m.safetensors"))
+    every = Corrections(pause_gate=True, lip_closure=True, mix=0.5)
+    got = animate_blocks(
+        SPEECH, model=path, blinks=False, lip_closure=True, procedural_mix=0.5, block=2
+    ).collect()
+    bare = animate(SPEECH, model=path, blinks=False, pause_gate=False, procedural_mix=0.0)
+    wave = load_audio(SPEECH)
+    whole = correct_mouth(bare.vertices.copy(), head, recognize_phones(wave), wave, 30.0, every)
+    np.testing.assert_allclose(got.vertices, whole, rtol=0, atol=1e-6)
+    assert np.abs(whole - bare.vertices).max() > 1e-4
+
+
+def _anim(frames: int = 9) -> Animation:
+    rng = np.random.default_rng(2)
+    template = rng.standard_normal((V, 3)).astype(np.float32) * 0.1
+    offsets = rng.uniform(-0.02, 0.02, (frames, V, 3)).astype(np.float32)
+    return Animation(
+        vertices=template + offsets,
+        faces=np.array([[0, 1, 2], [2, 3, 4]]),
+        fps=30.0,
+        audio=np.zeros(16000, np.float32),
+        weights=rng.uniform(0, 1, (frames, 2)).astype(np.float32),
+        weight_names=["a", "b"],
+        template=template,
+    )
+
+
+def test_npz_stores_float16_offsets_within_the_stated_error(tmp_path):
+    anim = _anim()
+    save_animation(anim, tmp_path / "a.npz")
+    with zipfile.ZipFile(tmp_path / "a.npz") as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_DEFLATED}
+    with np.load(tmp_path / "a.npz") as z:
+        assert int(z["format_version"]) == 2 and z["offsets"].dtype == np.float16
+        assert "vertices" not in z.files
+    back = load_animation(tmp_path / "a.npz")
+    err = np.abs(back.vertices - anim.vertices)
+    assert err.max() <= 0.02 * 2.0**-11 + 1e-7  # half a float16 step of the largest offset
+    assert err.max() > 0  # lossy, as documented
+    np.testing.assert_array_equal(back.weights, anim.weights)
+    assert back.weight_names == ["a", "b"] and back.fps == 30.0
+
+
+def test_npz_of_older_versions_and_without_template_still_load(tmp_path):
+    anim = _anim()
+    np.savez(  # format 1, as talkmesh wrote it before
+        tmp_path / "old.npz",
+        format_version=np.int64(1),
+        vertices=anim.vertices,
+        faces=anim.faces,
+        fps=np.float64(30.0),
+        weights=anim.weights,
+        weight_names=np.array(anim.weight_names),
+    )
+    old = load_animation(tmp_path / "old.npz")
+    np.testing.assert_array_equal(old.vertices, anim.vertices)
+    bare = replace(anim, template=None)
+    save_animation(bare, tmp_path / "bare.npz")
+    np.testing.assert_array_equal(load_animation(tmp_path / "bare.npz").vertices, anim.vertices)
+    with np.load(tmp_path / "bare.npz") as z:
+        assert z["vertices"].dtype == np.float32
+    np.savez(tmp_path / "newer.npz", format_version=np.int64(3), vertices=anim.vertices,
+             faces=anim.faces, fps=np.float64(30.0))  # fmt: skip
+    with pytest.raises(TalkmeshError, match="newer talkmesh"):
+        load_animation(tmp_path / "newer.npz")
+
+
+def test_save_blocks_streams_npz_and_npy_and_collects_the_rest(tmp_path):
+    anim = _anim(frames=11)
+
+    def blocks(size: int) -> AnimationBlocks:
+        parts = (
+            Animation(
+                anim.vertices[t : t + size],
+                anim.faces,
+                anim.fps,
+                weights=anim.weights[t : t + size],
+                weight_names=anim.weight_names,
+            )
+            for t in range(0, anim.num_frames, size)
+        )
+        return AnimationBlocks(
+            parts, anim.num_frames, anim.faces, anim.fps, audio=anim.audio,
+            weight_names=anim.weight_names, template=anim.template,
+        )  # fmt: skip
+
+    paths = [tmp_path / "s.npz", tmp_path / "s.npy", tmp_path / "s.obj"]
+    assert save_blocks(blocks(3), paths[:2], overwrite=False) is None
+    whole = save_blocks(blocks(4), [paths[2]], overwrite=False)
+    assert whole is not None and whole.num_frames == 11
+    save_animation(anim, tmp_path / "w.npz")
+    streamed, direct = load_animation(paths[0]), load_animation(tmp_path / "w.npz")
+    np.testing.assert_array_equal(streamed.vertices, direct.vertices)
+    np.testing.assert_array_equal(streamed.weights, direct.weights)
+    npy = np.load(paths[1])
+    np.testing.assert_array_equal(npy, anim.vertices.reshape(11, -1))
+    assert (paths[0].stat().st_mode & 0o777) == ((tmp_path / "w.npz").stat().st_mode & 0o777)
+    with pytest.raises(TalkmeshError, match="already exists"):
+        save_blocks(blocks(3), [paths[0]], overwrite=False)
+    names = {p.name for p in tmp_path.iterdir()}
+    assert {"s.npz", "s.npy", "s_00010.obj", "w.npz"} <= names
+    assert not [n for n in names if n.startswith(".")]  # no temporaries left behind
+
+
+def test_weight_files_from_blocks_equal_the_whole_animation(tmp_path):
+    from talkmesh.pipeline import animate
+
+    paths = [tmp_path / "b.json", tmp_path / "b.csv"]
+    got = save_blocks(animate_blocks(SPEECH, model="procedural", block=7), paths, overwrite=False)
+    assert got is None  # weight files need no vertices
+    whole = animate(SPEECH, model="procedural")
+    for p in paths:
+        (ref,) = save_animation(whole, tmp_path / f"ref{p.suffix}")
+        assert p.read_text() == ref.read_text()
