@@ -2,6 +2,7 @@
 
     python bench/long_audio.py                       # 1, 10 and 60 minutes, both animators
     python bench/long_audio.py --minutes 1 10 --models procedural
+    python bench/long_audio.py --minutes --models procedural   # only the formats' error
 
 The long audio is espeak-ng speech (a minute of sentences from the synthetic corpus's grammar,
 with pauses) repeated to length, written as 16-bit WAV in a temporary folder. Each run is one
@@ -105,8 +106,12 @@ def error_table(minute: np.ndarray, folder: Path, models: list[str]) -> None:
         np.savez(old, vertices=anim.vertices, faces=anim.faces, fps=np.float64(anim.fps),
                  audio=anim.audio, weights=anim.weights)  # fmt: skip
         print(f"| {model} | format 1: float32 vertices | {old.stat().st_size / 1e6:.1f} | 0 | 0 |")
-        for form, name in [("offsets", "format 2: float16 offsets, deflated (default)")]:
-            path = folder / f"{form}.npz"
+        forms = [
+            ("offsets.npz", "format 2: float16 offsets, deflated (default)"),
+            ("x.weights.npz", ".weights.npz: ARKit weights only (lossy)"),
+        ]
+        for form, name in forms:
+            path = folder / form
             save_animation(anim, path, overwrite=True)
             err = np.linalg.norm(load_animation(path).vertices - anim.vertices, axis=-1) * 1000
             print(
@@ -118,7 +123,7 @@ def error_table(minute: np.ndarray, folder: Path, models: list[str]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--minutes", type=float, nargs="+", default=[1, 10, 60])
+    ap.add_argument("--minutes", type=float, nargs="*", default=[1, 10, 60])
     ap.add_argument("--models", nargs="+", default=["codetalker-synth", "procedural"])
     ap.add_argument("--no-errors", action="store_true", help="skip the format error table")
     args = ap.parse_args()

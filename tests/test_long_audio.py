@@ -277,3 +277,43 @@ def test_weight_files_from_blocks_equal_the_whole_animation(tmp_path):
     for p in paths:
         (ref,) = save_animation(whole, tmp_path / f"ref{p.suffix}")
         assert p.read_text() == ref.read_text()
+
+
+def test_weights_npz_is_the_blend_exact_for_the_procedural_animator(tmp_path):
+    from talkmesh.pipeline import animate
+
+    anim = animate(SPEECH, model="procedural")
+    (small,) = save_animation(anim, tmp_path / "s.weights.npz")
+    (full,) = save_animation(anim, tmp_path / "s.npz")
+    with np.load(small) as z:
+        assert "offsets" not in z.files and "vertices" not in z.files
+    assert small.stat().st_size < full.stat().st_size
+    back = load_animation(small)
+    np.testing.assert_allclose(back.vertices, anim.vertices, atol=1e-6)
+    np.testing.assert_array_equal(back.weights, anim.weights)
+    streamed = tmp_path / "b.weights.npz"
+    save_blocks(animate_blocks(SPEECH, model="procedural", block=7), [streamed], overwrite=False)
+    np.testing.assert_array_equal(load_animation(streamed).vertices, back.vertices)
+    with pytest.raises(TalkmeshError, match="needs ARKit weights"):
+        save_animation(_anim(), tmp_path / "toy.weights.npz")  # weights without a basis
+
+
+def test_long_audio_is_recognised_as_utterances_cut_in_pauses(monkeypatch):
+    from talkmesh.audio import phonemes
+    from talkmesh.audio.loading import load_audio
+
+    clip = load_audio(SPEECH)
+    pause = np.zeros(4000, np.float32)  # 0.25 s
+    audio = np.concatenate([clip, pause, clip, pause, clip])
+    monkeypatch.setattr(phonemes, "UTTERANCE_MAX_S", 2.0)
+    monkeypatch.setattr(phonemes, "CUT_SEARCH_S", 1.0)
+    spans = phonemes._utterances(audio)
+    n = -(-len(audio) // phonemes.SAMPLES_PER_FRAME)
+    assert len(spans) >= 2 and spans[0][0] == 0 and spans[-1][1] == n
+    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:], strict=False))  # contiguous
+    assert all(hi - lo <= 200 for lo, hi in spans)
+    rms = phonemes._frame_rms(audio)
+    assert all(rms[hi] < 1e-6 for _, hi in spans[:-1])  # every cut in a pause
+    phones = phonemes.recognize_phones(audio)
+    assert phones[0].start == 0 and abs(phones[-1].end - len(audio) / 16000) < 0.02
+    assert sum(p.label != "SIL" for p in phones) > 10

@@ -45,6 +45,11 @@ CHUNK_SAMPLES = SAMPLE_RATE  # audio handed to the decoder per call on long clip
 # Clips up to this long are decoded as one block, so cepstral mean normalisation sees all of it;
 # longer ones are streamed with a running mean.
 FULL_UTT_MAX_S = 60.0
+# Longer audio is recognised as utterances of at most this length (PocketSphinx's search keeps
+# state for the whole utterance, about 20 MB a minute: an hour in one would not fit in 1 GB),
+# each cut at the quietest frame of its last CUT_SEARCH_S seconds.
+UTTERANCE_MAX_S = 120.0
+CUT_SEARCH_S = 10.0
 # Phone-level alignment memory grows with frames x states: align long audio in windows of about
 # ALIGN_WINDOW_S, cut at the first pause after it (or at a word boundary past the maximum).
 ALIGN_WINDOW_S = 20.0
@@ -170,11 +175,33 @@ def _pcm16(audio: np.ndarray) -> bytes:
 
 
 def _recognize(audio: np.ndarray, decoder: Decoder | None = None) -> Segments:
-    """Phone recognition: (label, start, end) in frames."""
+    """Phone recognition: (label, start, end) in frames, one utterance per :func:`_utterances`."""
     decoder = decoder or _decoder(align=False)
-    _decode(decoder, audio)
-    # seg() is None when the clip is shorter than one analysis window.
-    return [(s.word, s.start_frame, s.end_frame + 1) for s in decoder.seg() or []]
+    segments: Segments = []
+    for lo, hi in _utterances(audio):
+        _decode(decoder, audio[lo * SAMPLES_PER_FRAME : hi * SAMPLES_PER_FRAME])
+        # seg() is None when the clip is shorter than one analysis window.
+        segments += [
+            (s.word, lo + s.start_frame, lo + s.end_frame + 1) for s in decoder.seg() or []
+        ]
+    return segments
+
+
+def _utterances(audio: np.ndarray) -> list[tuple[int, int]]:
+    """(first, end) frames of the utterances long audio is recognised as: at most
+    ``UTTERANCE_MAX_S`` long, each cut at the quietest 10 ms frame of its last ``CUT_SEARCH_S``."""
+    n = math.ceil(len(audio) / SAMPLES_PER_FRAME)
+    most, search = int(UTTERANCE_MAX_S * FRAME_RATE), int(CUT_SEARCH_S * FRAME_RATE)
+    if n <= most:
+        return [(0, n)]
+    rms = _frame_rms(audio)
+    out, lo = [], 0
+    while n - lo > most:
+        start = lo + most - search
+        cut = start + int(np.argmin(rms[start : lo + most]))
+        out.append((lo, cut))
+        lo = cut
+    return [*out, (lo, n)]
 
 
 def _align(aligner: Decoder, audio: np.ndarray, words: list[str]) -> tuple[Segments, int]:

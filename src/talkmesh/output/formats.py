@@ -11,7 +11,9 @@ suffix     save    load    contents
 ``.npz``   yes     yes     everything in :class:`Animation` (no pickle), deflated; the motion as
                            float16 offsets from the template (format 2; format 1 files, float32
                            vertices, still load). Written as frames arrive by
-                           :mod:`.streaming`.
+                           :mod:`.streaming`. ``NAME.weights.npz``: the same without per-frame
+                           vertices, read back as ``template + weights @ basis`` (lossy for
+                           learned models).
 ``.obj``   yes     no      one OBJ per frame: ``out/talk.obj`` writes ``out/talk_00000.obj``, ...;
                            a directory (``out/``, with ``format="obj"``) gets ``frame_00000.obj``...
 ``.glb``   yes     yes     binary glTF 2.0: one mesh whose morph targets are the ARKit blendshapes
@@ -55,7 +57,13 @@ from talkmesh.output.atomic import temp_prefix
 from talkmesh.output.files import check_readable, exists_error, file_extension, move_file, reading
 from talkmesh.output.gltf import export_glb, import_glb
 from talkmesh.output.morph import MorphRig, morph_rig, principal_components
-from talkmesh.output.npy import export_npy, export_npz, import_npy, import_npz
+from talkmesh.output.npy import (
+    export_npy,
+    export_npz,
+    export_npz_weights,
+    import_npy,
+    import_npz,
+)
 from talkmesh.output.obj import export_obj, obj_frame_path
 
 __all__ = [
@@ -91,6 +99,8 @@ def save_animation(
     raw = str(path)
     path = Path(path)
     ext = file_extension(path, format)
+    if format is None and "".join(path.suffixes[-2:]).lower() in EXPORTERS:
+        ext = "".join(path.suffixes[-2:]).lower()  # a compound suffix (.weights.npz)
     exporter = EXPORTERS.get(ext)
     if exporter is None:
         raise TalkmeshError(
@@ -152,6 +162,7 @@ def load_animation(
 EXPORTERS: dict[str, Exporter] = {
     ".npy": export_npy,
     ".npz": export_npz,
+    ".weights.npz": export_npz_weights,
     ".obj": export_obj,
     ".glb": export_glb,
     ".csv": export_live_link_csv,

@@ -50,7 +50,17 @@ def import_npy(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
 def export_npz(anim: Animation, path: Path) -> None:
     """Every field of the animation, loadable with ``np.load(path, allow_pickle=False)``: the
     motion as float16 offsets from the template (float32 vertices without one), compressed."""
-    writer = NpzWriter(anim, anim.num_frames, path)
+    _export_npz(NpzWriter(anim, anim.num_frames, path), anim)
+
+
+def export_npz_weights(anim: Animation, path: Path) -> None:
+    """The compact, lossy ``.weights.npz``: as :func:`export_npz` without the per-frame vertices;
+    they are ``template + weights @ basis`` (exact for the procedural animator; for learned models
+    the weight fit's residual is lost: docs/results/long-audio.md)."""
+    _export_npz(NpzWriter(anim, anim.num_frames, path, motion="weights"), anim)
+
+
+def _export_npz(writer: NpzWriter, anim: Animation) -> None:
     try:
         writer.write(anim)
     finally:
@@ -63,12 +73,26 @@ class NpzWriter:
     offset: under 0.01 mm for offsets under 2 cm) streams into the deflated archive as blocks
     arrive; the ARKit weights, small, are written at :meth:`close`.
 
+    ``motion="weights"`` writes no per-frame vertices (the lossy ``.weights.npz``).
     ``header`` gives the fields that do not change per frame (an :class:`Animation` or
     :class:`~talkmesh.animation.AnimationBlocks`); without a template the member is ``vertices``
     in float32, as in format 1, which this module still reads.
     """
 
-    def __init__(self, header: Animation | AnimationBlocks, num_frames: int, path: Path) -> None:
+    def __init__(
+        self,
+        header: Animation | AnimationBlocks,
+        num_frames: int,
+        path: Path,
+        motion: str = "offsets",
+    ) -> None:
+        if motion == "weights" and (
+            header.template is None or header.basis is None or not header.weight_names
+        ):
+            raise TalkmeshError(
+                f"{path}: a .weights.npz needs ARKit weights with their template and basis; "
+                "save a .npz instead"
+            )
         self.template = header.template
         self.num_frames, self.done = num_frames, 0
         self.weights: list[np.ndarray] = []
@@ -90,7 +114,9 @@ class NpzWriter:
             self._put(name, arr)
         self.name = "vertices" if self.template is None else "offsets"
         self.dtype = np.dtype("<f4" if self.template is None else "<f2")
-        self.member = self.zip.open(f"{self.name}.npy", "w", force_zip64=True)
+        self.member = None
+        if motion != "weights":
+            self.member = self.zip.open(f"{self.name}.npy", "w", force_zip64=True)
         self.num_vertices: int | None = None
 
     def _put(self, name: str, arr: np.ndarray) -> None:
@@ -99,13 +125,14 @@ class NpzWriter:
 
     def write(self, block: Animation) -> None:
         """The next frames."""
-        if self.num_vertices is None:
+        if self.member is not None and self.num_vertices is None:
             self.num_vertices = block.num_vertices
             shape = (self.num_frames, block.num_vertices, 3)
             header = {"descr": self.dtype.str, "fortran_order": False, "shape": shape}
             np.lib.format.write_array_header_2_0(self.member, header)
-        motion = block.vertices if self.template is None else block.vertices - self.template
-        self.member.write(np.ascontiguousarray(motion, self.dtype).tobytes())
+        if self.member is not None:
+            motion = block.vertices if self.template is None else block.vertices - self.template
+            self.member.write(np.ascontiguousarray(motion, self.dtype).tobytes())
         if block.weights is not None and self.weight_names:
             self.weights.append(block.weights)
         self.done += block.num_frames
@@ -113,7 +140,8 @@ class NpzWriter:
     def close(self) -> None:
         """Finish the archive (all ``num_frames`` frames must have been written)."""
         try:
-            self.member.close()
+            if self.member is not None:
+                self.member.close()
             if self.done != self.num_frames:
                 raise TalkmeshError(f"{self.done} frames written of {self.num_frames}")
             if self.weights:
@@ -146,17 +174,19 @@ def import_npz(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
     (format 1: float32 vertices)."""
     check_magic(path, b"PK", ".npz archive")
     with np.load(path, allow_pickle=False) as z:
-        motion = "offsets" if "offsets" in z.files else "vertices"
-        missing = [k for k in (motion, "faces", "fps") if k not in z.files]
-        if motion == "offsets" and "template" not in z.files:
-            missing.append("template")
+        motion = next((k for k in ("offsets", "vertices") if k in z.files), "weights")
+        needs = {"offsets": ["template"], "weights": ["template", "basis"], "vertices": []}
+        missing = [k for k in (motion, "faces", "fps", *needs[motion]) if k not in z.files]
         if missing:
             raise TalkmeshError(f"{path}: not a talkmesh animation (no {', '.join(missing)})")
-        d = {k: z[k] for k in z.files if k != motion}
-        vertices = z[motion].astype(np.float32)
+        d = {k: z[k] for k in z.files if k not in ("offsets", "vertices")}
+        if motion == "weights":  # the compact form: the blend of the ARKit basis
+            vertices = _blend(d["weights"], d["basis"])
+        else:
+            vertices = z[motion].astype(np.float32)
     if int(d.get("format_version", 1)) > NPZ_FORMAT_VERSION:
         raise TalkmeshError(f"{path}: written by a newer talkmesh; upgrade talkmesh to read it")
-    if motion == "offsets":
+    if motion != "vertices":
         vertices += np.asarray(d["template"], np.float32)
     weights = d.get("weights")
     return Animation(
@@ -170,3 +200,12 @@ def import_npz(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
         template=d.get("template"),
         basis=d.get("basis"),
     )
+
+
+def _blend(weights: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """(T, K) weights, (K, V, 3) basis -> (T, V, 3) offsets ``weights @ basis``."""
+    w = finite(np.asarray(weights, np.float32), "weights")
+    b = np.asarray(basis, np.float32)
+    if b.ndim != 3 or w.ndim != 2 or w.shape[1] != b.shape[0]:
+        raise TalkmeshError(f"weights {w.shape} do not match the basis {b.shape}")
+    return (w @ b.reshape(len(b), -1)).reshape(len(w), -1, 3)

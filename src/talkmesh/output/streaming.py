@@ -1,7 +1,7 @@
 """Writing an :class:`~talkmesh.animation.AnimationBlocks` to files as its frames are made, so that
-long audio never holds all its vertices: ``.npz`` and ``.npy`` stream (``BLOCK_WRITERS``), the
-ARKit weight files (``.csv``, ``.json``) keep only the weights; every other format is written
-from the collected :class:`~talkmesh.animation.Animation` afterwards."""
+long audio never holds all its vertices: ``.npz``, ``.weights.npz`` and ``.npy`` stream
+(``BLOCK_WRITERS``), the ARKit weight files (``.csv``, ``.json``) keep only the weights; every
+other format is written from the collected :class:`~talkmesh.animation.Animation` afterwards."""
 
 from __future__ import annotations
 
@@ -25,7 +25,14 @@ WEIGHT_SUFFIXES = (".csv", ".json")  # formats of the ARKit weights alone, (T, 5
 BLOCK_WRITERS: dict[str, Callable[[AnimationBlocks, int, Path], NpzWriter | NpyWriter]] = {
     ".npz": NpzWriter,
     ".npy": NpyWriter,
+    ".weights.npz": lambda header, frames, path: NpzWriter(header, frames, path, motion="weights"),
 }
+
+
+def _format(path: Path) -> str:
+    """The registry key of ``path``: a compound suffix (``.weights.npz``) or its suffix."""
+    compound = "".join(path.suffixes[-2:]).lower()
+    return compound if compound in BLOCK_WRITERS else path.suffix.lower()
 
 
 def save_blocks(
@@ -45,7 +52,7 @@ def save_blocks(
     animation, which is returned (None when every format streamed, unless ``keep``). OSErrors
     are one-line TalkmeshErrors naming the file.
     """
-    streamed = [p for p in paths if p.suffix.lower() in BLOCK_WRITERS]
+    streamed = [p for p in paths if _format(p) in BLOCK_WRITERS]
     weighted = [p for p in paths if p.suffix.lower() in WEIGHT_SUFFIXES and anim.weight_names]
     others = [p for p in paths if p not in streamed and p not in weighted]
     weights: list[np.ndarray] = []
@@ -63,7 +70,7 @@ def save_blocks(
                 os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 would outlive the rename
             temps.append(Path(tmp))
             stack.callback(Path(tmp).unlink, missing_ok=True)
-            writers.append((p, BLOCK_WRITERS[p.suffix.lower()](anim, anim.num_frames, temps[-1])))
+            writers.append((p, BLOCK_WRITERS[_format(p)](anim, anim.num_frames, temps[-1])))
 
         def tee() -> Iterator[Animation]:
             for block in anim.blocks:
