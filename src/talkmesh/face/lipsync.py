@@ -222,8 +222,9 @@ def mouth_curves(phones: list[Phone], times: np.ndarray, style: SpeakingStyle) -
     spread = np.array([SPREAD.get(v, DEFAULT_SPREAD) for v in visemes])
     width = np.clip(halves, MIN_HALF_WIDTH, MAX_HALF_WIDTH) * spread * style.smoothing
     reach = 6 * width.max() * max(style.anticipation, 1.0)
-    # Process in blocks of frames against the phones near them: bounded memory for any length.
-    block = 2048
+    # Process in blocks of frames against the phones near them: bounded memory for any length
+    # (a block's (t, n, K) dominance arrays are about 100 MB at 512 frames).
+    block = 512
     for b0 in range(0, len(times), block):
         t = times[b0 : b0 + block]
         near = np.flatnonzero((centres > t[0] - reach) & (centres < t[-1] + reach))
@@ -252,8 +253,9 @@ def pitch_track(audio: np.ndarray, sr: int, hop: float = 0.01) -> tuple[np.ndarr
     lo, hi = int(sr / 400), int(sr / 70)  # 70-400 Hz covers adult speech
     f0, energy = np.zeros(n), np.zeros(n)
     nfft = 1 << (2 * win - 1).bit_length()
-    for b0 in range(0, n, 4096):  # blocks keep memory bounded for long audio
-        idx = np.arange(b0, min(n, b0 + 4096))[:, None] * step + np.arange(win)[None]
+    block = 1024  # frames at once: bounded memory for long audio (its spectra ~40 MB)
+    for b0 in range(0, n, block):
+        idx = np.arange(b0, min(n, b0 + block))[:, None] * step + np.arange(win)[None]
         frames = audio[idx].astype(np.float32)
         frames -= frames.mean(1, keepdims=True)
         energy[b0 : b0 + len(frames)] = np.sqrt((frames**2).mean(1))
