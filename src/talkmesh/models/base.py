@@ -20,7 +20,7 @@ from torch import Tensor, nn
 from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 
-CHUNK_FRAMES = 1024  # frames per chunk of generate_chunks (~58 MB of float32 vertices at V=4766)
+CHUNK_FRAMES = 256  # frames per chunk of generate_chunks (15 MB of float32 vertices at V=4766)
 
 
 def frames_for_audio(samples: int, fps: float) -> int:

@@ -162,11 +162,11 @@ def load_animation(
 EXPORTERS: dict[str, Exporter] = {
     ".npy": export_npy,
     ".npz": export_npz,
-    ".weights.npz": export_npz_weights,
     ".obj": export_obj,
     ".glb": export_glb,
     ".csv": export_live_link_csv,
     ".json": export_arkit_json,
+    ".weights.npz": export_npz_weights,  # NAME.weights.npz: a compound suffix
 }
 
 IMPORTERS: dict[str, Importer] = {
