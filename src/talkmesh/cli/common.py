@@ -89,7 +89,10 @@ def parse_outputs(
 
 
 def check_folders(outputs: list[list[Path]]) -> None:
-    """Refuse outputs whose folder is (or lies under) an existing file, before any work."""
+    """Refuse outputs whose folder is (or lies under) an existing file, before any work. With
+    several inputs this is left to each file's write, so one bad output fails only its file."""
+    if len(outputs) > 1:
+        return
     checked: set[Path] = set()
     for paths in outputs:
         for p in paths:
@@ -100,7 +103,7 @@ def check_folders(outputs: list[list[Path]]) -> None:
                 if folder.exists():
                     if not folder.is_dir():
                         raise TalkmeshError(
-                            f"{folder}: the output folder is a file: choose another -o"
+                            f"{p}: {folder} is a file, not a folder: choose another -o"
                         )
                     break
 
