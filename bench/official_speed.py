@@ -21,7 +21,8 @@ longer audio is not run through it (the row says so). talkmesh's CodeTalker ``fa
 ``exact`` mode for imported models (InstanceNorm over time needs the whole prefix), so CodeTalker
 rows show ``exact`` and ``naive`` (the official loop; up to 600 frames, like the official code).
 Times are wall-clock seconds of one run each (after an untimed 1 s warm-up run of each), on
-``--threads`` CPU threads.
+``--threads`` CPU threads, or on a GPU with ``--device cuda`` (both codes on the same device;
+the clock stops after ``torch.cuda.synchronize()``).
 """
 
 from __future__ import annotations
@@ -56,7 +57,9 @@ def fixture_script():
     return module
 
 
-def official_faceformer(checkout: Path, dataset: str, out: Path, fx) -> tuple[object, list[Path]]:
+def official_faceformer(
+    checkout: Path, dataset: str, out: Path, fx, device: str = "cpu"
+) -> tuple[object, list[Path]]:
     """The official FaceFormer at the paper's size, saved as its trainer saves it."""
     from transformers import Wav2Vec2Config
 
@@ -73,7 +76,7 @@ def official_faceformer(checkout: Path, dataset: str, out: Path, fx) -> tuple[ob
         feature_dim={"vocaset": 64, "biwi": 128}[dataset],
         period={"vocaset": 30, "biwi": 25}[dataset],
         train_subjects=" ".join(SUBJECTS[dataset]),
-        device="cpu",
+        device=device,
     )
     model = official.Faceformer(args)
     torch.nn.init.normal_(model.vertice_map_r.weight, std=0.01)  # zero-initialised officially
@@ -82,10 +85,12 @@ def official_faceformer(checkout: Path, dataset: str, out: Path, fx) -> tuple[ob
     path = out / f"faceformer_{dataset}.pth"
     torch.save(fx.torch1_names(model.state_dict()), path)
     sys.path.remove(str(checkout))
-    return model, [path]
+    return model.to(device), [path]
 
 
-def official_codetalker(checkout: Path, dataset: str, out: Path, fx) -> tuple[object, list[Path]]:
+def official_codetalker(
+    checkout: Path, dataset: str, out: Path, fx, device: str = "cpu"
+) -> tuple[object, list[Path]]:
     """The official CodeTalker at the released configs' size, both stages saved as its trainers
     save them, stage 2 built from the stage-1 file as its demo builds it."""
     from transformers import Wav2Vec2Config
@@ -119,7 +124,7 @@ def official_codetalker(checkout: Path, dataset: str, out: Path, fx) -> tuple[ob
         autoencoder=f"stage1_{name}",
         feature_dim=1024,
         vertice_dim=VERTICES[dataset] * 3,
-        device="cpu",
+        device=device,
         period={"vocaset": 30, "biwi": 25}[dataset],
         n_head=4,
         num_layers={"vocaset": 6, "biwi": 12}[dataset],
@@ -139,47 +144,53 @@ def official_codetalker(checkout: Path, dataset: str, out: Path, fx) -> tuple[ob
     fx.patch_encoder(model.audio_encoder)
     save_checkpoint(model, {"epoch": 100}, sav_path=str(out), filename=files[1].name, stage=2)
     sys.path.remove(str(checkout))
-    return model, files
+    return model.to(device), files
 
 
-def timed(fn):
+def timed(fn, device: str = "cpu"):
+    if device != "cpu":
+        torch.cuda.synchronize()
     start = time.perf_counter()
     result = fn()
+    if device != "cpu":
+        torch.cuda.synchronize()
     return time.perf_counter() - start, result
 
 
 def run_family(family: str, checkout: Path, args, speech: np.ndarray, out: Path, fx) -> None:
     build = {"faceformer": official_faceformer, "codetalker": official_codetalker}[family]
-    official, files = build(checkout, args.dataset, out, fx)
-    model = import_checkpoint(files, family, args.dataset).eval()
+    dev = args.device
+    official, files = build(checkout, args.dataset, out, fx, dev)
+    model = import_checkpoint(files, family, args.dataset).eval().to(dev)
     V = VERTICES[args.dataset]
-    template = torch.randn(V, 3, generator=torch.Generator().manual_seed(1)) * 0.1
-    one_hot = torch.zeros(1, len(model.styles))
+    template = (torch.randn(V, 3, generator=torch.Generator().manual_seed(1)) * 0.1).to(dev)
+    one_hot = torch.zeros(1, len(model.styles), device=dev)
     one_hot[0, 0] = 1
+    style = torch.tensor([0], device=dev)
     modes = ("naive", "fast") if family == "faceformer" else ("naive", "exact")
     label = f"{family} {args.dataset}"
     # warm-up (one-time costs: thread pools, first-call allocations), not timed
-    short = torch.from_numpy(speech[:16000])[None]
+    short = torch.from_numpy(speech[:16000])[None].to(dev)
     with torch.no_grad():
         official.predict(
-            torch.from_numpy(fx.processor_input(speech[:16000]))[None],
+            torch.from_numpy(fx.processor_input(speech[:16000]))[None].to(dev),
             template.reshape(1, -1),
             one_hot,
         )
     with torch.inference_mode():
         for mode in modes:
-            model.generate(short, template[None], styles=torch.tensor([0]), mode=mode)
+            model.generate(short, template[None], styles=style, mode=mode)
     for seconds in args.seconds:
         wave = speech[: int(seconds * 16000)]
         frames = model.default_frames(len(wave))
         ref, official_s = None, None
         if frames <= MAX_FRAMES:
-            inputs = torch.from_numpy(fx.processor_input(wave))[None]
+            inputs = torch.from_numpy(fx.processor_input(wave))[None].to(dev)
             with torch.no_grad():
                 official_s, out_ = timed(
-                    partial(official.predict, inputs, template.reshape(1, -1), one_hot)
+                    partial(official.predict, inputs, template.reshape(1, -1), one_hot), dev
                 )
-            ref = out_[0].reshape(-1, V, 3).numpy()
+            ref = out_[0].reshape(-1, V, 3).cpu().numpy()
             print(
                 f"| {label} | {seconds:g} | {frames} | official predict | {official_s:.2f} | 1.0 | |"
             )
@@ -195,16 +206,17 @@ def run_family(family: str, checkout: Path, args, speech: np.ndarray, out: Path,
                 sec, got = timed(
                     partial(
                         model.generate,
-                        torch.from_numpy(wave)[None],
+                        torch.from_numpy(wave)[None].to(dev),
                         template[None],
-                        styles=torch.tensor([0]),
+                        styles=style,
                         mode=mode,
-                    )
+                    ),
+                    dev,
                 )
-            got = got[0].numpy()
+            got = got[0].cpu().numpy()
             diff = ""
             if ref is not None:
-                scale = np.abs(ref - template.numpy()).max()
+                scale = np.abs(ref - template.cpu().numpy()).max()
                 diff = (
                     f"{np.abs(got - ref).max() / scale:.1e}"
                     if got.shape == ref.shape
@@ -224,6 +236,7 @@ def main() -> None:
     p.add_argument("--dataset", choices=("vocaset", "biwi"), default="vocaset")
     p.add_argument("--seconds", type=float, nargs="+", default=[4.0, 30.0])
     p.add_argument("--threads", type=int, default=torch.get_num_threads())
+    p.add_argument("--device", default="cpu", help="cpu or cuda (both codes run there)")
     p.add_argument(
         "--workdir",
         type=Path,
@@ -233,10 +246,14 @@ def main() -> None:
     if not (args.official_codetalker or args.official_faceformer):
         p.error("give --official-codetalker and/or --official-faceformer")
     torch.set_num_threads(args.threads)
+    if args.device != "cpu":
+        torch.backends.cudnn.allow_tf32 = False  # float32 convolutions, as on the CPU
+        torch.backends.cuda.matmul.allow_tf32 = False
     fx = fixture_script()
     clip = load_audio(SPEECH)
     speech = np.tile(clip, int(np.ceil(max(args.seconds) * 16000 / len(clip))))
-    print(f"{args.threads} CPU threads, torch {torch.__version__}; speech: {SPEECH.name} repeated")
+    where = torch.cuda.get_device_name(0) if args.device != "cpu" else f"{args.threads} CPU threads"
+    print(f"{where}, torch {torch.__version__}; speech: {SPEECH.name} repeated")
     print(
         "| model | audio (s) | frames | run | seconds | speed-up vs official | max diff / motion |"
     )
