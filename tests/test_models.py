@@ -114,3 +114,26 @@ def test_codetalker_reconstructs_and_codes_through_its_vq_vae():
 def test_only_registered_families_are_released(tmp_path):
     with pytest.raises(TalkmeshError, match="cannot release"):
         save_model(torch.nn.Linear(2, 2), tmp_path / "x.safetensors")
+
+
+def test_attention_bias_rows_are_aligned_for_cuda_kernels():
+    """A generation step's bias row is a slice that starts anywhere in memory; CUDA's
+    memory-efficient attention fails on it ("misaligned address"), so it is re-laid out."""
+    import torch.nn.functional as F
+
+    from talkmesh.models.layers import aligned_mask, padded_rows
+
+    full = torch.randn(1, 4, 13, 13)
+    row = full[:, :, 5:6, :6]  # step 5's row, 6 keys
+    assert row.storage_offset() % 8 != 0
+    out = padded_rows(row)
+    assert torch.equal(out, row)
+    assert out.storage_offset() == 0 and out.data_ptr() % 16 == 0
+    assert out.stride(-1) == 1 and out.stride(-2) % 8 == 0
+    q, k, v = torch.randn(1, 4, 1, 8), torch.randn(1, 4, 6, 8), torch.randn(1, 4, 6, 8)
+    assert torch.allclose(
+        F.scaled_dot_product_attention(q, k, v, attn_mask=out),
+        F.scaled_dot_product_attention(q, k, v, attn_mask=row),
+    )
+    assert aligned_mask(row) is row  # the CPU kernels read any layout
+    assert aligned_mask(None) is None

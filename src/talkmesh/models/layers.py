@@ -25,6 +25,27 @@ def sinusoid(positions: Tensor, dim: int) -> Tensor:
     return F.pad(out, (0, dim - out.shape[-1]))
 
 
+def aligned_mask(bias: Tensor | None) -> Tensor | None:
+    """An attention bias that CUDA's memory-efficient attention kernel can read.
+
+    That kernel needs the mask's rows to start on 16-byte boundaries; a slice of a longer bias (a
+    generation step's row of the temporal bias) starts anywhere and fails with "misaligned
+    address". On CUDA the bias is copied into a fresh buffer whose rows are padded to 8 values;
+    on the CPU it is returned as it is.
+    """
+    if bias is None or bias.device.type == "cpu":
+        return bias
+    return padded_rows(bias)
+
+
+def padded_rows(bias: Tensor) -> Tensor:
+    """The same values in a fresh buffer whose rows are padded to a multiple of 8 values."""
+    n = bias.shape[-1]
+    padded = bias.new_empty(*bias.shape[:-1], n + (-n) % 8)
+    padded[..., :n] = bias
+    return padded[..., :n]
+
+
 class KVCache:
     """Keys and values of one attention layer, (B, heads, T, dh), trimmed to a window.
 
@@ -95,7 +116,7 @@ class Attention(nn.Module):
         q, k, v = self.qkv(x).view(B, T, 3, self.heads, D // self.heads).permute(2, 0, 3, 1, 4)
         if cache is not None:
             k, v = cache.append(k, v)
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=bias)
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=aligned_mask(bias))
         return self.out(y.transpose(1, 2).reshape(B, T, D))
 
 

@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from talkmesh.models.layers import aligned_mask
+
 
 def interleaved_encoding(
     num_frames: int, dim: int, period: int, device=None, offset: int = 0
@@ -65,7 +67,7 @@ class PostNormDecoderLayer(nn.Module):
         if cache is not None:
             k, v = cache.append(k, v)
         p = self.p if self.training else 0.0
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=p)
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=aligned_mask(bias), dropout_p=p)
         return a.out_proj(y.transpose(1, 2).reshape(B, T, D))
 
     def _aligned(self, x: Tensor, audio: Tensor) -> Tensor:
