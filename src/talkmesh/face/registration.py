@@ -30,7 +30,9 @@ from scipy.spatial import cKDTree
 ICP_ITERATIONS = 40
 COARSE = 6  # iterations tried from each of the 24 orientations
 TRIM = 0.9  # ICP fits the closest 90% of the pairs, so hair and shoulders do not pull
-STIFFNESS = (1e4, 1e4, 3e3, 3e3, 1e3, 1e3, 300.0, 300.0, 100.0, 100.0)  # rounds, stiff to supple
+FIT_TRIM = 0.97  # the non-rigid fit drops only the farthest 3% (it starts close)
+STIFFNESS = (1e4, 1e4, 3e3, 3e3, 1e3, 1e3, 300.0, 300.0, 100.0, 100.0, 30.0, 30.0, 10.0, 10.0)
+POINT_WEIGHT = 1.0  # point-to-point pull beside the point-to-plane one (which lets it slide)
 LANDMARK_WEIGHT = 10.0  # a landmark counts as ten closest-point pairs
 CANDIDATES = 12  # nearest vertices whose triangles are searched for the closest point
 ROUGH_CANDIDATES = 4  # ... while fitting, when the next round corrects a near miss
@@ -194,6 +196,15 @@ def closest_points(
     return best_face, np.clip(bary, 0.0, 1.0), best
 
 
+def _blocks(blocks: np.ndarray) -> sparse.csc_matrix:
+    """(3V, 3V) block-diagonal sparse matrix of (V, 3, 3) blocks (x, y, z of a vertex adjacent)."""
+    n = len(blocks)
+    at = np.arange(3 * n).reshape(n, 3)
+    rows = np.repeat(at, 3, axis=1).ravel()
+    cols = np.tile(at, (1, 3)).ravel()
+    return sparse.csc_matrix((blocks.ravel(), (rows, cols)), shape=(3 * n, 3 * n))
+
+
 def nonrigid_fit(
     head: np.ndarray,
     head_faces: np.ndarray,
@@ -213,22 +224,26 @@ def nonrigid_fit(
     """
     n = len(head)
     lap = laplacian(head_faces, n)
-    smooth = (lap.T @ lap).tocsc()
+    smooth = sparse.kron((lap.T @ lap).tocsc(), sparse.identity(3)).tocsc()
     anchor = np.zeros(n)
     anchor_at = np.zeros((n, 3))
     if landmarks is not None and len(landmarks[0]):
         ids, positions = landmarks
         np.add.at(anchor, ids, LANDMARK_WEIGHT)
         np.add.at(anchor_at, ids, LANDMARK_WEIGHT * positions)
+    target_normals = face_normals(target, target_faces)
+    eye = np.eye(3)
     out = head.copy()
     for stiffness in STIFFNESS:
         normals = vertex_normals(out, head_faces)
         face, bary, dist = closest_points(out, target, target_faces, normals, ROUGH_CANDIDATES)
-        near = target[target_faces[face]]
-        goal = np.einsum("vc,vcx->vx", bary, near)
-        weight = (dist <= np.quantile(dist, TRIM)).astype(np.float64)
-        system = stiffness * smooth + sparse.diags(weight + anchor)
+        goal = np.einsum("vc,vcx->vx", bary, target[target_faces[face]])
+        weight = (dist <= np.quantile(dist, FIT_TRIM)).astype(np.float64)
+        # Point-to-plane (n n^T) plus a weaker point-to-point pull, per vertex a 3x3 block.
+        plane = target_normals[face, :, None] * target_normals[face, None, :]
+        data = weight[:, None, None] * (POINT_WEIGHT * eye + plane)
+        system = stiffness * smooth + _blocks(data + anchor[:, None, None] * eye)
         # Solve for the displacement from the rigid fit, so the Laplacian term sees it alone.
-        rhs = weight[:, None] * (goal - head) + anchor_at - anchor[:, None] * head
-        out = head + splu(system.tocsc()).solve(rhs)
+        rhs = np.einsum("vxy,vy->vx", data, goal - head) + anchor_at - anchor[:, None] * head
+        out = head + splu(system).solve(rhs.ravel()).reshape(n, 3)
     return out

@@ -47,7 +47,7 @@ from talkmesh.face.registration import (
     rigid_fit,
     vertex_normals,
 )
-from talkmesh.face.transfer import deformation_gradients, rigid_follow, transfer
+from talkmesh.face.transfer import deformation_gradients, frames, rigid_follow, transfer
 
 FALLOFF = (0.02, 0.06)  # fraction of the head's RMS radius: full motion within, none beyond
 MIN_VERTICES = 100
@@ -55,6 +55,7 @@ MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 NOT_A_HEAD = 0.08  # median registration distance over RMS radius beyond which it is no head
 SEALED_LIPS = 0.12  # surface path between the lips shorter than this x the RMS radius: no mouth
 METHODS = ("transfer", "closest")
+PART_SKIN = 8  # skin vertices nearest each part vertex whose mean motion the part takes
 PART_MATCH = 0.3  # mean distance to a part over its RMS radius within which a component is it
 NOSE_WINDOW = 0.015  # metres around the rigid fit's nose tip searched for the real one
 SKIN, EYE, TEETH, TONGUE = 0, 1, 2, 3  # Regions.vertex_part
@@ -335,11 +336,10 @@ def rig_head(
     scale, rotation, shift, radius, skin, skin_faces, registered, found, user_normals = _register(
         vertices, faces, head, landmarks
     )
-    shapes = head.blendshapes[:, skin].astype(np.float64)
-    # Closest-point correspondence of every user vertex on the registered head (its skin as fitted,
-    # eyes, teeth and tongue as placed by the rigid fit).
-    whole = scale * head.template.astype(np.float64) @ rotation.T + shift
-    whole[skin] = registered
+    # Closest-point correspondence of every user vertex on the registered head (its skin as
+    # fitted, eyes, teeth and tongue moved with the skin around them).
+    placed = scale * head.template.astype(np.float64) @ rotation.T + shift
+    whole = _follow_skin(placed, registered, head)
     head_faces = head.faces.astype(np.int64)
     face, bary, dist = closest_points(vertices, whole, head_faces, user_normals)
     near, far = FALLOFF[0] * radius, FALLOFF[1] * radius
@@ -350,16 +350,17 @@ def rig_head(
     parts: dict[str, int] = {}
     if method == "transfer":
         labels = _components(faces, len(vertices))
-        part_of, follow = _classify(vertices, labels, head, scale, rotation, shift)
+        part_of, follow = _classify(vertices, labels, head, whole)
         on_skin = part_of[faces[:, 0]] == SKIN
+        shapes = scale * head.blendshapes[:, skin].astype(np.float64) @ rotation.T
         gradients = _user_gradients(
-            vertices, faces[on_skin], registered, skin_faces, shapes, rotation, radius, head
+            vertices, faces[on_skin], registered, placed[skin], skin_faces, shapes, radius
         )
         offsets = transfer(vertices, faces[on_skin], gradients, guess)
         offsets[:, part_of != SKIN] = guess[:, part_of != SKIN]
         for label, source_ids in follow.items():
             mine = labels == label
-            part = scale * head.template[source_ids].astype(np.float64) @ rotation.T + shift
+            part = whole[source_ids]
             moved = scale * head.blendshapes[:, source_ids].astype(np.float64) @ rotation.T
             offsets[:, mine] = rigid_follow(vertices[mine], part, moved)
             name = {EYE: "eye", TEETH: "teeth", TONGUE: "tongue"}[
@@ -383,14 +384,32 @@ def rig_head(
     )
 
 
-def _classify(vertices, labels, head, scale, rotation, shift):
+def _follow_skin(placed: np.ndarray, registered: np.ndarray, head: Head) -> np.ndarray:
+    """(Vh, 3) the whole bundled head on the user's: ``placed`` by the rigid fit, its skin
+    replaced by the (S, 3) ``registered`` skin, and every other part (eyeball, teeth row, tongue)
+    shifted by the mean non-rigid displacement of the skin around it (the ``PART_SKIN`` skin
+    vertices nearest each of its vertices: eyelids, lips), so eyes and teeth move with the face."""
+    skin = np.flatnonzero(head.regions.vertex_part == SKIN)
+    moved = registered - placed[skin]
+    out = placed.copy()
+    out[skin] = registered
+    tree = cKDTree(placed[skin])
+    labels = _components(head.faces.astype(np.int64), head.num_vertices)
+    for label in np.unique(labels):
+        ids = np.flatnonzero(labels == label)
+        if head.regions.vertex_part[ids[0]] != SKIN:
+            near = np.unique(tree.query(placed[ids], k=PART_SKIN)[1])
+            out[ids] += moved[near].mean(0)
+    return out
+
+
+def _classify(vertices, labels, head, placed):
     """What each user component is: (V,) part per vertex, and {component label: bundled vertex
     ids} for those that follow a bundled eyeball or teeth rigidly. The largest component is the
     skin. Another is taken for the bundled eyeball, teeth row or tongue (as placed by the rigid
     fit) it overlaps best: the smallest mean distance from each one's vertices to the other's
     nearest, both ways, within PART_MATCH of that part's RMS radius. Any other component is OTHER
     (lashes, a separate scalp)."""
-    placed = scale * head.template.astype(np.float64) @ rotation.T + shift
     head_labels = _components(head.faces.astype(np.int64), head.num_vertices)
     parts = []
     for source in np.unique(head_labels):
@@ -420,12 +439,22 @@ def _classify(vertices, labels, head, scale, rotation, shift):
     return part_of, follow
 
 
-def _user_gradients(vertices, faces, registered, skin_faces, shapes, rotation, radius, head):
+def _user_gradients(vertices, faces, registered, placed, skin_faces, shapes, radius):
     """(52, F, 3, 3) the deformation gradient each user triangle takes: its corresponding
-    bundled triangle's (closest facing the same way, on the registered skin), in the user's
-    axes, fading to the identity (no motion) far from the head."""
-    skin = np.flatnonzero(head.regions.vertex_part == SKIN)
-    source = deformation_gradients(head.template[skin].astype(np.float64), skin_faces, shapes)
+    bundled triangle's (closest facing the same way, on the (S, 3) ``registered`` skin), in the
+    user's axes, carried through the registration, fading to the identity (no motion) far from
+    the head.
+
+    A shape's gradient Q on the bundled triangle is I + D, D its displacement gradient. Sumner and
+    Popovic give the user's triangle Q itself, so a displacement scales with the triangle it sits
+    on; we give it I + R D R^T G^-1, G the registration's own gradient (from the rigidly
+    ``placed`` (S, 3) skin to the registered one): the displacement field is carried along the
+    registration, and where the heads are alike in shape (G = I) the two agree."""
+    source = deformation_gradients(placed, skin_faces, shapes)
+    pull = frames(placed, skin_faces) @ np.linalg.inv(
+        frames(registered, skin_faces) + 1e-12 * np.eye(3)
+    )
+    source = (source - np.eye(3)) @ pull[None]  # (52, S faces, 3, 3) displacement gradients
     tri = vertices[faces]
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
@@ -440,5 +469,4 @@ def _user_gradients(vertices, faces, registered, skin_faces, shapes, rotation, r
     near, far = FALLOFF[0] * radius, FALLOFF[1] * radius
     fade = np.clip((far - dist) / (far - near), 0.0, 1.0)[None, :, None, None]
     mean = source[:, match].mean(axis=2)  # (52, F, 3, 3)
-    moved = rotation @ mean @ rotation.T  # Q in the user's axes: R Q R^T
-    return fade * moved + (1 - fade) * np.eye(3)
+    return fade * mean + np.eye(3)
