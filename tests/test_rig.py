@@ -11,7 +11,13 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
 from talkmesh.face.rig import LANDMARK_NAMES, head_landmarks, rig_head
-from talkmesh.face.transfer import deformation_gradients, rigid_follow, transfer
+from talkmesh.face.transfer import (
+    SAMPLES,
+    deformation_gradients,
+    fitted_gradients,
+    rigid_follow,
+    transfer,
+)
 from talkmesh.output.avatar import animate_avatar, read_glb
 
 
@@ -68,6 +74,24 @@ def test_deformation_transfer_is_exact_for_an_affine_map_and_follows_the_gradien
     turn = trimesh.transformations.rotation_matrix(0.3, [0, 1, 0])[:3, :3]
     follow = rigid_follow(v + 5.0, v, (v @ turn.T - v)[None])
     np.testing.assert_allclose(follow[0], (v @ turn.T) - v, atol=1e-9)
+
+
+def test_fitted_gradients_average_a_field_over_each_triangle():
+    """Sampled from an affine field, the fitted gradients map every edge as the field does; from
+    a bump inside a triangle (zero at its corners), they fit its mean slope, here zero, so the
+    transfer leaves the vertices where the corners' offsets put them."""
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    v, f = mesh.vertices, mesh.faces
+    a = np.array([[0.2, 0.1, 0.0], [0.0, -0.1, 0.3], [0.1, 0.0, 0.05]])
+    points = np.einsum("sc,fcx->fsx", SAMPLES, v[f])  # (F, samples, 3)
+    gradients = fitted_gradients(v, f, (points @ a.T)[None])
+    edges = v[f[:, 1]] - v[f[:, 0]]
+    moved = np.einsum("fxy,fy->fx", gradients[0], edges)
+    np.testing.assert_allclose(moved, edges + edges @ a.T, atol=1e-9)
+    bump = np.zeros((1, len(f), len(SAMPLES), 3))
+    bump[..., 3:, 2] = 1.0  # edge midpoints and centroid raised, corners not
+    flat = fitted_gradients(v, f, bump)
+    np.testing.assert_allclose(np.einsum("fxy,fy->fx", flat[0], edges), edges, atol=1e-9)
 
 
 def test_landmarks_can_be_given_and_are_checked(head):

@@ -47,7 +47,14 @@ from talkmesh.face.registration import (
     rigid_fit,
     vertex_normals,
 )
-from talkmesh.face.transfer import deformation_gradients, frames, rigid_follow, transfer
+from talkmesh.face.transfer import (
+    SAMPLES,
+    deformation_gradients,
+    fitted_gradients,
+    frames,
+    rigid_follow,
+    transfer,
+)
 
 FALLOFF = (0.02, 0.06)  # fraction of the head's RMS radius: full motion within, none beyond
 MIN_VERTICES = 100
@@ -440,33 +447,50 @@ def _classify(vertices, labels, head, placed):
 
 
 def _user_gradients(vertices, faces, registered, placed, skin_faces, shapes, radius):
-    """(52, F, 3, 3) the deformation gradient each user triangle takes: its corresponding
-    bundled triangle's (closest facing the same way, on the (S, 3) ``registered`` skin), in the
-    user's axes, carried through the registration, fading to the identity (no motion) far from
-    the head.
+    """(52, F, 3, 3) the deformation gradient each user triangle takes from the (S, 3)
+    ``registered`` skin (the ``SAMPLES`` of the triangle matched to their closest points on it,
+    facing the same way), in the user's axes, fading to the identity (no motion) far from the
+    head.
 
-    A shape's gradient Q on the bundled triangle is I + D, D its displacement gradient. Sumner and
+    A shape's gradient Q on a bundled triangle is I + D, D its displacement gradient. Sumner and
     Popovic give the user's triangle Q itself, so a displacement scales with the triangle it sits
     on; we give it I + R D R^T G^-1, G the registration's own gradient (from the rigidly
     ``placed`` (S, 3) skin to the registered one): the displacement field is carried along the
-    registration, and where the heads are alike in shape (G = I) the two agree."""
+    registration, and where the heads are alike in shape (G = I) the two agree. A user triangle
+    larger than the bundled one under its centre (a coarser mesh) spans several, whose gradients
+    do not add up to its own: it takes instead the affine fit of the carried displacements at its
+    samples (:func:`fitted_gradients`), blended in as its area grows from one to two times."""
     source = deformation_gradients(placed, skin_faces, shapes)
     pull = frames(placed, skin_faces) @ np.linalg.inv(
         frames(registered, skin_faces) + 1e-12 * np.eye(3)
     )
-    source = (source - np.eye(3)) @ pull[None]  # (52, S faces, 3, 3) displacement gradients
     tri = vertices[faces]
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
-    # Four samples per triangle (its centroid and the midpoints towards its corners): a coarse
-    # triangle spans several bundled ones and takes the mean of their gradients.
-    centre = tri.mean(1)
-    samples = np.concatenate([centre[:, None], (centre[:, None] + tri) / 2], axis=1)
-    match, _, dist = closest_points(
-        samples.reshape(-1, 3), registered, skin_faces, np.repeat(normal, 4, axis=0)
+    area = np.linalg.norm(normal, axis=1)
+    normal /= np.maximum(area, 1e-30)[:, None]
+    # The fit's samples, and three more halfway from the centroid to the corners: the carried
+    # gradients are averaged over the centroid and these (the corners may fall across a fold).
+    inner = np.concatenate([SAMPLES, (SAMPLES[:3] + SAMPLES[-1]) / 2])
+    samples = np.einsum("sc,fcx->fsx", inner, tri).reshape(-1, 3)
+    match, bary, dist = closest_points(
+        samples, registered, skin_faces, np.repeat(normal, len(inner), axis=0)
     )
-    match, dist = match.reshape(-1, 4), dist.reshape(-1, 4)[:, 0]
     near, far = FALLOFF[0] * radius, FALLOFF[1] * radius
-    fade = np.clip((far - dist) / (far - near), 0.0, 1.0)[None, :, None, None]
-    mean = source[:, match].mean(axis=2)  # (52, F, 3, 3)
-    return fade * mean + np.eye(3)
+    fade = np.clip((far - dist) / (far - near), 0.0, 1.0)  # (F * samples,)
+    weights, corners = bary * fade[:, None], skin_faces[match]
+    match = match.reshape(len(faces), -1)
+    centre = match[:, len(SAMPLES) - 1]  # SAMPLES ends with the centroid
+    bundled = registered[skin_faces[centre]]
+    bundled_area = np.linalg.norm(
+        np.cross(bundled[:, 1] - bundled[:, 0], bundled[:, 2] - bundled[:, 0]), axis=1
+    )
+    coarse = np.clip(area / np.maximum(bundled_area, 1e-30) - 1.0, 0.0, 1.0)[:, None, None]
+    own_fade = fade.reshape(len(faces), -1)[:, len(SAMPLES) - 1, None, None]
+    out = np.empty((len(shapes), len(faces), 3, 3))
+    for k in range(len(shapes)):  # one shape at a time: (F, samples, 3, 3) is large on dense meshes
+        carried = (source[k] - np.eye(3)) @ pull  # (S faces, 3, 3) displacement gradients
+        local = own_fade * carried[match[:, len(SAMPLES) - 1 :]].mean(axis=1)
+        sampled = np.einsum("pc,pcx->px", weights, shapes[k][corners]).reshape(len(faces), -1, 3)
+        fitted = fitted_gradients(vertices, faces, sampled[None, :, : len(SAMPLES)])[0]
+        out[k] = np.eye(3) + coarse * (fitted - np.eye(3)) + (1 - coarse) * local
+    return out

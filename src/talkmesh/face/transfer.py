@@ -23,6 +23,11 @@ from scipy import sparse
 from scipy.sparse.linalg import splu
 
 ANCHOR = 0.2  # weight of the first-guess offsets against the edge rows (weight 1 each)
+# Barycentric sample points of a triangle: its corners, edge midpoints and centroid (last).
+SAMPLES = np.array(
+    [[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5], [1, 1, 1]]
+) / np.array([[1], [1], [1], [1], [1], [1], [3]])
+CORNER_WEIGHT = 4.0  # the corners count four times in the fit (the offsets the vertices get)
 
 
 def frames(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -42,6 +47,21 @@ def deformation_gradients(
     rest = frames(vertices, faces)
     inverse = np.linalg.inv(rest + 1e-12 * np.eye(3))  # degenerate triangles: near identity
     return frames(vertices[None] + offsets, faces) @ inverse[None]
+
+
+def fitted_gradients(vertices: np.ndarray, faces: np.ndarray, sampled: np.ndarray) -> np.ndarray:
+    """(K, F, 3, 3) gradients of the affine maps that best fit (K, F, len(SAMPLES), 3) offsets
+    ``sampled`` at each triangle's ``SAMPLES`` (least squares, corners weighted ``CORNER_WEIGHT``):
+    the area-averaged gradient of a displacement field over a triangle, for a triangle larger
+    than the features of the field. Only the in-plane part matters to :func:`transfer` (it moves
+    edges), so the normal column of the displacement gradient is zero."""
+    weight = np.sqrt(np.where(np.arange(len(SAMPLES)) < 3, CORNER_WEIGHT, 1.0))
+    fit = np.linalg.pinv(SAMPLES * weight[:, None]) * weight[None]  # (3 corners, samples)
+    corner = np.einsum("cs,kfsx->kfcx", fit, sampled)  # the fitted offsets at the corners
+    d1, d2 = corner[:, :, 1] - corner[:, :, 0], corner[:, :, 2] - corner[:, :, 0]
+    change = np.stack([d1, d2, np.zeros_like(d1)], axis=-1)  # columns: edge 1, edge 2, normal
+    inverse = np.linalg.inv(frames(vertices, faces) + 1e-12 * np.eye(3))
+    return np.eye(3) + change @ inverse[None]
 
 
 def edge_operator(faces: np.ndarray, num_vertices: int) -> sparse.csr_matrix:
