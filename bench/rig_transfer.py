@@ -17,7 +17,10 @@ shape's own mean displacement, averaged over the 52 shapes (and the worst shape)
 (between the rig's upper_lip and lower_lip landmarks) under jawOpen and under mouthClose +
 jawOpen, truth vs transfer.
 
-    PYTHONPATH=src python bench/rig_transfer.py [--quick]
+    PYTHONPATH=src python bench/rig_transfer.py [--quick] [--landmarks]
+
+``--landmarks`` prints instead how far (mm) each landmark the rig places automatically (the nose
+tip found on the user's mesh, the others placed from the registered head) lies from its true point.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ import trimesh
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import list_identities, load_head
 from talkmesh.face.registration import closest_points, vertex_normals
-from talkmesh.face.rig import METHODS, rig_head
+from talkmesh.face.rig import LANDMARK_NAMES, METHODS, head_landmarks, rig_head
 
 JAW, CLOSE = ARKIT_NAMES.index("jawOpen"), ARKIT_NAMES.index("mouthClose")
 
@@ -68,35 +71,89 @@ def lip_gap(vertices, offsets, weights, pair):
 
 
 def cases(head, quick: bool):
-    v, f, s = head.template.astype(np.float64), head.faces, head.blendshapes.astype(np.float64)
+    """(name, vertices, faces, true shapes, units per metre, true landmark points (L, 3))."""
+    v, f, s = (
+        head.template.astype(np.float64),
+        head.faces,
+        head.blendshapes.astype(np.float64),
+    )
+    at = v[[head_landmarks(head)[k] for k in LANDMARK_NAMES]]
     r_z = rotation([1, 0, 0], -90)  # a Z-up export
-    yield "cm, Z-up", 100 * v @ r_z.T + [3, -2, 10], f, 100 * s @ r_z.T, 100
+    yield (
+        "cm, Z-up",
+        100 * v @ r_z.T + [3, -2, 10],
+        f,
+        100 * s @ r_z.T,
+        100,
+        100 * at @ r_z.T + [3, -2, 10],
+    )
     if not quick:
         r = rotation([0.3, 1, 0.2], 37)
-        yield "mm, rotated 37 deg", 1000 * v @ r.T, f, 1000 * s @ r.T, 1000
-        yield ("denser (subdivided)", *subdivide(v, f, s), 1)
-    yield ("coarser (50% of triangles)", *decimate(v, f, s, 0.5), 1)
+        yield (
+            "mm, rotated 37 deg",
+            1000 * v @ r.T,
+            f,
+            1000 * s @ r.T,
+            1000,
+            1000 * at @ r.T,
+        )
+        yield ("denser (subdivided)", *subdivide(v, f, s), 1, at)
+    yield ("coarser (50% of triangles)", *decimate(v, f, s, 0.5), 1, at)
     cv, cf, cs = decimate(v, f, s, 0.25)
     r = rotation([1, 0.2, 0], 25)
-    yield "coarser (25%), mm, rotated 25 deg", 1000 * cv @ r.T, cf, 1000 * cs @ r.T, 1000
+    yield (
+        "coarser (25%), mm, rotated 25 deg",
+        1000 * cv @ r.T,
+        cf,
+        1000 * cs @ r.T,
+        1000,
+        1000 * at @ r.T,
+    )
     if not quick:
         perm = np.random.default_rng(0).permutation(len(v))
-        yield "shuffled vertices", v[perm], np.argsort(perm)[f], s[:, perm], 1
+        yield "shuffled vertices", v[perm], np.argsort(perm)[f], s[:, perm], 1, at
     for name in list_identities()[: 1 if quick else 3]:
-        yield f"identity {name}", load_head(name).template.astype(np.float64), f, s, 1
+        other = load_head(name).template.astype(np.float64)
+        yield (
+            f"identity {name}",
+            other,
+            f,
+            s,
+            1,
+            other[[head_landmarks(head)[k] for k in LANDMARK_NAMES]],
+        )
+
+
+def landmark_table(head, quick: bool) -> None:
+    """The automatic landmarks' distance (mm) from the true points, per landmark and case."""
+    print("| case | " + " | ".join(LANDMARK_NAMES) + " | mean |")
+    print("|---|" + "---|" * (len(LANDMARK_NAMES) + 1))
+    for name, v, f, _, unit, at in cases(head, quick):
+        rig = rig_head(v, f, head, method="closest")
+        placed = v[[rig.landmarks[k] for k in LANDMARK_NAMES]]
+        err = np.linalg.norm(placed - at, axis=1) / unit * 1000
+        print(f"| {name} | " + " | ".join(f"{e:.1f}" for e in err) + f" | {err.mean():.1f} |")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="three cases only")
+    parser.add_argument(
+        "--landmarks",
+        action="store_true",
+        help="the automatic landmarks' error instead",
+    )
     args = parser.parse_args()
     head = load_head()
+    if args.landmarks:
+        landmark_table(head, args.quick)
+        return
     print(
         "| case | method | vertices | units | up | mean err mm | worst shape mm | mean % | "
         "worst % | jaw gap mm true/ours | close+jaw gap mm true/ours | s |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, v, f, truth, unit in cases(head, args.quick):
+    for name, v, f, truth, unit, _ in cases(head, args.quick):
         for method in METHODS:
             t = time.perf_counter()
             rig = rig_head(v, f, head, method=method)

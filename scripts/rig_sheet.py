@@ -1,6 +1,6 @@
 """Contact sheet: three heads, rigged by `talkmesh rig`, saying the same sentence.
 
-    PYTHONPATH=src python scripts/rig_sheet.py [-o docs/images/rig-sheet.png]
+    PYTHONPATH=src python scripts/rig_sheet.py [-o docs/images/rig-sheet.png] [--mesh HEAD.obj ...]
 
 The heads are bundled identities turned into "user" meshes of other meshing, units and axes (the
 bench's kinds): kemi quadric-decimated to 50% of the triangles in centimetres and Z-up, otto
@@ -9,6 +9,7 @@ subdivided once in millimetres, hana decimated to 25% and turned 20 degrees. Eac
 the procedural animator on an espeak-ng sentence. Columns: rest, then the frames where the jaw
 opening, the rounding (pucker + funnel), the closure (close + press + roll) and the spreading
 peak. The frames are drawn in plain skin colour, brought back to +y up by the rig's fitted pose.
+``--mesh`` adds a row for each head mesh file given (any units, axes and topology).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from rig_transfer import decimate, rotation  # noqa: E402
 from talkmesh.audio.tts import synthesize_speech  # noqa: E402
 from talkmesh.face.arkit import ARKIT_NAMES  # noqa: E402
 from talkmesh.face.assets import load_head  # noqa: E402
-from talkmesh.face.rig import rig_head  # noqa: E402
+from talkmesh.face.rig import load_mesh, rig_head  # noqa: E402
 from talkmesh.output.labels import TextOverlay  # noqa: E402
 from talkmesh.output.raster import Renderer  # noqa: E402
 from talkmesh.pipeline import animate  # noqa: E402
@@ -37,7 +38,7 @@ SENTENCE = "Would you like a cup of tea?"
 CELL = 150
 
 
-def heads(bundled):
+def heads(bundled, meshes=()):
     s = bundled.blendshapes.astype(np.float64)
     v, f = load_head("kemi").template.astype(np.float64), bundled.faces
     cv, cf, _ = decimate(v, f, s, 0.5)
@@ -48,11 +49,14 @@ def heads(bundled):
     v = load_head("hana").template.astype(np.float64)
     cv, cf, _ = decimate(v, f, s, 0.25)
     yield "hana: 25% tris, turned", cv @ rotation([0.2, 1, 0], 20).T, cf
+    for path in meshes:
+        yield (Path(path).stem, *load_mesh(path))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-o", "--output", default="docs/images/rig-sheet.png")
+    parser.add_argument("--mesh", nargs="*", default=[], help="more head meshes, a row each")
     args = parser.parse_args()
     bundled = load_head()
     with tempfile.TemporaryDirectory() as tmp:
@@ -70,7 +74,7 @@ def main() -> None:
     ):
         picks.append(int(np.argmax(curve)))
     rows = []
-    for label, v, f in heads(bundled):
+    for label, v, f in heads(bundled, args.mesh):
         rig = rig_head(v, f, bundled)
         frames = rig.vertices[None] + np.einsum("tk,kvx->tvx", anim.weights[picks], rig.blendshapes)
         upright = (frames - rig.translation) @ rig.rotation / rig.scale  # back to +y up, metres

@@ -7,12 +7,14 @@
    wins. With four or more landmarks, their Umeyama fit is the one start.
 2. Non-rigid (:func:`nonrigid_fit`): the registered head's vertices X move to minimise
 
-       stiffness * |L (X - X0)|^2 + sum_i w_i |X_i - c_i|^2 + LANDMARK_WEIGHT * sum_l |X_l - p_l|^2
+       stiffness * |L (X - X0)|^2 + LANDMARK_WEIGHT * sum_l |X_l - p_l|^2
+       + sum_i w_i (POINT_WEIGHT |X_i - c_i|^2 + (n_i . (X_i - c_i))^2)
 
    with L the uniform graph Laplacian (a smooth displacement field, as the non-rigid ICP of
    Amberg et al. 2007 regularises its per-vertex transforms), c_i the closest point of the user's
-   surface (trimmed, and only on triangles facing the same way, so closed lips do not swap), and
-   p_l the landmarks. Each round is one sparse solve (scipy's SuperLU); the stiffness falls from
+   surface and n_i its normal (trimmed, and only on triangles facing the same way, so closed lips
+   do not swap), and p_l the landmarks. The point-to-plane term lets the fit slide along the
+   surface where the smoothness term wants it; the point-to-point one keeps it from drifting. Each round is one sparse solve (scipy's SuperLU); the stiffness falls from
    round to round, so the fit goes from global to local.
 
 Everything here is in the user's units and axes after the rigid fit.
