@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import re
 from pathlib import Path
 
 import numpy as np
@@ -73,8 +74,10 @@ def test_codetalker_needs_both_files(tmp_path):
     stage1, stage2 = codetalker_files("vocaset")
     with pytest.raises(TalkmeshError, match="stage-1 .*is missing"):
         import_checkpoint([stage2, stage2], "codetalker", "vocaset")
-    with pytest.raises(TalkmeshError, match="needs both released files"):
+    with pytest.raises(TalkmeshError, match="needs both released files.*stage-2 .*is missing"):
         import_checkpoint([stage1], "codetalker", "vocaset")
+    with pytest.raises(TalkmeshError, match="needs both released files.*stage-1 .*is missing"):
+        import_checkpoint([stage2], "codetalker", "vocaset")
     with pytest.raises(TalkmeshError, match="is --dataset right"):
         import_checkpoint([stage1, stage2], "codetalker", "biwi")
 
@@ -240,3 +243,43 @@ def test_imported_models_run_past_the_official_600_frames(family, dataset, modes
     assert 0.2 * before < after < 5 * before
     for other in outs[1:]:  # the key/value cache keeps the same 600-frame window
         assert np.abs(other - outs[0]).max() <= TOLERANCE * before
+
+
+def _truncated(tmp_path: Path) -> list[Path]:
+    data = (FIXTURES / "faceformer_vocaset.pth").read_bytes()
+    (tmp_path / "vocaset.pth").write_bytes(data[: len(data) // 2])
+    return [tmp_path / "vocaset.pth"]
+
+
+def _prefixed(tmp_path: Path) -> list[Path]:
+    state = torch.load(FIXTURES / "faceformer_vocaset.pth", weights_only=True)
+    torch.save({"module." + k: v for k, v in state.items()}, tmp_path / "vocaset.pth")
+    return [tmp_path / "vocaset.pth"]
+
+
+@pytest.mark.parametrize(
+    "files, family, dataset, message",
+    [
+        (lambda t: codetalker_files("vocaset")[1:], "codetalker", "vocaset", "both .*stage-1"),
+        (lambda t: codetalker_files("vocaset")[:1], "codetalker", "vocaset", "both .*stage-2"),
+        (lambda t: [FIXTURES / "faceformer_vocaset.pth"], "faceformer", "biwi", "--dataset right"),
+        (lambda t: codetalker_files("biwi"), "codetalker", "vocaset", "--dataset right"),
+        (lambda t: [FIXTURES / "meshtalk"], "meshtalk", "biwi", "--dataset right"),
+        (_truncated, "faceformer", "vocaset", "truncated"),
+        (_prefixed, "faceformer", "vocaset", None),  # DataParallel's module. prefix: imported
+    ],
+    ids=["ct-no-stage1", "ct-no-stage2", "ff-dataset", "ct-dataset", "mt-dataset", "cut", "module"],
+)
+def test_cli_import_errors_are_one_line(tmp_path, capsys, files, family, dataset, message):
+    paths = [str(p) for p in files(tmp_path)]
+    out = tmp_path / "out.safetensors"
+    rc = main(
+        ["import-checkpoint", *paths, "--family", family, "--dataset", dataset, "-o", str(out)]
+    )
+    err = capsys.readouterr().err
+    if message is None:
+        assert rc == 0 and out.exists() and not err, err
+        return
+    assert rc == 2 and not out.exists()
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith("talkmesh: error: ") and re.search(message, err), err

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from talkmesh.config import to_dict
+from talkmesh.config import from_dict, to_dict
 from talkmesh.datasets.reader import BIWI, VOCASET
 from talkmesh.training.trainer import DatasetInfo, load_recipes
 
@@ -30,15 +30,19 @@ def model_config(task: str, model: dict, info: DatasetInfo) -> dict:
         from talkmesh.training.faceformer import build_config
 
         return to_dict(build_config(model, info))
-    from talkmesh.models.meshtalk import MeshTalkConfig, meshtalk_config
+    from talkmesh.models.meshtalk import MeshTalkConfig, SamplingConfig, meshtalk_config
     from talkmesh.models.meshtalk_prior import PriorConfig, prior_config
     from talkmesh.training.meshtalk import _config
 
     if task == "meshtalk":
         cfg = _config(MeshTalkConfig, meshtalk_config, model, info.num_vertices, info.motion_fps)
-    else:
-        cfg = _config(PriorConfig, prior_config, model, info.motion_fps)
-    return to_dict(cfg)
+        return to_dict(cfg)
+    model = dict(model)
+    sampling = to_dict(from_dict(SamplingConfig, model.pop("sampling", {}), "model.sampling"))
+    return {
+        **to_dict(_config(PriorConfig, prior_config, model, info.motion_fps)),
+        "sampling": sampling,
+    }
 
 
 def resolve(row: dict) -> object:
@@ -113,3 +117,115 @@ def test_meshtalk_weight_decay_reaches_the_decoder_only():
     assert len(decay_groups(net, params, 0.5, ())) == 1
     with pytest.raises(TalkmeshError, match="names no parameters"):
         decay_groups(net, params, 0.5, ("model.nothing",))
+
+
+# Every official-exact architecture option (docs/guide/official.md, "Official-exact options") as
+# an imported release sets it: the papers' recipes must switch each one on.
+MESHTALK_AUDIO = {
+    "audio.windows": True,
+    "audio.gain": 0.01,
+    "audio.input_kernel": 5,
+    "audio.dilations": [2, 4, 6, 2, 4, 6],
+    "audio.lookahead_ms": 500.0,
+    "audio.log_floor": 1e-10,
+    "audio.mel_statistics": False,
+    "audio.layer_norm": False,
+}
+OFFICIAL_OPTIONS = {
+    "meshtalk": {
+        **MESHTALK_AUDIO,
+        "expression_widths": [256, 128],
+        "expression_output": 128,
+        "vertex_norm": "per_vertex",
+        "official_decoder": True,
+    },
+    "meshtalk-prior": {
+        **MESHTALK_AUDIO,
+        "layout": "official",
+        "audio_source": "expression",
+        "sampling.gumbel": True,
+    },
+    "faceformer": {
+        "postnorm": True,
+        "interleaved_ppe": True,
+        "frame0_motion_bias": False,
+        "speech.resample": "cnn",
+        "speech.normalize": True,
+    },
+    "codetalker": {
+        "vq.instance_norm": True,
+        "vq.gelu_tanh": True,
+        "vq.final_norm": False,
+        "vq.frame_positions": False,
+        "stage2.postnorm": True,
+        "stage2.interleaved_ppe": True,
+        "stage2.speech.resample": "cnn",
+        "stage2.speech.normalize": True,
+    },
+}
+PAPER_RECIPES = {  # recipe -> the dataset whose sizes it resolves with
+    "meshtalk_paper.yaml": "VOCASET",
+    "meshtalk_released.yaml": "VOCASET",
+    "faceformer_vocaset.yaml": "VOCASET",
+    "faceformer_biwi.yaml": "BIWI",
+    "codetalker_vocaset.yaml": "VOCASET",
+    "codetalker_biwi.yaml": "BIWI",
+}
+
+
+def lookup(config: dict, key: str):
+    for part in key.split("."):
+        config = config[part]
+    return config
+
+
+def options_of(task: str) -> dict:
+    return OFFICIAL_OPTIONS["codetalker" if task.startswith("codetalker") else task]
+
+
+@pytest.mark.parametrize("name", sorted(PAPER_RECIPES))
+def test_paper_recipes_switch_on_every_official_exact_option(name):
+    stages = load_recipes(ROOT / "configs" / name)
+    assert stages
+    for stage, recipe in stages:
+        config = model_config(recipe.task, recipe.model, INFO[PAPER_RECIPES[name]])
+        for key, want in options_of(recipe.task).items():
+            got = lookup(config, key)
+            assert got == (pytest.approx(want) if isinstance(want, float) else want), (
+                f"{name} {stage}: model.{key} is {got!r}, the official code's is {want!r}"
+            )
+
+
+OFFICIAL = ROOT / "tests" / "fixtures" / "official"
+IMPORTS = {  # an imported fixture release per family: the options are the importer's
+    "faceformer": ([OFFICIAL / "faceformer_vocaset.pth"], "faceformer", "vocaset"),
+    "codetalker": (
+        [OFFICIAL / f"codetalker_vocaset_stage{i}.pth.tar" for i in (1, 2)],
+        "codetalker",
+        "vocaset",
+    ),
+    "meshtalk": ([OFFICIAL / "meshtalk"], "meshtalk", "meshtalk"),
+}
+SIZES = {"expression_output"}  # the fixture is smaller than the release (16, not 128)
+
+
+@pytest.mark.parametrize("family", sorted(IMPORTS))
+def test_the_option_list_is_what_the_importer_switches_on(family):
+    from talkmesh.models.official import import_checkpoint
+
+    paths, kind, dataset = IMPORTS[family]
+    config = to_dict(import_checkpoint(paths, kind, dataset).cfg)
+    tasks = ("meshtalk", "meshtalk-prior") if family == "meshtalk" else (family,)
+    docs = (ROOT / "docs" / "guide" / "official.md").read_text().split("## Official-exact")[1]
+    for task in tasks:
+        for key, want in options_of(task).items():
+            path = key
+            if family == "meshtalk":
+                path = ("model." if task == "meshtalk" else "prior.") + key
+                path = key if key.startswith("sampling.") else path
+            got = lookup(config, path)
+            if key in SIZES:
+                assert got > 0, key
+            else:
+                assert got == (pytest.approx(want) if isinstance(want, float) else want), key
+            assert f"{key.split('.')[-1]}`" in docs, f"docs/guide/official.md lacks {key}"

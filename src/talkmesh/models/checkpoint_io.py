@@ -36,7 +36,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Tensor]:
         ) from None
     except Exception as e:  # corrupt or not a torch file at all
         raise TalkmeshError(
-            f"{path}: not a readable PyTorch checkpoint ({type(e).__name__})"
+            f"{path}: not a readable PyTorch checkpoint, truncated or another kind of file "
+            f"({type(e).__name__})"
         ) from None
     if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
         obj = obj["state_dict"]

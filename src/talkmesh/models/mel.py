@@ -62,6 +62,9 @@ class MelConfig:
     gain: float = (
         0.0  # scale each utterance to this mean absolute amplitude (official 0.01); 0: off
     )
+    # per-bin log-mel mean and std fitted on the training audio (set_statistics); official: none
+    # (the log-mels enter the convs as they are: mean 0, std 1)
+    mel_statistics: bool = True
 
     def __post_init__(self) -> None:
         if self.sample_rate <= 0 or self.hop_length <= 0 or self.n_mels <= 0:
@@ -130,8 +133,9 @@ class MelAudioEncoder(nn.Module):
         self.register_buffer("window", torch.hann_window(cfg.win_length), persistent=False)
         filters = mel_filterbank(cfg.n_fft // 2 + 1, cfg.n_mels, cfg.sample_rate)
         self.register_buffer("filterbank", filters, persistent=False)
-        self.register_buffer("mel_mean", torch.full((cfg.n_mels,), DEFAULT_MEL_MEAN))
-        self.register_buffer("mel_std", torch.full((cfg.n_mels,), DEFAULT_MEL_STD))
+        mean, std = (DEFAULT_MEL_MEAN, DEFAULT_MEL_STD) if cfg.mel_statistics else (0.0, 1.0)
+        self.register_buffer("mel_mean", torch.full((cfg.n_mels,), mean))
+        self.register_buffer("mel_std", torch.full((cfg.n_mels,), std))
         self.input = nn.Conv1d(cfg.n_mels, cfg.width, kernel_size=cfg.input_kernel)
         self.convs = nn.ModuleList(
             nn.Conv1d(cfg.width, cfg.width, cfg.kernel_size, dilation=d) for d in cfg.dilations
@@ -159,7 +163,10 @@ class MelAudioEncoder(nn.Module):
 
     @torch.no_grad()
     def set_statistics(self, audio: Tensor) -> None:
-        """Per-bin log-mel mean and std from training audio (B, S) (buffers: saved with the weights)."""
+        """Per-bin log-mel mean and std from training audio (B, S) (buffers: saved with the weights);
+        nothing with ``mel_statistics`` off (the official encoder: mean 0, std 1)."""
+        if not self.cfg.mel_statistics:
+            return
         mel = self.log_mel(audio).transpose(0, 1).flatten(1)  # (n_mels, B*M)
         self.mel_mean.copy_(mel.mean(1))
         self.mel_std.copy_(mel.std(1).clamp(min=1e-3))

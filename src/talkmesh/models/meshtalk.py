@@ -295,12 +295,17 @@ class MeshTalk(nn.Module):
         """Normalisation from training data: templates (N, V, 3), offsets = vertices - template (..., V, 3)."""
         _check_mesh("templates", templates, self.config.num_vertices, 3)
         mean = templates.mean(0)
-        self.template_mean.copy_(mean)
-        if self.config.vertex_norm == "per_vertex":  # one spread per coordinate: the motion's
-            spread = offsets.reshape(-1, *mean.shape).std(0).clamp(min=1e-8)
+        if self.config.vertex_norm == "per_vertex":
+            # the official face_mean / face_std: each coordinate's mean and spread over the
+            # training frames' vertex positions (template + offset; speakers and motion alike)
+            offsets = offsets.reshape(-1, *mean.shape)
+            var = templates.var(0, correction=0) + offsets.var(0, correction=0)
+            spread = var.sqrt().clamp(min=1e-8)
+            self.template_mean.copy_(mean + offsets.mean(0))
             self.template_scale.copy_(spread)
             self.offset_scale.copy_(spread)
             return
+        self.template_mean.copy_(mean)
         self.template_scale.copy_((templates - mean).std().clamp(min=1e-8))
         self.offset_scale.copy_(offsets.std().clamp(min=1e-8))
 

@@ -104,8 +104,9 @@ class TemplateDecoder(nn.Module):
     untrained decoder returns the template).
 
     ``official`` (the released ``VertexUnet``): no skip around the LSTMs, the last layer is
-    activated too (LeakyReLU) and a per-coordinate ``vertex_bias`` is added after it; the
-    official skip of the normalised template itself is the caller's ``template + offsets``.
+    activated too (LeakyReLU, with torch's default init instead of zeros) and a per-coordinate
+    ``vertex_bias`` is added after it; the official skip of the normalised template itself is the
+    caller's ``template + offsets``.
     """
 
     def __init__(
@@ -125,10 +126,12 @@ class TemplateDecoder(nn.Module):
         up = dims[::-1]  # widths[-1] ... widths[0], V*3
         self.decoder = nn.ModuleList(nn.Linear(a, b) for a, b in zip(up[:-2], up[1:-1]))
         self.output = nn.Linear(widths[0], num_vertices * 3)
-        nn.init.zeros_(self.output.weight)
-        nn.init.zeros_(self.output.bias)
-        if official:
+        if official:  # torch's default init, as officially: a zero weight under the LeakyReLU
+            # would pass no gradient to the layers before it
             self.vertex_bias = nn.Parameter(torch.zeros(num_vertices * 3))
+        else:
+            nn.init.zeros_(self.output.weight)
+            nn.init.zeros_(self.output.bias)
 
     def forward(self, template: Tensor, code: Tensor) -> Tensor:
         """template (B, V*3) normalised, code (B, T, H*C) -> (B, T, V*3) normalised offsets."""

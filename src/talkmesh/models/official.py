@@ -34,6 +34,7 @@ DATASETS = ("vocaset", "biwi", "meshtalk")  # meshtalk: the released MeshTalk's 
 SUBJECTS = {"vocaset": VOCASET_TRAIN_SUBJECTS, "biwi": BIWI_TRAIN_SUBJECTS}
 FPS = {"vocaset": 30.0, "biwi": 25.0, "meshtalk": 30.0}
 TOKENS_PER_FRAME = {"vocaset": 1, "biwi": 2}  # wav2vec2 features (50 Hz) per motion frame
+VERTICES = {"vocaset": 5023, "biwi": 23370}  # the datasets' meshes (MeshTalk's own: any count)
 MAX_FRAMES = 600  # the official positional encoding and temporal bias length
 
 
@@ -182,11 +183,12 @@ def _identity(ours: str, n: int) -> dict:
 
 def _split_codetalker(paths: list[Path]) -> tuple[dict, dict, Path, Path]:
     """Two files -> (stage-1 tensors, stage-2 tensors, their paths), whatever the order."""
-    if len(paths) != 2:
-        raise TalkmeshError(
-            f"CodeTalker needs both released files, the stage-1 VQ-VAE (e.g. "
-            f"vocaset_stage1.pth.tar) and stage 2 (vocaset_stage2.pth.tar); got {len(paths)}"
-        )
+    both = (
+        "CodeTalker needs both released files, the stage-1 VQ-VAE (e.g. vocaset_stage1.pth.tar) "
+        "and stage 2 (vocaset_stage2.pth.tar)"
+    )
+    if len(paths) not in (1, 2):
+        raise TalkmeshError(f"{both}; got {len(paths)} files")
     stage1 = stage2 = None
     for path in paths:
         state = load_checkpoint(path)
@@ -198,10 +200,8 @@ def _split_codetalker(paths: list[Path]) -> tuple[dict, dict, Path, Path]:
         else:
             raise TalkmeshError(f"{path}: neither a CodeTalker stage-1 nor a stage-2 checkpoint")
     if stage1 is None or stage2 is None:
-        missing = (
-            "stage-1 (VQ-VAE, *_stage1.pth.tar)" if stage1 is None else "stage-2 (*_stage2.pth.tar)"
-        )
-        raise TalkmeshError(f"CodeTalker needs both files: the {missing} file is missing")
+        missing = "stage-1 (*_stage1.pth.tar)" if stage1 is None else "stage-2 (*_stage2.pth.tar)"
+        raise TalkmeshError(f"{both}: the {missing} file is missing")
     return stage1[0], stage2[0], stage1[1], stage2[1]
 
 
@@ -364,7 +364,7 @@ def import_checkpoint(files: list[str | Path], family: str, dataset: str) -> nn.
     if family == "meshtalk":
         from talkmesh.models.official_meshtalk import import_meshtalk
 
-        return import_meshtalk(paths, FPS[dataset])
+        return import_meshtalk(paths, FPS[dataset], VERTICES.get(dataset))
     if dataset == "meshtalk":
         raise TalkmeshError(
             f"--dataset meshtalk is MeshTalk's own mesh: {family} uses vocaset or biwi"

@@ -105,6 +105,7 @@ def _configs(parts: dict, fps: float, smoothing: int, path: Path):
         log_floor=1e-10,
         windows=True,
         gain=0.01,
+        mel_statistics=False,
     )
     model = MeshTalkConfig(
         V,
@@ -244,8 +245,9 @@ def _context_map(ctx: dict, H: int, C: int, path: Path) -> dict:
     return m
 
 
-def import_meshtalk(paths: list[Path], fps: float):
-    """MeshTalk's released files (+ optional asset masks) -> a :class:`MeshTalkModel`."""
+def import_meshtalk(paths: list[Path], fps: float, num_vertices: int | None = None):
+    """MeshTalk's released files (+ optional asset masks) -> a :class:`MeshTalkModel`;
+    ``num_vertices``: the vertex count ``--dataset`` promises (None: MeshTalk's own mesh)."""
     from talkmesh.models.checkpoint_io import _fill, _leftover
     from talkmesh.models.meshtalk import MeshTalkModel
 
@@ -257,6 +259,11 @@ def import_meshtalk(paths: list[Path], fps: float):
         )
     cfg = _configs(parts, fps, len(smooth), first)
     V = cfg.model.num_vertices
+    if num_vertices is not None and V != num_vertices:
+        raise TalkmeshError(
+            f"{first}: a MeshTalk of {V} vertices, the dataset's mesh has {num_vertices}: is "
+            "--dataset right? (--dataset meshtalk: the release's own face mesh)"
+        )
     for name, values in masks.items():
         if values.shape != (V,):
             raise TalkmeshError(f"{name}: {values.size} values, the model has {V} vertices")

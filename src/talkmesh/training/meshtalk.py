@@ -2,7 +2,9 @@
 
 Recipes: ``task: meshtalk`` trains the expression space (encoders, fusion, decoder); ``task:
 meshtalk-prior`` trains the autoregressive prior on the codes of a trained expression space given
-by ``init``. The model section is ``{preset: small|released|paper, ...MeshTalkConfig overrides}``.
+by ``init``. The model section is ``{preset: small|released|paper, ...MeshTalkConfig overrides}``
+(the prior stage: ``...PriorConfig overrides`` and ``sampling``, the release's
+:class:`SamplingConfig`).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from talkmesh.models.meshtalk import (
     MeshTalkConfig,
     MeshTalkModel,
     MeshTalkModelConfig,
+    SamplingConfig,
     meshtalk_config,
 )
 from talkmesh.models.meshtalk_prior import PriorConfig, prior_config
@@ -97,12 +100,14 @@ def _build_prior(model: dict[str, Any], info: DatasetInfo, init: Path | None) ->
     trained = load_system(init)
     cfg = trained.model.config
     model = {"num_heads": cfg.num_heads, "num_classes": cfg.num_classes, **model}
+    # the release's generation defaults (e.g. the official Gumbel draw) travel with the prior
+    sampling = from_dict(SamplingConfig, model.pop("sampling", {}), "model.sampling")
     prior = _config(PriorConfig, prior_config, model, info.motion_fps)
     if (prior.num_heads, prior.num_classes) != (cfg.num_heads, cfg.num_classes):
         raise TalkmeshError(
             "model.num_heads/num_classes of the prior must match the expression space"
         )
-    system = MeshTalkModel(MeshTalkModelConfig(cfg, prior))
+    system = MeshTalkModel(MeshTalkModelConfig(cfg, prior, sampling))
     system.model.load_state_dict(trained.model.state_dict(), strict=True)
     system.model.requires_grad_(False)
     return system
