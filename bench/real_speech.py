@@ -8,6 +8,12 @@ Every real recording with a transcript that Debian packages put on the machine
 forced alignment of the transcript, metrics as defined in :mod:`talkmesh.evaluation.real_speech`.
 Prints a per-clip table and the medians; with ``--out`` also writes ``real-speech.json`` and the
 plot ``real-speech.png`` there.
+
+``procedural-stream`` is the procedural animator as ``talkmesh serve`` streams it (audio pushed in
+20 ms chunks, 100 ms look-ahead, the streaming recogniser settings ``ALLPHONE_STREAM``);
+``procedural-stream-full`` streams the same way with the offline recogniser settings:
+
+    python bench/real_speech.py --methods procedural,procedural-stream-full,procedural-stream --conditions clean
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from talkmesh.audio.loading import SAMPLE_RATE, load_audio
-from talkmesh.audio.phonemes import recognize_phones
+from talkmesh.audio.phonemes import ALLPHONE, ALLPHONE_STREAM, recognize_phones
 from talkmesh.evaluation.real_speech import (
     BETTER,
     CONDITIONS,
@@ -39,8 +45,11 @@ from talkmesh.evaluation.real_speech import (
 from talkmesh.face.assets import load_head
 from talkmesh.face.corrections import NONE, Corrections, correct_mouth
 from talkmesh.pipeline import animate, available_models
+from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, ProceduralStreamer
 
 FPS = 30.0
+STREAMED = {"procedural-stream": ALLPHONE_STREAM, "procedural-stream-full": ALLPHONE}
+CHUNK = SAMPLE_RATE // 50  # 20 ms pushes, as bench/serve_load.py's clients send
 
 
 # method suffixes: a learned model with no correction (the bare model), one default one off, or
@@ -61,6 +70,16 @@ def _split(method: str) -> tuple[str, Corrections]:
     return method, VARIANTS[""]
 
 
+def _streamed(wave: np.ndarray, head, search) -> np.ndarray:
+    """(T, V, 3): the procedural animator streamed in 20 ms chunks with ``search``."""
+    stream = ProceduralStreamer(DEFAULT_LOOKAHEAD_MS, head, True, fps=FPS, search=search)
+    frames = []
+    for i in range(0, len(wave), CHUNK):
+        frames += stream.push(wave[i : i + CHUNK])
+    frames += stream.flush()
+    return head.template + np.stack([f.offsets for f in frames])
+
+
 def _animate_condition(wave, methods, head) -> dict[str, np.ndarray]:
     """method -> (T, V, 3). The phones are recognised once: the procedural animator is driven by
     them and the corrections use them; a learned model runs once, bare, and each variant corrects
@@ -69,6 +88,9 @@ def _animate_condition(wave, methods, head) -> dict[str, np.ndarray]:
     bare = {}
     out = {}
     for method in methods:
+        if method in STREAMED:
+            out[method] = _streamed(wave, head, STREAMED[method])
+            continue
         model, corrections = _split(method)
         if model == "procedural":
             out[method] = animate(wave, head=head, phones=phones, fps=FPS, seed=0).vertices
@@ -147,7 +169,7 @@ def main() -> None:
     ap.add_argument(
         "--methods",
         default=",".join(default),
-        help="procedural, bundled models as animate runs them (default corrections), MODEL-raw "
+        help="procedural, procedural-stream(-full) (module docstring), bundled models as animate runs them (default corrections), MODEL-raw "
         "(none), MODEL-nogate / -nomix (one off), MODEL-closure (with the lip closure)",
     )
     ap.add_argument("--conditions", default=",".join(CONDITIONS))

@@ -200,7 +200,7 @@ def drift_ms(r: StreamResult, seconds: float) -> float:
 
 
 def run_config(args, model: str, name: str, n: int, pcm: bytes) -> str:
-    extra = ["--batch-wait-ms", str(args.batch_wait_ms)] if args.batch_wait_ms else []
+    extra = [] if args.batch_wait_ms is None else ["--batch-wait-ms", str(args.batch_wait_ms)]
     if args.torch_threads:
         extra += ["--torch-threads", str(args.torch_threads)]
     port = free_port()
@@ -275,7 +275,7 @@ def main() -> None:
         default="procedural",
         help="procedural, a streaming .safetensors, or codetalker-stream (untrained, see above)",
     )
-    p.add_argument("--batch-wait-ms", type=float, default=0.0, help="the server's (default 0)")
+    p.add_argument("--batch-wait-ms", type=float, help="the server's (default: its default, 15)")
     p.add_argument("--torch-threads", type=int, help="the server's (default PyTorch's)")
     p.add_argument("--wav", help="speech to stream (default: the pocketsphinx test recordings)")
     p.add_argument(
@@ -307,9 +307,10 @@ def main() -> None:
         for n in counts:
             rows.append(run_config(args, model, name, n, pcm))
             print(f"{n} sessions: {rows[-1]}", file=sys.stderr, flush=True)
+    wait = "default (15)" if args.batch_wait_ms is None else f"{args.batch_wait_ms:g}"
     print(
         f"\n{args.model}, {seconds:g} s per session in {args.chunk_ms:g} ms chunks, look-ahead "
-        f"{args.lookahead_ms:g} ms, --batch-wait-ms {args.batch_wait_ms:g}, torch threads "
+        f"{args.lookahead_ms:g} ms, --batch-wait-ms {wait}, torch threads "
         f"{args.torch_threads or 'default'}, {os.cpu_count()} CPU cores\n"
     )
     print(

@@ -406,3 +406,21 @@ def test_model_sessions_at_once_get_the_frames_of_a_session_alone(tmp_path, pcm)
     assert together.texts == alone.texts and len(alone.frames) == 90
     for a, b in zip(together.frames, alone.frames):
         np.testing.assert_allclose(a.weights, b.weights, atol=1e-4)
+
+
+def test_ticks_wait_for_more_sessions_by_default(monkeypatch):
+    """`talkmesh serve`, create_app and the scheduler share one --batch-wait-ms default, a
+    wait of 10-20 ms (serve.batching.DEFAULT_BATCH_WAIT_MS says why)."""
+    import inspect
+
+    from talkmesh.cli import main
+    from talkmesh.serve import server
+    from talkmesh.serve.batching import DEFAULT_BATCH_WAIT_MS, Scheduler
+
+    seen = {}
+    monkeypatch.setattr(server, "serve", lambda *a, **k: seen.update(k))
+    assert main(["serve"]) == 0
+    assert 10.0 <= seen["batch_wait_ms"] == DEFAULT_BATCH_WAIT_MS <= 20.0
+    app_default = inspect.signature(create_app).parameters["batch_wait_ms"].default
+    assert app_default == DEFAULT_BATCH_WAIT_MS
+    assert Scheduler().batch_wait_s == DEFAULT_BATCH_WAIT_MS / 1000

@@ -58,9 +58,25 @@ MAX_ALIGN_WINDOW_S = 45.0
 # acoustic model hallucinates fricatives.
 SILENCE_DBFS = -60.0
 SILENCE_RMS = 10 ** (SILENCE_DBFS / 20)
-# Phone-recognition search settings recommended by the PocketSphinx documentation.
-ALLPHONE_BEAM = 1e-20
 ALLPHONE_LANGUAGE_WEIGHT = 2.0
+
+
+class AllphoneSearch(NamedTuple):
+    """PocketSphinx all-phone search settings: HMM ``beam`` and phone-exit ``pbeam`` (pruning
+    relative to the best path), ``ds`` (Gaussian codebooks fully evaluated every ``ds``-th 10 ms
+    frame; in between only the previous frame's best ``topn`` per codebook are)."""
+
+    beam: float = 1e-20  # the PocketSphinx documentation's recommendation for phone recognition
+    pbeam: float = 1e-20
+    ds: int = 1
+    topn: int = 4
+
+
+ALLPHONE = AllphoneSearch()  # offline: the recommended settings
+# Streaming (``talkmesh serve``): narrower beams keep fewer phone HMMs (hence fewer Gaussian
+# codebooks) active, and the codebooks are evaluated every other frame. About half the CPU of
+# ALLPHONE; lip sync on real speech as measured in docs/results/streaming.md.
+ALLPHONE_STREAM = AllphoneSearch(beam=1e-13, pbeam=1e-13, ds=2, topn=2)
 
 _WORD = re.compile(r"[^\W_]+(?:'[^\W_]+)*")
 _VARIANT = re.compile(r"\(\d+\)$")  # "was(2)": the second pronunciation of "was"
@@ -134,8 +150,9 @@ def transcript_words(text: str) -> list[str]:
     return _WORD.findall(text.lower().replace("\u2019", "'"))
 
 
-def _decoder(align: bool) -> Decoder:
-    """A PocketSphinx decoder for forced alignment (with the dictionary) or phone recognition."""
+def _decoder(align: bool, search: AllphoneSearch = ALLPHONE) -> Decoder:
+    """A PocketSphinx decoder for forced alignment (with the dictionary) or phone recognition
+    (with ``search``'s settings)."""
     try:
         import pocketsphinx
     except ImportError as e:
@@ -150,8 +167,10 @@ def _decoder(align: bool) -> Decoder:
         )
     return pocketsphinx.Decoder(
         allphone=model("en-us/en-us-phone.lm.bin"),
-        beam=ALLPHONE_BEAM,
-        pbeam=ALLPHONE_BEAM,
+        beam=search.beam,
+        pbeam=search.pbeam,
+        ds=search.ds,
+        topn=search.topn,
         lw=ALLPHONE_LANGUAGE_WEIGHT,
         **common,
     )

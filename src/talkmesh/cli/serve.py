@@ -67,9 +67,10 @@ def add_serve(sub: Subparsers) -> None:
     sv.add_argument(
         "--batch-wait-ms",
         type=float,
-        default=0.0,
+        default=15.0,  # talkmesh.serve.batching.DEFAULT_BATCH_WAIT_MS (anyio: not imported here)
         help="wait this long after a stream's audio arrives to compute it together with other "
-        "streams' (default 0: every tick takes what has arrived)",
+        "streams' (default 15: most sessions' next 20 ms chunk joins the tick; 0: every tick "
+        "takes what has arrived)",
     )
     sv.add_argument(
         "--torch-threads",

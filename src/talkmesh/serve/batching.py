@@ -9,8 +9,9 @@ computes, the next chunks of every session queue up for the next one, so the bat
 the load: a busy server runs fewer, larger steps instead of falling behind. Each session's frames
 come back through its own queue (:class:`Work`), which its sending coroutine drains.
 
-Knobs (``talkmesh serve`` flags): ``--batch-wait-ms`` waits that long after the first ready
-chunk before a tick, to gather more sessions into it (more throughput, that much latency);
+Knobs (``talkmesh serve`` flags): ``--batch-wait-ms`` (default ``DEFAULT_BATCH_WAIT_MS``, 15) waits that long after the
+first ready chunk before a tick, to gather more sessions into it (more throughput, that much
+latency);
 ``--torch-threads`` sets the threads of the batched model steps.
 """
 
@@ -27,6 +28,13 @@ from talkmesh.serve.stream import Streamer, StreamFrame, push_together
 
 log = logging.getLogger(__name__)
 
+# A tick waits this long after the first ready chunk (``--batch-wait-ms``). Clients send a chunk
+# every 10-40 ms (the viewer and bench/serve_load.py: 20 ms) at unrelated phases, so a wait of
+# most of one chunk period gathers most sessions' next chunks into the same tick: fewer, larger
+# model steps (a streaming CodeTalker frame costs about 5x less CPU in a batch of 16 than alone,
+# docs/results/serve-batching-2026-11-25.md) for at most 15 ms more latency, a tenth of the
+# 150 ms budget. 0 computes whatever has arrived at once (lowest latency on an idle server).
+DEFAULT_BATCH_WAIT_MS = 15.0
 MAX_TICK_S = 0.25  # audio of one session computed per tick at most: ticks stay short
 MAX_PENDING_S = 5.0  # a session that sends faster than it is computed waits at this backlog
 
@@ -69,7 +77,7 @@ class Work:
 class Scheduler:
     """Ticks over the sessions' work (module docstring); runs while sessions are open."""
 
-    def __init__(self, batch_wait_s: float = 0.0) -> None:
+    def __init__(self, batch_wait_s: float = DEFAULT_BATCH_WAIT_MS / 1000) -> None:
         self.batch_wait_s = batch_wait_s
         self.works: list[Work] = []
         self.wake = anyio.Event()

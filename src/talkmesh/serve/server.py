@@ -61,7 +61,7 @@ from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
 from talkmesh.serve import limits as lim
-from talkmesh.serve.batching import Scheduler, Work, frames_of
+from talkmesh.serve.batching import DEFAULT_BATCH_WAIT_MS, Scheduler, Work, frames_of
 from talkmesh.serve.limits import JobQueue, QueueFull
 from talkmesh.serve.protocol import (
     CLOSE_BUSY,
@@ -217,7 +217,7 @@ class Service:
         models: dict[str, str],
         limits: Limits,
         avatar: Path | None = None,
-        batch_wait_s: float = 0.0,
+        batch_wait_s: float = DEFAULT_BATCH_WAIT_MS / 1000,
     ):
         self.avatar_name, self.avatar_glb = None, None
         if avatar is not None:  # checked now: a bad avatar stops the server before it starts
@@ -584,7 +584,7 @@ def create_app(
     idle_timeout: float = DEFAULT_IDLE_TIMEOUT_S,
     static_dir: Path | None = STATIC_DIR,
     avatar: str | Path | None = None,
-    batch_wait_ms: float = 0.0,
+    batch_wait_ms: float = DEFAULT_BATCH_WAIT_MS,
     **limit_options,
 ) -> Starlette:
     """The ASGI app. Every model is opened once here, so a bad one fails now, not per client.

@@ -8,8 +8,9 @@ audio), so a stream can run for hours at a constant cost per frame.
 
 Two animators stream:
 
-* ``procedural``: incremental phone recognition (PocketSphinx's all-phone search, its current best
-  path read after every chunk; the utterance restarts at pauses, at the latest every
+* ``procedural``: incremental phone recognition (PocketSphinx's all-phone search with the cheaper
+  settings :data:`talkmesh.audio.phonemes.ALLPHONE_STREAM`, its current best path read after every
+  chunk; the utterance restarts at pauses, at the latest every
   ``MAX_UTTERANCE_S``) and the dominance-function lip sync on the phones heard so far. Blinks, gaze
   and brow drift come from a seeded schedule; brow raises on pitch accents need the audio after
   the accent and are left out.
@@ -27,7 +28,13 @@ from pathlib import Path
 import numpy as np
 
 from talkmesh.audio.loading import SAMPLE_RATE
-from talkmesh.audio.phonemes import FRAME_RATE, SILENCE_RMS, Phone
+from talkmesh.audio.phonemes import (
+    ALLPHONE_STREAM,
+    FRAME_RATE,
+    SILENCE_RMS,
+    AllphoneSearch,
+    Phone,
+)
 from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, WeightFitter
@@ -189,12 +196,13 @@ class ProceduralStreamer(Streamer):
         fps: float = MOTION_FPS,
         seed: int = 0,
         style: SpeakingStyle | None = None,
+        search: AllphoneSearch = ALLPHONE_STREAM,
     ) -> None:
         super().__init__(fps, lookahead_ms, head, offsets)
         from talkmesh.audio import phonemes
 
         self._ps = phonemes
-        self.decoder = phonemes._decoder(align=False)
+        self.decoder = phonemes._decoder(align=False, search=search)
         self.style = style or SpeakingStyle()
         self.upper = UpperFace(self.fps, seed, self.style)
         self.past: list[Phone] = []  # finished utterances' phones (the last seconds), stream time
