@@ -30,7 +30,10 @@ Per row:
   a quiet machine with C cores about C / that many sessions fit, less what the clients take).
 
 ``--compute-only`` leaves out the server and the clients: the sessions' computation alone, in
-this process, timed in CPU seconds (what batching saves, measurable on a busy machine).
+this process, timed in CPU seconds (what batching saves, measurable on a busy machine). For
+``procedural`` it runs twice: with the offline phone recogniser's settings
+(``talkmesh.audio.phonemes.ALLPHONE``) and with the server's (``ALLPHONE_STREAM``); the
+"recogniser" column says which (for a model it is always "stream").
 """
 
 from __future__ import annotations
@@ -236,15 +239,27 @@ def run_config(args, model: str, name: str, n: int, pcm: bytes) -> str:
     )
 
 
-def compute_only(model: str, n: int, pcm: bytes, chunk_ms: float, lookahead_ms: float) -> str:
+def compute_only(
+    model: str, n: int, pcm: bytes, chunk_ms: float, lookahead_ms: float, search: str = "stream"
+) -> str:
     """The server's computation without the server: ``n`` streams pushed together
     (:func:`talkmesh.serve.stream.push_together`) in ticks of two chunks, in this process ->
-    a table row of CPU time per frame and per second of one session's audio."""
+    a table row of CPU time per frame and per second of one session's audio. ``search``:
+    the procedural recogniser's settings, ``stream`` (the server's) or ``offline``."""
+    from talkmesh.audio.phonemes import ALLPHONE, ALLPHONE_STREAM
     from talkmesh.face.assets import load_head
-    from talkmesh.serve.stream import open_stream, push_together
+    from talkmesh.serve.stream import ProceduralStreamer, open_stream, push_together
 
     head = load_head()
-    streams = [open_stream(model, lookahead_ms=lookahead_ms, head=head, seed=k) for k in range(n)]
+    if model == "procedural":
+        settings = {"stream": ALLPHONE_STREAM, "offline": ALLPHONE}[search]
+        streams = [
+            ProceduralStreamer(lookahead_ms, head, False, seed=k, search=settings) for k in range(n)
+        ]
+    else:
+        streams = [
+            open_stream(model, lookahead_ms=lookahead_ms, head=head, seed=k) for k in range(n)
+        ]
     audio = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
     step = int(SAMPLE_RATE * chunk_ms / 1000)
     frames, cpu = 0, time.process_time()
@@ -296,10 +311,19 @@ def main() -> None:
                 import torch
 
                 torch.set_num_threads(args.torch_threads)
-            rows = [compute_only(model, n, pcm, args.chunk_ms, args.lookahead_ms) for n in counts]
+            searches = ["offline", "stream"] if model == "procedural" else ["stream"]
+            rows = [
+                f"| {search} "
+                + compute_only(model, n, pcm, args.chunk_ms, args.lookahead_ms, search)
+                for search in searches
+                for n in counts
+            ]
             print(f"\n{args.model}, {seconds:g} s per session, computed in ticks of two chunks\n")
-            print("| sessions | frames | CPU per frame (ms) | CPU per session (% of a core) |")
-            print("|---|---|---|---|")
+            print(
+                "| recogniser | sessions | frames | CPU per frame (ms) "
+                "| CPU per session (% of a core) |"
+            )
+            print("|---|---|---|---|---|")
             print("\n".join(rows))
             return
         name = "procedural" if model == "procedural" else Path(model).stem

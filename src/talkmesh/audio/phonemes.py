@@ -73,10 +73,12 @@ class AllphoneSearch(NamedTuple):
 
 
 ALLPHONE = AllphoneSearch()  # offline: the recommended settings
-# Streaming (``talkmesh serve``): narrower beams keep fewer phone HMMs (hence fewer Gaussian
-# codebooks) active, and the codebooks are evaluated every other frame. About half the CPU of
-# ALLPHONE; lip sync on real speech as measured in docs/results/streaming.md.
-ALLPHONE_STREAM = AllphoneSearch(beam=1e-13, pbeam=1e-13, ds=2, topn=2)
+# Streaming (``talkmesh serve``, one recogniser per session): narrower beams keep fewer phone HMMs
+# (hence fewer Gaussian codebooks) active and two Gaussians per codebook are tracked instead of
+# four: about 1.5x less recogniser CPU for lip sync on real speech within a few percent of
+# ALLPHONE's (docs/results/serve-batching-2026-11-25.md). Not narrower: at beam 1e-11 the search
+# loses the speech; frame downsampling (ds=2) opens the mouth in pauses.
+ALLPHONE_STREAM = AllphoneSearch(beam=1e-13, pbeam=1e-10, topn=2)
 
 _WORD = re.compile(r"[^\W_]+(?:'[^\W_]+)*")
 _VARIANT = re.compile(r"\(\d+\)$")  # "was(2)": the second pronunciation of "was"
