@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
+from talkmesh.models.codetalker import CodeTalker, Stage2Config
 from talkmesh.models.codetalker_generate import FrameGenerator, generate_fast
 from talkmesh.models.codetalker_vq import DecoderStep, Quantizer, VQConfig
 from talkmesh.models.int8 import Int8Conv1d, Int8Linear, int8_layers, quantize_int8
@@ -19,51 +19,6 @@ from talkmesh.models.speech import SpeechEncoderConfig
 SR = 16_000
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 FPS = 30
-
-
-def tiny(vq_layers: int = 1, speech: str = "mel", causal: bool = False) -> CodeTalker:
-    torch.manual_seed(0)
-    hf = dict(
-        hidden_size=16,
-        num_hidden_layers=1,
-        num_attention_heads=2,
-        intermediate_size=32,
-        conv_dim=(8, 8),
-        conv_stride=(5, 64),
-        conv_kernel=(10, 64),
-        num_feat_extract_layers=2,
-        num_conv_pos_embeddings=4,
-        num_conv_pos_embedding_groups=2,
-    )
-    cfg = CodeTalkerConfig(
-        vq=VQConfig(
-            num_vertices=20,
-            hidden=32,
-            layers=vq_layers,
-            heads=2,
-            ff=64,
-            components=4,
-            code_dim=8,
-            codebook_size=16,
-            causal=causal,
-            causal_window=6,
-        ),
-        stage2=Stage2Config(
-            d_model=32,
-            heads=2,
-            ff=64,
-            layers=2,
-            period=5,
-            styles=("a", "b"),
-            speech=SpeechEncoderConfig(kind=speech, dim=16, hf_config=hf),
-        ),
-    )
-    model = CodeTalker(cfg)
-    for p in (
-        model.feat_map.parameters()
-    ):  # the zero-initialised output map would make every frame alike
-        torch.nn.init.normal_(p, std=0.5)
-    return model.eval()
 
 
 def clip(frames: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -92,8 +47,8 @@ def test_quantizer_straight_through_and_ema():
     assert vq.usage.sum() > 0 and 1 <= vq.perplexity() <= 16
 
 
-def test_vqvae_reconstructs_after_a_few_steps():
-    model = tiny()
+def test_vqvae_reconstructs_after_a_few_steps(tiny_codetalker):
+    model = tiny_codetalker()
     motion = clip(10)[1].flatten(2)
     opt = torch.optim.Adam(model.vqvae.parameters(), lr=3e-3)
     model.train()
@@ -108,8 +63,8 @@ def test_vqvae_reconstructs_after_a_few_steps():
 
 
 @pytest.mark.parametrize("speech", ["mel", "wav2vec2"])
-def test_padded_batch_equals_single_samples(speech):
-    model = tiny(speech=speech)
+def test_padded_batch_equals_single_samples(speech, tiny_codetalker):
+    model = tiny_codetalker(speech=speech)
     (a_audio, a_v), (b_audio, b_v) = clip(7, 1), clip(11, 2)
     audio = torch.zeros(2, b_audio.shape[1])
     audio[0, : a_audio.shape[1]], audio[1] = a_audio[0], b_audio[0]
@@ -128,8 +83,10 @@ def test_padded_batch_equals_single_samples(speech):
     torch.testing.assert_close(batch.motion[1], alone_b.motion[0], atol=1e-5, rtol=1e-4)
 
 
-def test_fast_generation_equals_naive_when_the_vq_decoder_has_no_attention():
-    model = tiny(vq_layers=0)  # then the only difference (bidirectional attention) is gone
+def test_fast_generation_equals_naive_when_the_vq_decoder_has_no_attention(tiny_codetalker):
+    model = tiny_codetalker(
+        vq_layers=0
+    )  # then the only difference (bidirectional attention) is gone
     audio, _ = clip(15)
     templ = torch.zeros(1, 20, 3)
     naive = model.generate(audio, templ, styles=torch.tensor([1]), mode="naive")
@@ -138,8 +95,8 @@ def test_fast_generation_equals_naive_when_the_vq_decoder_has_no_attention():
     assert naive.shape == (1, 15, 20, 3) and naive.std(dim=1).max() > 0
 
 
-def test_fast_generation_is_causal_in_its_codes():
-    model = tiny()
+def test_fast_generation_is_causal_in_its_codes(tiny_codetalker):
+    model = tiny_codetalker()
     audio, _ = clip(20)
     t, lookahead = 9, 4  # the mel encoder sees 100 ms (3 frames) ahead
     changed = audio.clone()
@@ -158,8 +115,8 @@ def test_fast_generation_is_causal_in_its_codes():
     assert not torch.equal(a, c)
 
 
-def test_style_interpolation_and_unseen_speakers():
-    model = tiny()
+def test_style_interpolation_and_unseen_speakers(tiny_codetalker):
+    model = tiny_codetalker()
     audio, _ = clip(6)
     templ = torch.zeros(1, 20, 3)
     pure = model.generate(audio, templ, styles=torch.tensor([0]))
@@ -179,8 +136,8 @@ def test_temporal_bias_is_periodic_and_causal():
     )
 
 
-def test_save_load_gives_identical_output(tmp_path):
-    model = tiny()
+def test_save_load_gives_identical_output(tmp_path, tiny_codetalker):
+    model = tiny_codetalker()
     path = save_model(model, tmp_path / "m.safetensors")
     again = load_model(path)
     import talkmesh
@@ -197,8 +154,8 @@ def test_save_load_gives_identical_output(tmp_path):
         load_model(tmp_path / "bad.safetensors")
 
 
-def test_wav2vec2_encoder_behind_the_same_interface():
-    model = tiny(speech="wav2vec2")
+def test_wav2vec2_encoder_behind_the_same_interface(tiny_codetalker):
+    model = tiny_codetalker(speech="wav2vec2")
     audio, verts = clip(9)
     out = model(audio, None, verts, torch.zeros(1, 20, 3), torch.tensor([0]))
     assert out.motion.shape == (1, 9, 60) and torch.isfinite(out.loss)
@@ -206,7 +163,7 @@ def test_wav2vec2_encoder_behind_the_same_interface():
     assert not any(p.requires_grad for p in cnn.parameters())  # the CNN stays frozen
 
 
-def test_codebook_starts_at_encoder_outputs_and_motion_scale_is_per_coordinate():
+def test_codebook_starts_at_encoder_outputs_and_motion_scale_is_per_coordinate(tiny_codetalker):
     assert bool(Quantizer(16, 8, 0.25).initialised)  # default: the paper's random codebook
     vq = Quantizer(16, 8, 0.25, init_from_data=True).train()
     z = torch.randn(2, 5, 4, 8) * 3
@@ -214,7 +171,7 @@ def test_codebook_starts_at_encoder_outputs_and_motion_scale_is_per_coordinate()
     assert bool(vq.initialised)
     dist = torch.cdist(vq.codebook.detach(), z.reshape(-1, 8)).min(1).values
     assert dist.max() < 0.1  # every code sits on an encoder output
-    model = tiny()
+    model = tiny_codetalker()
     motion = torch.zeros(50, 60)
     motion[:, 0] = torch.randn(50) * 2.0  # one moving coordinate, the rest still
     model.vqvae.set_scale(motion)
@@ -260,19 +217,23 @@ def test_recipe_stage_errors(tmp_path):
         load_recipes(bad)
 
 
-def test_windowed_vq_decode_equals_whole_decode_without_attention():
-    model = tiny(vq_layers=0)  # the conv sees 2 frames each side: 3 frames of context suffice
+def test_windowed_vq_decode_equals_whole_decode_without_attention(tiny_codetalker):
+    model = tiny_codetalker(
+        vq_layers=0
+    )  # the conv sees 2 frames each side: 3 frames of context suffice
     codes = torch.randint(0, 16, (2, 40, 4))
     whole = model.vqvae.decode(codes)
     torch.testing.assert_close(model.vqvae.decode(codes, window=7, context=3), whole)
-    attn = tiny(vq_layers=1)  # with attention the windows differ a little, but shapes agree
+    attn = tiny_codetalker(
+        vq_layers=1
+    )  # with attention the windows differ a little, but shapes agree
     assert attn.vqvae.decode(codes, window=7, context=3).shape == whole.shape
 
 
-def test_long_audio_goes_through_wav2vec2_in_windows(monkeypatch):
+def test_long_audio_goes_through_wav2vec2_in_windows(monkeypatch, tiny_codetalker):
     from dataclasses import replace
 
-    model = tiny(speech="wav2vec2")
+    model = tiny_codetalker(speech="wav2vec2")
     enc = model.speech
     enc.cfg = replace(enc.cfg, window_seconds=0.5, context_seconds=0.25)
     seen = []
@@ -340,10 +301,10 @@ def _count_passes(monkeypatch) -> list[tuple[int, int, int]]:
 
 
 @pytest.mark.parametrize("causal", [False, True])
-def test_fast_generation_in_passes_equals_frame_by_frame(causal, monkeypatch):
+def test_fast_generation_in_passes_equals_frame_by_frame(causal, monkeypatch, tiny_codetalker):
     from dataclasses import replace
 
-    model = tiny(vq_layers=2, causal=causal)
+    model = tiny_codetalker(vq_layers=2, causal=causal)
     model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, attention_window=7))
     with torch.no_grad():  # feedback strong enough that many guesses fail and are taken back
         model.motion_map.weight.mul_(100.0)
@@ -368,8 +329,8 @@ def test_fast_generation_in_passes_equals_frame_by_frame(causal, monkeypatch):
     )
 
 
-def test_a_pass_without_guesses_guesses_that_the_codes_hold_still(monkeypatch):
-    model = tiny(vq_layers=2)
+def test_a_pass_without_guesses_guesses_that_the_codes_hold_still(monkeypatch, tiny_codetalker):
+    model = tiny_codetalker(vq_layers=2)
     torch.nn.init.zeros_(model.feat_map.weight)  # every frame gets the same codes
     style = model.style_vector(torch.tensor([0]))
     cross = model.cross_terms(model.audio_tokens(clip(12)[0], None, 12))
@@ -381,9 +342,11 @@ def test_a_pass_without_guesses_guesses_that_the_codes_hold_still(monkeypatch):
     assert passes == [(1, 0, 1), (11, 0, 11)]  # frame 0 alone, then the guesses all held
 
 
-def test_when_guesses_keep_failing_fast_mode_runs_frames_one_at_a_time(monkeypatch):
+def test_when_guesses_keep_failing_fast_mode_runs_frames_one_at_a_time(
+    monkeypatch, tiny_codetalker
+):
 
-    model = tiny(vq_layers=2)
+    model = tiny_codetalker(vq_layers=2)
     style = model.style_vector(torch.tensor([0]))
     cross = model.cross_terms(model.audio_tokens(clip(80)[0], None, 80))
     steps, _ = generate_fast(model, style, cross, 80, block=1)
@@ -402,30 +365,32 @@ def test_when_guesses_keep_failing_fast_mode_runs_frames_one_at_a_time(monkeypat
     assert len(long) <= 16 and len(passes) - len(long) >= 60, passes  # mostly steps
 
 
-def test_a_pass_takes_fewer_guesses_than_frames():
+def test_a_pass_takes_fewer_guesses_than_frames(tiny_codetalker):
 
-    model = tiny()
+    model = tiny_codetalker()
     gen = FrameGenerator(model, model.style_vector(torch.tensor([0])))
     cross = model.cross_terms(model.audio_tokens(clip(3)[0], None, 3))
     with pytest.raises(ValueError, match="at most K - 1"):
         gen.block(cross, torch.zeros(1, 3, 4, dtype=torch.long))
 
 
-def test_fast_generation_with_a_short_attention_window_runs_past_it():
+def test_fast_generation_with_a_short_attention_window_runs_past_it(tiny_codetalker):
     from dataclasses import replace
 
-    model = tiny(vq_layers=0)
+    model = tiny_codetalker(vq_layers=0)
     model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, attention_window=4))
     audio, _ = clip(15)
     out = model.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([0]))
     assert out.shape == (1, 15, 20, 3) and torch.isfinite(out).all()
-    model = tiny(vq_layers=2)  # exact mode re-decodes the last 4 frames past the window
+    model = tiny_codetalker(vq_layers=2)  # exact mode re-decodes the last 4 frames past the window
     model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, attention_window=4))
     exact = model.generate(audio, torch.zeros(1, 20, 3), styles=torch.tensor([0]), mode="exact")
     assert exact.shape == (1, 15, 20, 3) and torch.isfinite(exact).all()
 
 
-def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(tmp_path):
+def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(
+    tmp_path, tiny_codetalker
+):
     transformers = pytest.importorskip("transformers")
     from dataclasses import replace
 
@@ -441,7 +406,7 @@ def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(t
     from transformers.models.whisper.modeling_whisper import WhisperEncoder
 
     WhisperEncoder(transformers.WhisperConfig(**tiny_whisper)).save_pretrained(source)
-    base = tiny()
+    base = tiny_codetalker()
     speech = SpeechEncoderConfig(kind="whisper", source=str(source), frozen=True)
     cfg = replace(base.cfg, stage2=replace(base.cfg.stage2, speech=speech))
     model = CodeTalker(cfg).eval()
@@ -466,10 +431,10 @@ def test_whisper_encoder_behind_the_same_interface_and_releases_self_contained(t
     assert b.shape == a.shape and (b - a).abs().mean() < 0.1 * a.abs().mean()
 
 
-def test_history_dropout_only_acts_in_training():
+def test_history_dropout_only_acts_in_training(tiny_codetalker):
     from dataclasses import replace
 
-    model = tiny()
+    model = tiny_codetalker()
     model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, history_dropout=0.5))
     audio, verts = clip(12)
     args = (audio, None, verts, torch.zeros(1, 20, 3), torch.tensor([0]))
@@ -483,8 +448,8 @@ def test_history_dropout_only_acts_in_training():
         Stage2Config(styles=("a",), history_dropout=1.0)
 
 
-def test_causal_vq_decoder_steps_equal_the_full_pass_and_ignore_later_codes():
-    model = tiny(vq_layers=2, causal=True)
+def test_causal_vq_decoder_steps_equal_the_full_pass_and_ignore_later_codes(tiny_codetalker):
+    model = tiny_codetalker(vq_layers=2, causal=True)
     dec = model.vqvae.decoder
     torch.manual_seed(1)
     z = torch.randn(2, 15, 4, 8)  # longer than the decoder's 6-frame attention window
@@ -497,13 +462,13 @@ def test_causal_vq_decoder_steps_equal_the_full_pass_and_ignore_later_codes():
     steps = torch.cat([dec.out(step.hidden(z[:, t : t + 1])) * dec.scale for t in range(15)], 1)
     torch.testing.assert_close(steps, full, atol=1e-5, rtol=1e-4)
     with pytest.raises(TalkmeshError, match="causal"):
-        DecoderStep(tiny().vqvae.decoder)
+        DecoderStep(tiny_codetalker().vqvae.decoder)
     with pytest.raises(ValueError, match="causal"):
         VQConfig(num_vertices=4, causal=True, instance_norm=True)
 
 
-def test_fast_generation_equals_naive_with_a_causal_vq_decoder():
-    model = tiny(vq_layers=2, causal=True)
+def test_fast_generation_equals_naive_with_a_causal_vq_decoder(tiny_codetalker):
+    model = tiny_codetalker(vq_layers=2, causal=True)
     audio, _ = clip(14)
     templ = torch.randn(1, 20, 3)
     style = torch.tensor([1])
@@ -512,8 +477,10 @@ def test_fast_generation_equals_naive_with_a_causal_vq_decoder():
     torch.testing.assert_close(fast, naive, atol=1e-5, rtol=1e-4)
 
 
-def test_exact_generation_equals_naive_with_the_papers_bidirectional_vq_decoder():
-    model = tiny(vq_layers=2)  # bidirectional: fast mode's cached feedback is an approximation
+def test_exact_generation_equals_naive_with_the_papers_bidirectional_vq_decoder(tiny_codetalker):
+    model = tiny_codetalker(
+        vq_layers=2
+    )  # bidirectional: fast mode's cached feedback is an approximation
     audio, _ = clip(15)
     templ = torch.randn(1, 20, 3)
     style = torch.tensor([1])
@@ -522,7 +489,7 @@ def test_exact_generation_equals_naive_with_the_papers_bidirectional_vq_decoder(
     fast = model.generate(audio, templ, styles=style, mode="fast")
     torch.testing.assert_close(exact, naive, atol=1e-5, rtol=1e-4)
     assert (fast - naive).abs().max() > 1e-3  # the model tells the feedbacks apart
-    causal = tiny(vq_layers=2, causal=True)  # exact there is fast mode, which is exact
+    causal = tiny_codetalker(vq_layers=2, causal=True)  # exact there is fast mode, which is exact
     torch.testing.assert_close(
         causal.generate(audio, templ, styles=style, mode="exact"),
         causal.generate(audio, templ, styles=style, mode="fast"),
@@ -533,10 +500,12 @@ def test_exact_generation_equals_naive_with_the_papers_bidirectional_vq_decoder(
         model.generate(audio, templ, styles=style, mode="slow")
 
 
-def test_self_feedback_feeds_back_the_models_own_teacher_forced_prediction(monkeypatch):
+def test_self_feedback_feeds_back_the_models_own_teacher_forced_prediction(
+    monkeypatch, tiny_codetalker
+):
     from dataclasses import replace
 
-    model = tiny(causal=True)
+    model = tiny_codetalker(causal=True)
     model.cfg = replace(model.cfg, stage2=replace(model.cfg.stage2, self_feedback=1.0))
     audio, verts = clip(12)
     args = (audio, None, verts, torch.zeros(1, 20, 3), torch.tensor([0]))
@@ -580,8 +549,8 @@ def test_mel_lookahead_is_a_runtime_choice_within_the_trained_range():
 
 
 @pytest.mark.parametrize("causal", [False, True])
-def test_the_conv_step_is_the_convolutions_last_frame(causal):
-    conv = tiny(causal=causal).vqvae.decoder.conv
+def test_the_conv_step_is_the_convolutions_last_frame(causal, tiny_codetalker):
+    conv = tiny_codetalker(causal=causal).vqvae.decoder.conv
     x = torch.randn(2, 5, conv.conv.in_channels)
     full = conv(x)  # replicate padding: causal (4, 0), centred (2, 2)
     # the last frame sees x0..x4 (causal) or x2, x3, x4 and x4 twice more (the right padding)
@@ -590,8 +559,8 @@ def test_the_conv_step_is_the_convolutions_last_frame(causal):
 
 
 @pytest.mark.parametrize("causal", [False, True])
-def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causal):
-    model = tiny(vq_layers=2, causal=causal)
+def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causal, tiny_codetalker):
+    model = tiny_codetalker(vq_layers=2, causal=causal)
     before = {k: v.clone() for k, v in model.state_dict().items()}
     audio, _ = clip(14)
     templ = torch.zeros(1, 20, 3)
@@ -619,7 +588,9 @@ def test_int8_generation_stays_close_to_float32_and_leaves_the_model_alone(causa
         fold,
     ):
         assert quantized(part)
-    w2v = tiny(vq_layers=2, speech="wav2vec2", causal=causal)  # a speech encoder with linears
+    w2v = tiny_codetalker(
+        vq_layers=2, speech="wav2vec2", causal=causal
+    )  # a speech encoder with linears
     assert not quantized(quantize_int8(w2v).speech)
     both = quantize_int8(w2v, speech=True)  # the speech encoder's linear layers as well
     assert quantized(both.speech) and not quantized(w2v.speech)
@@ -666,9 +637,9 @@ def test_int8_conv1d_is_the_convolution_in_int8(stride, padding):
 
 
 @pytest.mark.parametrize("causal", [False, True])
-def test_int8_passes_give_the_codes_of_one_frame_at_a_time(causal):
+def test_int8_passes_give_the_codes_of_one_frame_at_a_time(causal, tiny_codetalker):
 
-    model = quantize_int8(tiny(vq_layers=2, causal=causal))
+    model = quantize_int8(tiny_codetalker(vq_layers=2, causal=causal))
     audio, _ = clip(30)
     templ, style = torch.zeros(1, 20, 3), torch.tensor([1])
     calls = []
@@ -689,9 +660,9 @@ def test_int8_passes_give_the_codes_of_one_frame_at_a_time(causal):
     torch.testing.assert_close(passes, steps, atol=1e-5, rtol=1e-4)
 
 
-def test_the_folded_feedback_map_is_kept_until_its_weights_change():
+def test_the_folded_feedback_map_is_kept_until_its_weights_change(tiny_codetalker):
 
-    model = tiny(vq_layers=2, causal=True)
+    model = tiny_codetalker(vq_layers=2, causal=True)
     audio, _ = clip(10)
     templ, style = torch.zeros(1, 20, 3), torch.tensor([1])
     first = model.generate(audio, templ, styles=style)

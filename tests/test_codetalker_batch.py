@@ -6,7 +6,7 @@ import gc
 
 import numpy as np
 import torch
-from test_stream import SR, tiny_model
+from test_stream import SR
 
 from talkmesh.models.base import FrameRequest, next_frames
 from talkmesh.models.codetalker_batch import frame_batch, ring_bias
@@ -25,8 +25,8 @@ def streams_alone(path, setups, audio):
     return out
 
 
-def test_streams_computed_together_equal_each_stream_alone(tmp_path):
-    path = tiny_model(tmp_path)
+def test_streams_computed_together_equal_each_stream_alone(tmp_path, tiny_stream_model):
+    path = tiny_stream_model()
     audio = np.random.default_rng(2).normal(0, 0.1, 2 * SR).astype(np.float32)
     # style weights, look-ahead, the step at which the stream joins
     setups = [

@@ -14,9 +14,8 @@ import torch
 
 from talkmesh.animation import Animation, AnimationBlocks
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
+from talkmesh.models.codetalker import CodeTalker
 from talkmesh.models.codetalker_generate import AheadWindow
-from talkmesh.models.codetalker_vq import VQConfig
 from talkmesh.models.release import save_model
 from talkmesh.models.speech import SpeechEncoderConfig, WhisperEncoder
 from talkmesh.models.speech_chunks import FrameFeatures
@@ -50,37 +49,6 @@ def tiny_whisper(window: int) -> WhisperEncoder:
     return enc
 
 
-def tiny_codetalker(speech: SpeechEncoderConfig) -> CodeTalker:
-    torch.manual_seed(0)
-    cfg = CodeTalkerConfig(
-        vq=VQConfig(
-            num_vertices=V,
-            hidden=32,
-            layers=1,
-            heads=2,
-            ff=64,
-            components=4,
-            code_dim=8,
-            codebook_size=16,
-            causal=True,
-            causal_window=6,
-        ),
-        stage2=Stage2Config(
-            d_model=32,
-            heads=2,
-            ff=64,
-            layers=2,
-            period=5,
-            styles=("a", "b"),
-            attention_window=7,
-            speech=speech,
-        ),
-    )
-    model = CodeTalker(cfg).eval()
-    torch.nn.init.normal_(model.feat_map.weight, std=0.5)
-    return model
-
-
 def test_whisper_features_window_by_window_equal_the_whole_audio():
     enc = tiny_whisper(window=7)  # 0.14 s windows: the 1.3 s clip spans ten of them
     audio = torch.from_numpy(np.random.default_rng(0).standard_normal(20_777).astype(np.float32))
@@ -110,12 +78,12 @@ def test_ahead_window_loads_ahead_and_forgets_behind():
 
 
 @pytest.mark.parametrize("kind", ["mel", "whisper"])
-def test_codetalker_chunks_equal_whole_generation(kind):
+def test_codetalker_chunks_equal_whole_generation(kind, tiny_codetalker):
     speech = SpeechEncoderConfig(kind="mel", dim=16)
     if kind == "whisper":
         pytest.importorskip("transformers")
         speech = SpeechEncoderConfig(kind="whisper", hf_config=TINY_WHISPER)
-    model = tiny_codetalker(speech)
+    model = tiny_codetalker(causal=True, attention_window=7, speech=speech)
     if kind == "whisper":
         model.speech.features.window = 9
     audio = torch.from_numpy(np.random.default_rng(1).standard_normal(24_000).astype(np.float32))
@@ -139,11 +107,11 @@ def test_procedural_blocks_equal_one_block():
 
 
 @pytest.mark.parametrize("fps", [30.0, 24.0])
-def test_learned_blocks_equal_one_block(tmp_path, fps):
+def test_learned_blocks_equal_one_block(tmp_path, fps, tiny_codetalker):
     from talkmesh.face.assets import load_head
 
     head = load_head()
-    model = tiny_codetalker(SpeechEncoderConfig(kind="mel", dim=16))
+    model = tiny_codetalker(causal=True, attention_window=7)
     model = CodeTalker(replace(model.cfg, vq=replace(model.cfg.vq, num_vertices=head.num_vertices)))
     path = save_model(model.eval(), tmp_path / "m.safetensors")
     one = animate_blocks(SPEECH, model=str(path), fps=fps, block=10_000).collect()
@@ -153,7 +121,7 @@ def test_learned_blocks_equal_one_block(tmp_path, fps):
     np.testing.assert_allclose(got.weights, one.weights, atol=1e-5)
 
 
-def test_learned_blocks_correct_the_mouth_as_the_whole_clip(tmp_path):
+def test_learned_blocks_correct_the_mouth_as_the_whole_clip(tmp_path, tiny_codetalker):
     """Blocks of 2 frames with every mouth correction on give the bare whole clip corrected at
     once (face/corrections.correct_mouth); the corrections change the frames."""
     from talkmesh.audio.loading import load_audio
@@ -163,7 +131,7 @@ def test_learned_blocks_correct_the_mouth_as_the_whole_clip(tmp_path):
     from talkmesh.pipeline import animate
 
     head = load_head()
-    model = tiny_codetalker(SpeechEncoderConfig(kind="mel", dim=16))
+    model = tiny_codetalker(causal=True, attention_window=7)
     model = CodeTalker(replace(model.cfg, vq=replace(model.cfg.vq, num_vertices=head.num_vertices)))
     path = str(save_model(model.eval(), tmp_path / "m.safetensors"))
     every = Corrections(pause_gate=True, lip_closure=True, mix=0.5)

@@ -372,11 +372,9 @@ def test_cli_serves_and_stops_cleanly(pcm, stop):
             proc.communicate()
 
 
-def test_model_sessions_at_once_get_the_frames_of_a_session_alone(tmp_path, pcm):
+def test_model_sessions_at_once_get_the_frames_of_a_session_alone(tmp_path, pcm, tiny_stream_model):
     """Sessions of a streaming model share its steps (serve.batching): frames as if alone."""
-    from test_stream import tiny_model
-
-    path = tiny_model(tmp_path, num_vertices=load_head().num_vertices)
+    path = tiny_stream_model(num_vertices=load_head().num_vertices)
     chunks = [pcm[i : i + CHUNK] for i in range(0, len(pcm), CHUNK)]
     with TestClient(create_app([str(path)], batch_wait_ms=20)) as client:
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,10 +14,6 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import Head, load_head
 from talkmesh.face.lipsync import phones_to_weights
-from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
-from talkmesh.models.codetalker_vq import VQConfig
-from talkmesh.models.release import save_model
-from talkmesh.models.speech import SpeechEncoderConfig
 from talkmesh.serve.stream import open_stream, push_together
 
 SR = 16_000
@@ -38,40 +33,6 @@ def tiny_head() -> Head:
     )
 
 
-def tiny_model(tmp_path: Path, causal: bool = True, num_vertices: int = V) -> Path:
-    torch.manual_seed(0)
-    cfg = CodeTalkerConfig(
-        vq=VQConfig(
-            num_vertices=num_vertices,
-            hidden=32,
-            layers=1,
-            heads=2,
-            ff=64,
-            components=4,
-            code_dim=8,
-            codebook_size=16,
-            causal=causal,
-            causal_window=6,
-        ),
-        stage2=Stage2Config(
-            d_model=32,
-            heads=2,
-            ff=64,
-            layers=2,
-            period=5,
-            styles=("a", "b"),
-            attention_window=7,
-            speech=SpeechEncoderConfig(
-                kind="mel", dim=16, lookahead_ms=0.0, lookahead_max_ms=200.0
-            ),
-        ),
-    )
-    model = CodeTalker(cfg)
-    torch.nn.init.normal_(model.feat_map.weight, std=0.5)
-    torch.nn.init.normal_(model.speech.shift_embedding.weight, std=0.5)
-    return save_model(model.eval(), tmp_path / "stream.safetensors")
-
-
 def stream_all(streamer, audio: np.ndarray, chunks: list[int]):
     frames, i, k = [], 0, 0
     while i < len(audio):
@@ -82,10 +43,10 @@ def stream_all(streamer, audio: np.ndarray, chunks: list[int]):
 
 
 @pytest.mark.parametrize("lookahead", [0.0, 50.0, 200.0])
-def test_codetalker_stream_equals_offline_generation(tmp_path, lookahead):
+def test_codetalker_stream_equals_offline_generation(tmp_path, lookahead, tiny_stream_model):
     from talkmesh.models.release import load_model
 
-    path = tiny_model(tmp_path)
+    path = tiny_stream_model()
     head = tiny_head()
     audio = np.random.default_rng(1).normal(0, 0.1, int(1.9 * SR)).astype(np.float32)
     # chunks of 10 ms to 200 ms, as a microphone sends them
@@ -109,11 +70,13 @@ def test_codetalker_stream_equals_offline_generation(tmp_path, lookahead):
     assert weights.shape == (57, 52) and weights.min() >= 0 and weights.max() <= 1
 
 
-def test_codetalker_stream_replaces_the_models_eye_motion_with_procedural_eyes(tmp_path):
+def test_codetalker_stream_replaces_the_models_eye_motion_with_procedural_eyes(
+    tmp_path, tiny_stream_model
+):
     from talkmesh.face.lipsync import BLINK_GAZE, INDEX, SpeakingStyle
     from talkmesh.serve.stream import UpperFace
 
-    path, head = tiny_model(tmp_path), tiny_head()
+    path, head = tiny_stream_model(), tiny_head()
     audio = np.random.default_rng(3).normal(0, 0.1, 4 * SR).astype(np.float32)
     plain = stream_all(open_stream(path, head=head, offsets=True, blinks=False), audio, [1600])
     eyed = stream_all(open_stream(path, head=head, offsets=True, seed=5), audio, [1600])
@@ -129,8 +92,10 @@ def test_codetalker_stream_replaces_the_models_eye_motion_with_procedural_eyes(t
     np.testing.assert_allclose(moved.reshape(len(we), -1), (we - wp)[:, keep] @ basis, atol=1e-5)
 
 
-def test_stream_waits_for_its_lookahead_and_lookahead_changes_the_output(tmp_path):
-    path = tiny_model(tmp_path)
+def test_stream_waits_for_its_lookahead_and_lookahead_changes_the_output(
+    tmp_path, tiny_stream_model
+):
+    path = tiny_stream_model()
     head = tiny_head()
     audio = np.random.default_rng(2).normal(0, 0.1, SR).astype(np.float32)
     early = open_stream(path, lookahead_ms=0, head=head, offsets=True, blinks=False)
@@ -176,16 +141,16 @@ def test_procedural_stream_state_stays_bounded_over_long_audio():
     assert total >= 49 * 30 and frames[-1].offsets.shape == (head.num_vertices, 3)
 
 
-def test_stream_errors(tmp_path):
+def test_stream_errors(tmp_path, tiny_stream_model):
     with pytest.raises(TalkmeshError, match="look-ahead"):
         open_stream("procedural", lookahead_ms=400)
     with pytest.raises(TalkmeshError, match="unknown streaming model"):
         open_stream("nonexistent.safetensors")
     head = tiny_head()
     with pytest.raises(TalkmeshError, match="cannot stream"):
-        open_stream(tiny_model(tmp_path, causal=False), head=head)
+        open_stream(tiny_stream_model(causal=False), head=head)
     with pytest.raises(TalkmeshError, match="outside what this model was trained for"):
-        open_stream(tiny_model(tmp_path), lookahead_ms=250, head=head)
+        open_stream(tiny_stream_model(), lookahead_ms=250, head=head)
     stream = open_stream("procedural")
     with pytest.raises(TalkmeshError, match="1-D"):
         stream.push(np.zeros((2, 160), np.float32))
@@ -198,10 +163,12 @@ def test_stream_errors(tmp_path):
 
 
 @pytest.mark.parametrize("offsets", [True, False])  # False: the model projects onto the basis
-def test_streams_pushed_together_get_the_frames_they_get_alone(tmp_path, monkeypatch, offsets):
+def test_streams_pushed_together_get_the_frames_they_get_alone(
+    tmp_path, monkeypatch, offsets, tiny_stream_model
+):
     from talkmesh.models.codetalker_batch import FrameBatch
 
-    path, head = tiny_model(tmp_path), tiny_head()
+    path, head = tiny_stream_model(), tiny_head()
     rng = np.random.default_rng(3)
     audios = [rng.normal(0, 0.1, int(s * SR)).astype(np.float32) for s in (1.5, 0.9, 1.2)]
     chunkings = [[320, 1600], [480], [3200, 160, 800]]
