@@ -15,7 +15,6 @@ Axis letters: S audio samples, M mel frames, N 50 Hz feature frames, T motion fr
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from talkmesh.constants import SAMPLE_RATE
@@ -29,17 +28,20 @@ from talkmesh.models.whisper import (
 )
 
 
-def log10_mel_frames(audio: Tensor, m0: int, m1: int, filters: Tensor) -> Tensor:
+def log10_mel_frames(
+    audio: Tensor, m0: int, m1: int, filters: Tensor, length: int | None = None
+) -> Tensor:
     """(S,) audio -> (n_mels, m1 - m0) log10 mel power of frames m0..m1-1 of
-    :func:`~talkmesh.models.whisper.log_mel`'s centred, reflect-padded STFT (before its clamp)."""
+    :func:`~talkmesh.models.whisper.log_mel`'s centred, reflect-padded STFT (before its clamp).
+    ``length`` >= S: the audio as if zero-padded to that many samples (no padded copy made)."""
     S, half = audio.shape[0], N_FFT // 2
+    L = S if length is None else length
     idx = torch.arange(m0 * HOP_LENGTH - half, (m1 - 1) * HOP_LENGTH + half)
     idx = torch.where(idx < 0, -idx, idx)  # reflect padding at both ends, as torch.stft's
-    idx = torch.where(idx >= S, 2 * (S - 1) - idx, idx)
+    idx = torch.where(idx >= L, 2 * (L - 1) - idx, idx)
+    samples = torch.where(idx < S, audio[idx.clamp(max=S - 1)], 0.0)  # zeros past the audio
     window = torch.hann_window(N_FFT, device=audio.device)
-    stft = torch.stft(
-        audio[idx], N_FFT, HOP_LENGTH, window=window, center=False, return_complex=True
-    )
+    stft = torch.stft(samples, N_FFT, HOP_LENGTH, window=window, center=False, return_complex=True)
     return torch.clamp(filters @ (stft.abs() ** 2), min=1e-10).log10()
 
 
@@ -51,15 +53,20 @@ class WhisperRows:
         self.features = features
         S = audio.shape[0]
         step = features.window * ENCODER_HOP if features.pad_to_window else ENCODER_HOP
-        self.audio = F.pad(audio.float(), (0, -(-S // step) * step - S))
+        # zero-padded to whole windows as the whole-audio forward pads it, but without a padded
+        # copy: the audio is the longest thing held (3.8 MB a minute)
+        self.audio = audio.float()
+        self.length = -(-S // step) * step
         self.count = -(-S // ENCODER_HOP)  # N: features of the valid audio
-        self.mels = self.audio.shape[0] // HOP_LENGTH  # M: log_mel's frames (the last dropped)
+        self.mels = self.length // HOP_LENGTH  # M: log_mel's frames (the last dropped)
         self.span = 2 * features.window  # mel frames per window
         self.filters = torch.from_numpy(_mel_filters(SAMPLE_RATE, N_FFT, features.n_mels))
         # log_mel clamps to 8 below the whole audio's peak: find it first, a window at a time
         self.peak = max(
             float(
-                log10_mel_frames(self.audio, m, min(m + self.span, self.mels), self.filters).max()
+                log10_mel_frames(
+                    self.audio, m, min(m + self.span, self.mels), self.filters, self.length
+                ).max()
             )
             for m in range(0, self.mels, self.span)
         )
@@ -69,7 +76,9 @@ class WhisperRows:
         """Window ``w``'s features (n, D)."""
         if w not in self.cache:
             m0 = w * self.span
-            spec = log10_mel_frames(self.audio, m0, min(m0 + self.span, self.mels), self.filters)
+            spec = log10_mel_frames(
+                self.audio, m0, min(m0 + self.span, self.mels), self.filters, self.length
+            )
             mel = (torch.maximum(spec, torch.tensor(self.peak - 8.0)) + 4.0) / 4.0
             self.cache[w] = self.features._encode(mel[None])[0]
         return self.cache[w]
