@@ -53,12 +53,14 @@ CHUNK = SAMPLE_RATE // 50  # 20 ms pushes, as bench/serve_load.py's clients send
 
 
 # method suffixes: a learned model with no correction (the bare model), one default one off, or
-# the lip closure on
+# the bilabial closure or the lip closure at every near-closure on
 VARIANTS = {
     "": Corrections(),
     "-raw": NONE,
     "-nogate": replace(Corrections(), pause_gate=False),
     "-nomix": replace(Corrections(), mix=0.0),
+    "-nogain": replace(Corrections(), gain=0.0),
+    "-bilabial": replace(Corrections(), bilabial=True),
     "-closure": replace(Corrections(), lip_closure=True),
 }
 
@@ -104,6 +106,8 @@ def _animate_condition(wave, methods, head) -> dict[str, np.ndarray]:
                 pause_gate=False,
                 lip_closure=False,
                 procedural_mix=0.0,
+                loudness_gain=0.0,
+                bilabial_closure=False,
             ).vertices
         out[method] = correct_mouth(bare[model].copy(), head, phones, wave, FPS, corrections)
     return out
@@ -169,8 +173,10 @@ def main() -> None:
     ap.add_argument(
         "--methods",
         default=",".join(default),
-        help="procedural, procedural-stream(-full) (module docstring), bundled models as animate runs them (default corrections), MODEL-raw "
-        "(none), MODEL-nogate / -nomix (one off), MODEL-closure (with the lip closure)",
+        help="procedural, procedural-stream(-full) (module docstring), bundled models as animate "
+        "runs them (default corrections), MODEL-raw (none), MODEL-nogate / -nomix / -nogain (one "
+        "off), MODEL-bilabial (with the bilabial closure), MODEL-closure (with the lip closure at "
+        "every near-closure)",
     )
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--clips", default="", help="comma-separated name prefixes (default: all)")

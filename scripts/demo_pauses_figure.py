@@ -55,7 +55,15 @@ def main() -> None:
     rows = []
     for room, wave in (("", clean), ("reverb: ", add_reverb(clean))):
         phones = recognize_phones(wave, SAMPLE_RATE)
-        bare = animate(wave, head=head, fps=FPS, pause_gate=False, procedural_mix=0.0)
+        bare = animate(
+            wave,
+            head=head,
+            fps=FPS,
+            pause_gate=False,
+            procedural_mix=0.0,
+            loudness_gain=0.0,
+            bilabial_closure=False,
+        )
         fixed = correct_mouth(bare.vertices.copy(), head, phones, wave, FPS, Corrections())
         rows += [(room + "model alone", bare.vertices), (room + "animate", fixed)]
     rest = float(lip_opening(head.template[None], head.regions)[0])

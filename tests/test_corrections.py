@@ -13,8 +13,10 @@ from talkmesh.face.corrections import (
     NEAR_CLOSED_MM,
     NONE,
     Corrections,
+    bilabial_frames,
     correct_mouth,
     correct_mouth_chunks,
+    loudness_curve,
     near_closures,
 )
 from talkmesh.face.lipsync import phones_to_weights
@@ -72,6 +74,8 @@ def test_no_corrections_leave_the_model_alone_and_mix_is_checked():
     np.testing.assert_array_equal(verts, before)
     with pytest.raises(TalkmeshError, match="procedural-mix"):
         Corrections(mix=1.5)
+    with pytest.raises(TalkmeshError, match="loudness-gain"):
+        Corrections(gain=-0.1)
 
 
 def _dipping(head):
@@ -87,7 +91,7 @@ def test_lip_closure_shuts_the_models_near_closure_and_only_with_its_switch():
     rest = float(_mm(head, head.template[None])[0])
     bare = _mm(head, _dipping(head))
     assert bare[20] - rest > 0.5 and bare[20] - rest < NEAR_CLOSED_MM  # nearly closed
-    closure = Corrections(pause_gate=False, lip_closure=True, mix=0.0)
+    closure = Corrections(pause_gate=False, lip_closure=True, mix=0.0, gain=0.0)
     closed = _mm(head, correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, closure))
     assert abs(closed[20] - rest) < 0.05  # shut at the minimum
     np.testing.assert_allclose(np.delete(closed, 20), np.delete(bare, 20), rtol=1e-6)
@@ -95,12 +99,35 @@ def test_lip_closure_shuts_the_models_near_closure_and_only_with_its_switch():
     np.testing.assert_allclose(off, bare)
 
 
+def test_bilabial_closure_shuts_near_closures_by_a_recognised_p_b_m_only():
+    head = load_head()
+    rest = float(_mm(head, head.template[None])[0])
+    near = bilabial_frames(PHONES, T, FPS)
+    np.testing.assert_array_equal(np.flatnonzero(near), np.arange(16, 23))  # M: 0.6-0.7 s, +-2
+    verts = _dipping(head)
+    w = np.zeros((T, len(ARKIT_NAMES)), np.float32)
+    w[:, ARKIT_NAMES.index("jawOpen")] = 0.5
+    w[49:52, ARKIT_NAMES.index("jawOpen")] = [0.2, 0.04, 0.2]  # a second dip, in an AA
+    verts[45:] = head.vertices_from_weights(w)[45:]
+    bare = _mm(head, verts)
+    assert bare[50] - rest > 0.5 and bare[50] - rest < NEAR_CLOSED_MM
+    fix = Corrections(pause_gate=False, mix=0.0, gain=0.0, bilabial=True)
+    shut = _mm(head, correct_mouth(verts.copy(), head, PHONES, _wave(), FPS, fix))
+    assert abs(shut[20] - rest) < 0.05  # by the M: shut
+    np.testing.assert_allclose(np.delete(shut, 20), np.delete(bare, 20), rtol=1e-6)  # not at 50
+    every = Corrections(pause_gate=False, mix=0.0, gain=0.0, bilabial=True, lip_closure=True)
+    both = _mm(head, correct_mouth(verts.copy(), head, PHONES, _wave(), FPS, every))
+    assert abs(both[50] - rest) < 0.05 and abs(both[20] - rest) < 0.05
+
+
 def test_mix_moves_toward_procedural_but_keeps_the_models_closures():
     head = load_head()
     bare = _mm(head, _dipping(head))
     mixed = _mm(
         head,
-        correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, Corrections(False, False, 0.5)),
+        correct_mouth(
+            _dipping(head), head, PHONES, _wave(), FPS, Corrections(False, False, 0.5, 0.0)
+        ),
     )
     procedural = _mm(
         head, head.vertices_from_weights(phones_to_weights(PHONES, T, FPS, audio=_wave()))
@@ -112,11 +139,33 @@ def test_mix_moves_toward_procedural_but_keeps_the_models_closures():
     np.testing.assert_allclose(mixed[19:22], bare[19:22], rtol=1e-6)  # the closure is kept
 
 
+def test_loudness_curve_follows_the_speech_and_is_zero_in_silence():
+    loud = loudness_curve(_wave(), T, FPS)
+    assert loud.shape == (T,) and loud.dtype == np.float32
+    assert np.all(loud[(t > 0.4) & (t < 0.9)] > 0.9)  # speech at the clip's level
+    assert np.all(loud[(t > 1.1) & (t < 1.4)] == 0.0)  # digital silence
+    assert np.all(loudness_curve(np.zeros(0, np.float32), 5, FPS) == 0.0)
+
+
+def test_gain_opens_the_mouth_further_in_loud_speech_but_keeps_closures():
+    head = load_head()
+    rest = float(_mm(head, head.template[None])[0])
+    bare = _mm(head, _dipping(head))
+    gain = Corrections(pause_gate=False, mix=0.0, gain=0.5)
+    louder = _mm(head, correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, gain))
+    speech = (t > 0.4) & (t < 0.55)  # loud, far from the closure at frame 20
+    # the lips' displacement from the closed mouth grows by half
+    np.testing.assert_allclose(louder[speech] - rest, 1.5 * (bare[speech] - rest), rtol=0.05)
+    silent = (t > 1.1) & (t < 1.4)
+    np.testing.assert_allclose(louder[silent], bare[silent], rtol=1e-6)  # no sound, no gain
+    np.testing.assert_allclose(louder[19:22], bare[19:22], rtol=1e-6)  # the closure is kept
+
+
 @pytest.mark.parametrize("size", [1, 2, 3, 19, 20, 21, 22, 59])
 def test_chunks_are_corrected_as_the_whole_clip(size):
     """Chunk edges next to the near-closure at frame 20: the look-ahead must see its neighbours."""
     head = load_head()
-    every = Corrections(pause_gate=True, lip_closure=True, mix=0.5)
+    every = Corrections(pause_gate=True, lip_closure=True, mix=0.5, gain=0.3)
     whole = correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, every)
     verts = _dipping(head)
     chunks = (verts[i : i + size] for i in range(0, T, size))
@@ -172,7 +221,14 @@ def test_default_corrections_shut_a_reverberant_pause_the_bare_model_leaves_open
     wave = rs.degrade(clean, "reverb", None)
     head = load_head()
     bare = animate(
-        wave, head=head, model="codetalker-synth", fps=FPS, pause_gate=False, procedural_mix=0.0
+        wave,
+        head=head,
+        model="codetalker-synth",
+        fps=FPS,
+        pause_gate=False,
+        procedural_mix=0.0,
+        loudness_gain=0.0,
+        bilabial_closure=False,
     ).vertices
     fixed = correct_mouth(bare.copy(), head, recognize_phones(wave), wave, FPS)
     rest = float(_mm(head, head.template[None])[0])

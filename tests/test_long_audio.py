@@ -137,11 +137,25 @@ def test_learned_blocks_correct_the_mouth_as_the_whole_clip(tmp_path, tiny_codet
     model = tiny_codetalker(causal=True, attention_window=7)
     model = CodeTalker(replace(model.cfg, vq=replace(model.cfg.vq, num_vertices=head.num_vertices)))
     path = str(save_model(model.eval(), tmp_path / "m.safetensors"))
-    every = Corrections(pause_gate=True, lip_closure=True, mix=0.5)
+    every = Corrections(pause_gate=True, lip_closure=True, mix=0.5, gain=0.3)
     got = animate_blocks(
-        SPEECH, model=path, blinks=False, lip_closure=True, procedural_mix=0.5, block=2
+        SPEECH,
+        model=path,
+        blinks=False,
+        lip_closure=True,
+        procedural_mix=0.5,
+        loudness_gain=0.3,
+        block=2,
     ).collect()
-    bare = animate(SPEECH, model=path, blinks=False, pause_gate=False, procedural_mix=0.0)
+    bare = animate(
+        SPEECH,
+        model=path,
+        blinks=False,
+        pause_gate=False,
+        procedural_mix=0.0,
+        loudness_gain=0.0,
+        bilabial_closure=False,
+    )
     wave = load_audio(SPEECH)
     whole = correct_mouth(bare.vertices.copy(), head, recognize_phones(wave), wave, 30.0, every)
     np.testing.assert_allclose(got.vertices, whole, rtol=0, atol=1e-6)

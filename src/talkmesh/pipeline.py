@@ -15,7 +15,7 @@ from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, WeightFitter
 from talkmesh.face.assets import Head, load_head
-from talkmesh.face.corrections import MIX, NONE, Corrections, correct_mouth_chunks
+from talkmesh.face.corrections import BILABIAL, GAIN, MIX, NONE, Corrections, correct_mouth_chunks
 from talkmesh.face.lipsync import (
     SpeakingStyle,
     blink_gaze_weights,
@@ -76,6 +76,8 @@ def animate(
     pause_gate: bool = True,
     lip_closure: bool = False,
     procedural_mix: float = MIX,
+    loudness_gain: float = GAIN,
+    bilabial_closure: bool = BILABIAL,
 ) -> Animation:
     """Animate a face from speech.
 
@@ -111,6 +113,11 @@ def animate(
         procedural_mix: learned models: share of the procedural animator's mouth (driven by the
             recognised phones) mixed into the model's except at its lip closures, in [0, 1];
             0 turns it off.
+        loudness_gain: learned models: how much further the loudest speech opens the model's
+            mouth (its displacement from the closed mouth x ``1 + gain x`` loudness), except at
+            its lip closures, in [0, 2]; 0 turns it off.
+        bilabial_closure: learned models: shut the lips fully where the model nearly closes them
+            by a /p b m/ that the phone recogniser finds.
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
@@ -130,6 +137,8 @@ def animate(
         pause_gate=pause_gate,
         lip_closure=lip_closure,
         procedural_mix=procedural_mix,
+        loudness_gain=loudness_gain,
+        bilabial_closure=bilabial_closure,
     ).collect()
 
 
@@ -149,6 +158,8 @@ def animate_blocks(
     pause_gate: bool = True,
     lip_closure: bool = False,
     procedural_mix: float = MIX,
+    loudness_gain: float = GAIN,
+    bilabial_closure: bool = BILABIAL,
     block: int = BLOCK,
 ) -> AnimationBlocks:
     """:func:`animate` a ``block`` of frames at a time (arguments as there): memory does not grow
@@ -178,7 +189,9 @@ def animate_blocks(
             f"--text and phones drive the procedural animator, not {model_name(model)}: drop "
             "them or pass --model procedural"
         )
-    corrections = Corrections(pause_gate, lip_closure, procedural_mix)
+    corrections = Corrections(
+        pause_gate, lip_closure, procedural_mix, loudness_gain, bilabial_closure
+    )
     net, weights = _learned_model(model, head, style_mix, int8)
     fps = net.motion_fps if fps is None else fps
     frames = net.default_frames(len(wave))  # imported official models count as the official code

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from talkmesh.errors import TalkmeshError, os_error_message
-from talkmesh.face.corrections import MIX
+from talkmesh.face.corrections import BILABIAL, GAIN, MIX
 from talkmesh.output import VIDEO_SIZE
 
 OK, SKIPPED, FAILED = "ok", "skipped", "failed"
@@ -44,6 +44,8 @@ class AnimateSettings:
     pause_gate: bool = True
     lip_closure: bool = False
     procedural_mix: float = MIX
+    loudness_gain: float = GAIN
+    bilabial_closure: bool = BILABIAL
     int8: str | None = None
     size: int = VIDEO_SIZE
     camera: str = "front"
@@ -111,6 +113,8 @@ class Animator:
                 pause_gate=s.pause_gate,
                 lip_closure=s.lip_closure,
                 procedural_mix=s.procedural_mix,
+                loudness_gain=s.loudness_gain,
+                bilabial_closure=s.bilabial_closure,
                 int8=self.int8,
             )
             # .npz and .npy stream as frames are made; the other formats get the whole animation

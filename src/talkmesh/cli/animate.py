@@ -19,7 +19,7 @@ from talkmesh.cli.common import (
 )
 from talkmesh.constants import INT8_LAYERS
 from talkmesh.errors import TalkmeshError
-from talkmesh.face.corrections import MIX
+from talkmesh.face.corrections import GAIN, MIX
 from talkmesh.output import write_animation
 
 
@@ -90,6 +90,20 @@ def add_animate(sub: Subparsers) -> None:
         metavar="SHARE",
         help="learned models: share of the procedural animator's mouth mixed into the model's "
         f"outside its lip closures, 0 to 1 (default {MIX:g}; 0 turns it off)",
+    )
+    a.add_argument(
+        "--bilabial-closure",
+        action="store_true",
+        help="learned models: shut the lips where the model nearly closes them by a /p b m/ "
+        "the phone recogniser finds (costs accuracy on the synthetic test set)",
+    )
+    a.add_argument(
+        "--loudness-gain",
+        type=float,
+        default=GAIN,
+        metavar="GAIN",
+        help="learned models: how much further the loudest speech opens the model's mouth, 0 to "
+        f"2 (default {GAIN:g}; 0 turns it off)",
     )
     a.add_argument(
         "--int8",
@@ -238,6 +252,8 @@ def animate_settings(args: argparse.Namespace):
         pause_gate=not args.no_pause_gate,
         lip_closure=args.lip_closure,
         procedural_mix=args.procedural_mix,
+        loudness_gain=args.loudness_gain,
+        bilabial_closure=args.bilabial_closure,
         int8=args.int8,
         size=args.size,
         camera=args.camera,

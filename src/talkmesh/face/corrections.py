@@ -10,12 +10,17 @@ phones, supply what the model lacks. Three corrections, each with its own switch
   starts moved back over a reverberant tail;
 * ``mix``: a share of the procedural animator's mouth everywhere except at the model's own lip
   closures (so it does not lift them): the mouth follows the loudness more closely;
-* ``lip_closure`` (off by default): the model's near-closures (lip opening minima within
-  ``NEAR_CLOSED_MM`` of rest) shut fully. Real /p b m/ then close, but so does every near-closure
+* ``gain``: the model's mouth opens further where the audio is loud (its displacement from the
+  closed mouth scaled by ``1 + gain x`` the loudness, :func:`loudness_curve`), except at its lip
+  closures: models trained to the mean open less on vowels than the procedural animator;
+* ``bilabial`` (off by default): the model's near-closures (lip opening minima within ``NEAR_CLOSED_MM`` of
+  rest) shut fully within ``BILABIAL_PAD`` frames of a /p b m/ the recogniser finds;
+* ``lip_closure`` (off by default): every near-closure shuts fully. Real /p b m/ then close, but so does every near-closure
   the synthetic truth leaves a little open: it costs synthetic LVE (docs/results/real-speech.md).
 
-Closing the lips on the /p b m/ the recogniser finds does not work: it misses most of them in
-noise, and places some that are not there.
+Closing the lips on the /p b m/ the recogniser finds, wherever the model's lips are, does not
+work: it misses most of them in noise, and places some that are not there; ``bilabial`` only
+finishes the closures the model starts there.
 """
 
 from __future__ import annotations
@@ -29,10 +34,25 @@ from talkmesh.audio.phonemes import Phone
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.assets import Head, lip_opening
 from talkmesh.face.lipsync import SpeakingStyle, phones_to_weights
-from talkmesh.face.pauses import gate_mouth, speech_gate, tail_pauses
+from talkmesh.face.pauses import (
+    HOP_S,
+    SPEECH_LEVEL_PERCENTILE,
+    frame_db,
+    gate_mouth,
+    speech_gate,
+    tail_pauses,
+)
 
 MIX = 0.2  # share of the procedural animator's mouth in the default output
 NEAR_CLOSED_MM = 3.0  # an opening minimum this close to rest is the model closing the lips
+BILABIAL_PAD = 2  # frames either side of a recognised /p b m/ where a near-closure shuts
+BILABIALS = frozenset({"P", "B", "M"})
+BILABIAL = False  # off by default: +5.7% synthetic LVE (docs/results/real-speech.md)
+# the loudest speech opens the model's mouth this much further: 0.2 is what the synthetic LVE
+# budget allows (+2.9% with the other corrections; 0.3: +4.4%)
+GAIN = 0.2
+LOUDNESS_SPAN_DB = 30.0  # from this far under the clip's speech level (no gain) up to it (full)
+LOUDNESS_SMOOTH_S = 0.1  # the loudness is a moving average over this long
 BLOCK = 2048  # frames of procedural vertices built at once (ten minutes would not fit)
 
 
@@ -42,20 +62,41 @@ class Corrections:
 
     Attributes:
         pause_gate: shut the mouth in recognised pauses.
-        lip_closure: shut the lips fully at the model's near-closures.
+        lip_closure: shut the lips fully at every one of the model's near-closures.
         mix: share of the procedural animator's mouth, in [0, 1] (0: none).
+        gain: how much further the loudest speech opens the mouth, in [0, 2] (0: none).
+        bilabial: shut the lips fully at the model's near-closures by a recognised /p b m/.
     """
 
     pause_gate: bool = True
     lip_closure: bool = False
     mix: float = MIX
+    gain: float = GAIN
+    bilabial: bool = BILABIAL
 
     def __post_init__(self):
         if not 0.0 <= self.mix <= 1.0:
             raise TalkmeshError(f"--procedural-mix must be in [0, 1], got {self.mix:g}")
+        if not 0.0 <= self.gain <= 2.0:
+            raise TalkmeshError(f"--loudness-gain must be in [0, 2], got {self.gain:g}")
 
 
-NONE = Corrections(pause_gate=False, lip_closure=False, mix=0.0)
+NONE = Corrections(pause_gate=False, lip_closure=False, mix=0.0, gain=0.0, bilabial=False)
+
+
+def loudness_curve(wave: np.ndarray, num_frames: int, fps: float) -> np.ndarray:
+    """(T,) float32 in [0, 1]: the loudness of (S,) ``wave`` at 16 kHz at each frame's centre, 0
+    at ``LOUDNESS_SPAN_DB`` or more under the clip's speech level, 1 at it, in dB in between,
+    averaged over ``LOUDNESS_SMOOTH_S``."""
+    db = frame_db(wave)
+    if not len(db):
+        return np.zeros(num_frames, np.float32)
+    level = np.percentile(db, SPEECH_LEVEL_PERCENTILE)
+    loud = np.clip((db - (level - LOUDNESS_SPAN_DB)) / LOUDNESS_SPAN_DB, 0.0, 1.0)
+    k = max(1, round(LOUDNESS_SMOOTH_S / HOP_S))
+    loud = np.convolve(loud, np.ones(k) / k, mode="same")
+    at = ((np.arange(num_frames) + 0.5) / fps / HOP_S).astype(int)
+    return loud[np.clip(at, 0, len(loud) - 1)].astype(np.float32)
 
 
 def near_closures(opening: np.ndarray, rest: float, within: float = NEAR_CLOSED_MM) -> np.ndarray:
@@ -64,6 +105,18 @@ def near_closures(opening: np.ndarray, rest: float, within: float = NEAR_CLOSED_
     prev = np.concatenate([[np.inf], opening[:-1]])
     nxt = np.concatenate([opening[1:], [np.inf]])
     return (opening <= prev) & (opening <= nxt) & (opening < rest + within)
+
+
+def bilabial_frames(
+    phones: list[Phone], num_frames: int, fps: float, pad: int = BILABIAL_PAD
+) -> np.ndarray:
+    """(T,) bool: the frames of each /p b m/ in ``phones``, and ``pad`` frames either side."""
+    near = np.zeros(num_frames, bool)
+    for p in phones:
+        if p.label in BILABIALS:
+            lo = max(0, int(p.start * fps) - pad)
+            near[lo : max(lo, min(num_frames, int(np.ceil(p.end * fps)) + pad))] = True
+    return near
 
 
 def _blend(vertices: np.ndarray, target, pull: np.ndarray, mouth: np.ndarray) -> None:
@@ -125,8 +178,14 @@ def correct_mouth_chunks(
     the openings of the two frames after it are known (only with ``mix`` or ``lip_closure``).
     """
     rest = float(lip_opening(head.template[None], head.regions)[0])
-    look = 2 if corrections.mix > 0 or corrections.lip_closure else 0
-    weights = gate = None
+    shut = corrections.lip_closure or corrections.bilabial
+    look = 2 if corrections.mix > 0 or corrections.gain > 0 or shut else 0
+    weights = gate = loud = None
+    shut_at = np.ones(num_frames, bool) if corrections.lip_closure else None
+    if corrections.bilabial and not corrections.lip_closure:
+        shut_at = bilabial_frames(phones, num_frames, fps)
+    if corrections.gain > 0:
+        loud = corrections.gain * loudness_curve(wave, num_frames, fps)
     if corrections.mix > 0:
         weights = phones_to_weights(phones, num_frames, fps, audio=wave, style=style, seed=seed)
     if corrections.pause_gate:
@@ -144,12 +203,12 @@ def correct_mouth_chunks(
         pending.append(chunk)
         while pending and done + len(pending[0]) + look <= known:
             chunk = pending.pop(0)
-            _correct(chunk, done, opening, rest, weights, gate, head, corrections)
+            _correct(chunk, done, opening, rest, (loud, weights, shut_at, gate), head, corrections)
             done += len(chunk)
             yield chunk
     assert known == num_frames, (known, num_frames)
     for chunk in pending:
-        _correct(chunk, done, opening, rest, weights, gate, head, corrections)
+        _correct(chunk, done, opening, rest, (loud, weights, shut_at, gate), head, corrections)
         done += len(chunk)
         yield chunk
 
@@ -159,13 +218,15 @@ def _correct(
     start: int,
     opening: np.ndarray | None,
     rest: float,
-    weights: np.ndarray | None,
-    gate: np.ndarray | None,
+    curves: tuple[np.ndarray | None, ...],
     head: Head,
     corrections: Corrections,
 ) -> None:
     """Frames ``start``.. of the clip (``chunk``) corrected in place: ``opening`` is known from
-    two frames before to two frames after them (or to the clip's ends)."""
+    two frames before to two frames after them (or to the clip's ends); ``curves`` are the
+    clip's (T,) gain, (T, 52) procedural weights, (T,) frames where near-closures shut and (T,)
+    pause gate (None: not applied)."""
+    loud, weights, shut_at, gate = curves
     mouth = head.regions.mouth_weight
     end = start + len(chunk)
     if opening is not None:  # closures from a frame before to a frame after the chunk
@@ -174,14 +235,19 @@ def _correct(
         # only decide kept frames outside the chunk
         near = near_closures(opening[lo:hi], rest, NEAR_CLOSED_MM / 1000.0)
         closures = near[start - lo : end - lo]
-    if corrections.mix > 0:  # the model's closures (and a frame either side) keep their lips
-        kept = near.copy()
+        kept = near.copy()  # the model's closures (and a frame either side) keep their lips
         kept[1:] |= near[:-1]
         kept[:-1] |= near[1:]
-        pull = np.where(kept[start - lo : end - lo], 0.0, corrections.mix).astype(np.float32)
+        kept = kept[start - lo : end - lo]
+    if loud is not None:  # displacement from the closed mouth x (1 + gain x loudness)
+        push = np.where(kept, 0.0, -loud[start:end]).astype(np.float32)
+        _blend(chunk, lambda b: head.template[None], push, mouth)
+    if corrections.mix > 0:
+        pull = np.where(kept, 0.0, corrections.mix).astype(np.float32)
         w = weights[start:end]
         _blend(chunk, lambda b: head.vertices_from_weights(w[b]), pull, mouth)
-    if corrections.lip_closure:
-        _blend(chunk, lambda b: head.template[None], closures.astype(np.float32), mouth)
+    if shut_at is not None:
+        shut = (closures & shut_at[start:end]).astype(np.float32)
+        _blend(chunk, lambda b: head.template[None], shut, mouth)
     if gate is not None:
         gate_mouth(chunk, head.template, mouth, gate[start:end])
