@@ -142,6 +142,18 @@ def animate(
     ).collect()
 
 
+def _checked_wave(audio: str | Path | np.ndarray, fps: float | None, block: int) -> np.ndarray:
+    """The (S,) waveform of ``audio`` once ``fps`` and ``block`` are checked (one-line errors)."""
+    if fps is not None and not (0 < fps <= MAX_FPS):
+        raise TalkmeshError(f"--fps must be in (0, {MAX_FPS:g}], got {fps:g}")
+    if block < 1:
+        raise TalkmeshError(f"block must be at least 1 frame, got {block}")
+    wave = load_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
+    if wave.ndim != 1 or not len(wave):
+        raise TalkmeshError("audio must be a non-empty mono waveform")
+    return wave
+
+
 def animate_blocks(
     audio: str | Path | np.ndarray,
     *,
@@ -166,14 +178,8 @@ def animate_blocks(
     with the audio (its waveform aside) when the model generates in chunks (the procedural
     animator, CodeTalker models with a causal VQ decoder); write it with
     :func:`talkmesh.output.streaming.save_blocks`. The frames are :func:`animate`'s."""
-    if fps is not None and not (0 < fps <= MAX_FPS):
-        raise TalkmeshError(f"--fps must be in (0, {MAX_FPS:g}], got {fps:g}")
-    if block < 1:
-        raise TalkmeshError(f"block must be at least 1 frame, got {block}")
+    wave = _checked_wave(audio, fps, block)
     head = head or load_head()
-    wave = load_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
-    if wave.ndim != 1 or not len(wave):
-        raise TalkmeshError("audio must be a non-empty mono waveform")
     if model is None:  # a transcript or phones ask for the phone-driven animator
         model = "procedural" if text is not None or phones is not None else default_model()
     if int8 is not None and int8 not in INT8_MODES:

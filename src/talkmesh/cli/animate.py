@@ -71,6 +71,20 @@ def add_animate(sub: Subparsers) -> None:
         help="learned models: keep the model's own eye motion instead of procedural blinks and "
         "gaze (speech cannot predict them)",
     )
+    _add_corrections(a)
+    a.add_argument(
+        "--int8",
+        choices=INT8_LAYERS,
+        help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
+        "(faster on CPUs, not exact: see docs/results/codetalker.md)",
+    )
+    add_batch_options(a)
+    add_output_options(a)
+    a.set_defaults(func=cmd_animate)
+
+
+def _add_corrections(a) -> None:
+    """The options of the mouth corrections of learned models (talkmesh.face.corrections)."""
     a.add_argument(
         "--no-pause-gate",
         action="store_true",
@@ -105,15 +119,6 @@ def add_animate(sub: Subparsers) -> None:
         help="learned models: how much further the loudest speech opens the model's mouth, 0 to "
         f"2 (default {GAIN:g}; 0 turns it off)",
     )
-    a.add_argument(
-        "--int8",
-        choices=INT8_LAYERS,
-        help="CodeTalker models: run the speech encoder, the decoders or both in int8 "
-        "(faster on CPUs, not exact: see docs/results/codetalker.md)",
-    )
-    add_batch_options(a)
-    add_output_options(a)
-    a.set_defaults(func=cmd_animate)
 
 
 def add_batch_options(a: argparse.ArgumentParser) -> None:
