@@ -92,7 +92,8 @@ def test_workers_give_the_frames_of_one_process(library, tmp_path):
         assert [r.status for r in result.rows] == ["ok", "ok"]
         runs[workers] = [np.load(o[0]) for o in outs]
     for one, two in zip(runs[1], runs[2]):
-        np.testing.assert_array_equal(one, two)
+        # equal to float32 rounding: a worker's BLAS runs one thread, which sums in another order
+        np.testing.assert_allclose(one, two, rtol=0, atol=1e-7)
 
 
 def test_a_list_of_paths(library, tmp_path, capsys):
@@ -194,3 +195,21 @@ def test_output_folder_that_is_a_file(library, tmp_path, capsys):
 def test_zero_workers_is_refused(library, tmp_path, capsys):
     assert main(["animate", str(library), "-o", f"{tmp_path}/o/", "--workers", "0"]) == 2
     assert "--workers 0" in one_line_errors(capsys.readouterr().err)[0]
+
+
+def test_a_worker_limits_the_blas_threads_too():
+    """A forked worker inherits numpy's OpenBLAS pool (one thread per core): the worker's share
+    of the cores must bound it, or N workers run N x cores spinning BLAS threads."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy, threadpoolctl\n"
+        "from talkmesh.batch.library import _set_threads\n"
+        "_set_threads(1)\n"
+        "print(max(i['num_threads'] for i in threadpoolctl.threadpool_info()))\n"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": "2", "OPENBLAS_NUM_THREADS": "2"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "1"
