@@ -8,25 +8,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from fixtures import TINY_WAV2VEC2
 
 from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
 from talkmesh.models.codetalker_vq import VQConfig
 from talkmesh.models.speech import SpeechEncoderConfig
 
 TINY_V = 20  # vertices of the tiny model's face
-# a wav2vec2 of two convolutions and one transformer layer, for speech="wav2vec2"
-TINY_WAV2VEC2 = dict(
-    hidden_size=16,
-    num_hidden_layers=1,
-    num_attention_heads=2,
-    intermediate_size=32,
-    conv_dim=(8, 8),
-    conv_stride=(5, 64),
-    conv_kernel=(10, 64),
-    num_feat_extract_layers=2,
-    num_conv_pos_embeddings=4,
-    num_conv_pos_embedding_groups=2,
-)
 # the streaming tests' speech encoder: mel features, look-ahead chosen at run time up to 200 ms
 STREAM_SPEECH = SpeechEncoderConfig(kind="mel", dim=16, lookahead_ms=0.0, lookahead_max_ms=200.0)
 

@@ -10,6 +10,20 @@ import soundfile as sf
 
 from talkmesh.datasets.reader import BIWI, VOCASET
 
+# a wav2vec2 of two convolutions and one transformer layer, for speech="wav2vec2"
+TINY_WAV2VEC2 = dict(
+    hidden_size=16,
+    num_hidden_layers=1,
+    num_attention_heads=2,
+    intermediate_size=32,
+    conv_dim=(8, 8),
+    conv_stride=(5, 64),
+    conv_kernel=(10, 64),
+    num_feat_extract_layers=2,
+    num_conv_pos_embeddings=4,
+    num_conv_pos_embedding_groups=2,
+)
+
 
 def write_wav(path: Path, seconds: float, sr: int) -> None:
     t = np.arange(int(round(seconds * sr))) / sr

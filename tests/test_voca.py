@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from fixtures import make_dataset
+from fixtures import TINY_WAV2VEC2, make_dataset
 
 from talkmesh.config import from_dict, to_dict
 from talkmesh.datasets.reader import DatasetSpec
@@ -23,23 +23,10 @@ V = 20
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
-# a random wav2vec 2.0 small enough for tests; it resamples each sample's features to the frames
-WAV2VEC2 = dict(
-    hidden_size=16,
-    num_hidden_layers=1,
-    num_attention_heads=2,
-    intermediate_size=32,
-    conv_dim=(8, 8),
-    conv_stride=(5, 64),
-    conv_kernel=(10, 64),
-    num_feat_extract_layers=2,
-    num_conv_pos_embeddings=4,
-    num_conv_pos_embedding_groups=2,
-)
-
-
 def speech_config(kind: str = "mel") -> SpeechEncoderConfig:
-    return SpeechEncoderConfig(kind=kind, dim=16, hf_config=WAV2VEC2 if kind == "wav2vec2" else {})
+    return SpeechEncoderConfig(
+        kind=kind, dim=16, hf_config=TINY_WAV2VEC2 if kind == "wav2vec2" else {}
+    )
 
 
 def tiny_config(**overrides) -> VOCAConfig:

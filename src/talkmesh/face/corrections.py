@@ -13,10 +13,12 @@ phones, supply what the model lacks. Three corrections, each with its own switch
 * ``gain``: the model's mouth opens further where the audio is loud (its displacement from the
   closed mouth scaled by ``1 + gain x`` the loudness, :func:`loudness_curve`), except at its lip
   closures: models trained to the mean open less on vowels than the procedural animator;
-* ``bilabial`` (off by default): the model's near-closures (lip opening minima within ``NEAR_CLOSED_MM`` of
-  rest) shut fully within ``BILABIAL_PAD`` frames of a /p b m/ the recogniser finds;
-* ``lip_closure`` (off by default): every near-closure shuts fully. Real /p b m/ then close, but so does every near-closure
-  the synthetic truth leaves a little open: it costs synthetic LVE (docs/results/real-speech.md).
+* ``bilabial`` (off by default): the model's near-closures (lip opening minima within
+  ``NEAR_CLOSED_MM`` of rest) shut fully within ``BILABIAL_PAD`` frames of a /p b m/ the
+  recogniser finds;
+* ``lip_closure`` (off by default): every near-closure shuts fully. Real /p b m/ then close, but
+  so does every near-closure the synthetic truth leaves a little open: it costs synthetic LVE
+  (docs/results/real-speech.md).
 
 Closing the lips on the /p b m/ the recogniser finds, wherever the model's lips are, does not
 work: it misses most of them in noise, and places some that are not there; ``bilabial`` only
@@ -47,7 +49,7 @@ MIX = 0.2  # share of the procedural animator's mouth in the default output
 NEAR_CLOSED_MM = 3.0  # an opening minimum this close to rest is the model closing the lips
 BILABIAL_PAD = 2  # frames either side of a recognised /p b m/ where a near-closure shuts
 BILABIALS = frozenset({"P", "B", "M"})
-BILABIAL = False  # off by default: +5.7% synthetic LVE (docs/results/real-speech.md)
+BILABIAL = False  # off by default: synthetic LVE 3.948 vs 3.741 mm (docs/results/real-speech.md)
 # the loudest speech opens the model's mouth this much further: 0.2 is what the synthetic LVE
 # budget allows (+2.9% with the other corrections; 0.3: +4.4%)
 GAIN = 0.2
@@ -172,10 +174,11 @@ def correct_mouth_chunks(
     """:func:`correct_mouth` on consecutive (t, V, 3) chunks of ``num_frames`` frames, each
     corrected in place and yielded in order: the same frames as the whole clip at once.
 
-    The (T,) lip openings, the procedural weights (T, 52) and the pause gate (T,) are small and
-    kept for the clip; vertices are not. A near-closure compares a frame's opening with its
-    neighbours', and the mix spares a frame either side of one, so a chunk is held back until
-    the openings of the two frames after it are known (only with ``mix`` or ``lip_closure``).
+    The (T,) lip openings, loudness gain, procedural weights (T, 52) and pause gate (T,) are
+    small and kept for the clip; vertices are not. A near-closure compares a frame's opening with
+    its neighbours', and the mix and gain spare a frame either side of one, so a chunk is held
+    back until the openings of the two frames after it are known (with any correction but the
+    pause gate).
     """
     rest = float(lip_opening(head.template[None], head.regions)[0])
     shut = corrections.lip_closure or corrections.bilabial

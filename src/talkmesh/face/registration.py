@@ -14,8 +14,9 @@
    Amberg et al. 2007 regularises its per-vertex transforms), c_i the closest point of the user's
    surface and n_i its normal (trimmed, and only on triangles facing the same way, so closed lips
    do not swap), and p_l the landmarks. The point-to-plane term lets the fit slide along the
-   surface where the smoothness term wants it; the point-to-point one keeps it from drifting. Each round is one sparse solve (scipy's SuperLU); the stiffness falls from
-   round to round, so the fit goes from global to local.
+   surface where the smoothness term wants it; the point-to-point one keeps it from drifting.
+   Each round is one sparse solve (scipy's SuperLU); the stiffness falls from round to round, so
+   the fit goes from global to local.
 
 Everything here is in the user's units and axes after the rigid fit.
 """

@@ -486,11 +486,15 @@ def _user_gradients(vertices, faces, registered, placed, skin_faces, shapes, rad
     )
     coarse = np.clip(area / np.maximum(bundled_area, 1e-30) - 1.0, 0.0, 1.0)[:, None, None]
     own_fade = fade.reshape(len(faces), -1)[:, len(SAMPLES) - 1, None, None]
+    coarse_any = bool(coarse.any())
     out = np.empty((len(shapes), len(faces), 3, 3))
     for k in range(len(shapes)):  # one shape at a time: (F, samples, 3, 3) is large on dense meshes
         carried = (source[k] - np.eye(3)) @ pull  # (S faces, 3, 3) displacement gradients
         local = own_fade * carried[match[:, len(SAMPLES) - 1 :]].mean(axis=1)
-        sampled = np.einsum("pc,pcx->px", weights, shapes[k][corners]).reshape(len(faces), -1, 3)
-        fitted = fitted_gradients(vertices, faces, sampled[None, :, : len(SAMPLES)])[0]
-        out[k] = np.eye(3) + coarse * (fitted - np.eye(3)) + (1 - coarse) * local
+        out[k] = np.eye(3) + local
+        if coarse_any:  # triangles larger than the bundled ones take the fitted gradient
+            sampled = np.einsum("pc,pcx->px", weights, shapes[k][corners])
+            sampled = sampled.reshape(len(faces), -1, 3)[None, :, : len(SAMPLES)]
+            fitted = fitted_gradients(vertices, faces, sampled)[0]
+            out[k] += coarse * (fitted - np.eye(3) - local)
     return out

@@ -24,9 +24,10 @@ from scipy.sparse.linalg import splu
 
 ANCHOR = 0.2  # weight of the first-guess offsets against the edge rows (weight 1 each)
 # Barycentric sample points of a triangle: its corners, edge midpoints and centroid (last).
+THIRD = 1 / 3
 SAMPLES = np.array(
-    [[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5], [1, 1, 1]]
-) / np.array([[1], [1], [1], [1], [1], [1], [3]])
+    [[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5], [THIRD] * 3]
+)
 CORNER_WEIGHT = 4.0  # the corners count four times in the fit (the offsets the vertices get)
 
 

@@ -9,10 +9,9 @@ computes, the next chunks of every session queue up for the next one, so the bat
 the load: a busy server runs fewer, larger steps instead of falling behind. Each session's frames
 come back through its own queue (:class:`Work`), which its sending coroutine drains.
 
-Knobs (``talkmesh serve`` flags): ``--batch-wait-ms`` (default ``DEFAULT_BATCH_WAIT_MS``, 15) waits that long after the
-first ready chunk before a tick, to gather more sessions into it (more throughput, that much
-latency);
-``--torch-threads`` sets the threads of the batched model steps.
+Knobs (``talkmesh serve`` flags): ``--batch-wait-ms`` (default ``DEFAULT_BATCH_WAIT_MS``, 15)
+waits that long after the first ready chunk before a tick, to gather more sessions into it (more
+throughput, that much latency); ``--torch-threads`` sets the threads of the batched model steps.
 """
 
 from __future__ import annotations
