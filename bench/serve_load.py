@@ -23,11 +23,14 @@ Per row:
   timed;
 * drift: per session, the median latency of the last ``EDGE`` of the run minus that of the first
   (after the first second); the worst session's. A backlog that grows shows here;
-* peak RSS: the server's high-water mark (VmHWM) over the run; per session: that minus the
-  server's RSS before the sessions came, divided by the sessions;
-* batch: the mean sessions per scheduler tick; the server's CPU use in cores over the run, and
-  its CPU time per second of one session's audio (what a session costs, whatever else runs: on
-  a quiet machine with C cores about C / that many sessions fit, less what the clients take).
+* peak RSS: the server process's high-water mark (VmHWM) over the run, and the largest of its
+  worker processes' (``talkmesh serve --workers``, by default one per core, compute the
+  procedural sessions; "-" without workers); per session: the server's and the workers' peaks
+  minus their RSS before the sessions came, divided by the sessions;
+* batch: the mean sessions per scheduler tick; the CPU use in cores over the run of the server
+  and its workers together, and their CPU time per second of one session's audio (what a
+  session costs, whatever else runs: on a quiet machine with C cores about C / that many
+  sessions fit, less what the clients take).
 
 ``--compute-only`` leaves out the server and the clients: the sessions' computation alone, in
 this process, timed in CPU seconds (what batching saves, measurable on a busy machine). For
@@ -206,18 +209,21 @@ def run_config(args, model: str, name: str, n: int, pcm: bytes) -> str:
     extra = [] if args.batch_wait_ms is None else ["--batch-wait-ms", str(args.batch_wait_ms)]
     if args.torch_threads:
         extra += ["--torch-threads", str(args.torch_threads)]
+    if args.workers is not None:
+        extra += ["--workers", str(args.workers)]
     port = free_port()
     proc = start_server(port, model, n, extra)
     import httpx
 
     try:
-        idle = proc_status(proc.pid)
         health0 = httpx.get(f"http://127.0.0.1:{port}/health").json()
+        pids = [proc.pid, *health0.get("workers", [])]
+        idle = [proc_status(pid) for pid in pids]
         url = f"ws://127.0.0.1:{port}/ws/stream?model={name}&lookahead_ms={args.lookahead_ms:g}"
         wall = time.perf_counter()
         results = asyncio.run(run_streams(url, pcm, n, args.chunk_ms, args.stagger_s))
         wall = time.perf_counter() - wall
-        used = proc_status(proc.pid)
+        used = [proc_status(pid) for pid in pids]
         health = httpx.get(f"http://127.0.0.1:{port}/health").json()
     finally:
         proc.terminate()
@@ -229,13 +235,17 @@ def run_config(args, model: str, name: str, n: int, pcm: bytes) -> str:
     drift = max(drift_ms(r, len(pcm) / 2 / SAMPLE_RATE) for r in results)
     ticks = max(1, health.get("ticks", 0) - health0.get("ticks", 0))
     batch = (health.get("batched", 0) - health0.get("batched", 0)) / ticks
-    cpu = (used["cpu"] - idle["cpu"]) / wall
-    per_cpu = 100 * (used["cpu"] - idle["cpu"]) / (n * len(pcm) / 2 / SAMPLE_RATE)
-    peak, per = used["VmHWM"] / 2**20, (used["VmHWM"] - idle["VmRSS"]) / 2**20 / n
+    if health.get("workers", []) != pids[1:]:
+        raise SystemExit(f"a worker was replaced during the run: {pids[1:]} -> {health['workers']}")
+    cpu_s = sum(u["cpu"] - i["cpu"] for u, i in zip(used, idle))
+    cpu, per_cpu = cpu_s / wall, 100 * cpu_s / (n * len(pcm) / 2 / SAMPLE_RATE)
+    peak = used[0]["VmHWM"] / 2**20
+    worker_peak = f"{max(u['VmHWM'] for u in used[1:]) / 2**20:.0f}" if used[1:] else "-"
+    per = sum(u["VmHWM"] - i["VmRSS"] for u, i in zip(used, idle)) / 2**20 / n
     return (
         f"| {n} | {expected} / {received} | {dropped} | {np.median(lat):.0f} "
         f"| {np.percentile(lat, 95):.0f} | {lat.max():.0f} | {drift:+.0f} | {peak:.0f} "
-        f"| {per:.1f} | {batch:.1f} | {cpu:.2f} | {per_cpu:.1f} |"
+        f"| {worker_peak} | {per:.1f} | {batch:.1f} | {cpu:.2f} | {per_cpu:.1f} |"
     )
 
 
@@ -292,6 +302,7 @@ def main() -> None:
     )
     p.add_argument("--batch-wait-ms", type=float, help="the server's (default: its default, 15)")
     p.add_argument("--torch-threads", type=int, help="the server's (default PyTorch's)")
+    p.add_argument("--workers", type=int, help="the server's (default: its default, one per core)")
     p.add_argument("--wav", help="speech to stream (default: the pocketsphinx test recordings)")
     p.add_argument(
         "--compute-only",
@@ -335,14 +346,16 @@ def main() -> None:
     print(
         f"\n{args.model}, {seconds:g} s per session in {args.chunk_ms:g} ms chunks, look-ahead "
         f"{args.lookahead_ms:g} ms, --batch-wait-ms {wait}, torch threads "
-        f"{args.torch_threads or 'default'}, {os.cpu_count()} CPU cores\n"
+        f"{args.torch_threads or 'default'}, --workers "
+        f"{'default' if args.workers is None else args.workers}, {os.cpu_count()} CPU cores\n"
     )
     print(
         "| sessions | frames expected / received | dropped | latency p50 (ms) | p95 (ms) "
-        "| max (ms) | worst drift (ms) | server peak RSS (MB) | per session (MB) | batch "
-        "| server CPU (cores) | server CPU per session (% of a core) |"
+        "| max (ms) | worst drift (ms) | server peak RSS (MB) | per worker (MB) "
+        "| per session (MB) | batch | server + workers CPU (cores) "
+        "| CPU per session (% of a core) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
 
 

@@ -77,6 +77,12 @@ def add_serve(sub: Subparsers) -> None:
         type=int,
         help="threads of the batched model steps (default: PyTorch's, one per core)",
     )
+    sv.add_argument(
+        "--workers",
+        type=int,
+        help="processes that compute the procedural sessions (default: one per core; 0: the "
+        "server process itself)",
+    )
     add_quiet(sv, "log only warnings and errors")
     sv.set_defaults(func=cmd_serve)
 
@@ -107,6 +113,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         first_message_timeout=args.first_message_timeout,
         batch_wait_ms=args.batch_wait_ms,
         torch_threads=args.torch_threads,
+        workers=args.workers,
     )
     return 0
 

@@ -12,6 +12,10 @@ come back through its own queue (:class:`Work`), which its sending coroutine dra
 Knobs (``talkmesh serve`` flags): ``--batch-wait-ms`` (default ``DEFAULT_BATCH_WAIT_MS``, 15)
 waits that long after the first ready chunk before a tick, to gather more sessions into it (more
 throughput, that much latency); ``--torch-threads`` sets the threads of the batched model steps.
+
+Procedural sessions opened in worker processes (:mod:`talkmesh.serve.workers`, ``--workers``)
+are computed there: a tick sends each worker its sessions' audio, and the workers and the
+server's own model steps compute at the same time, each waited for in its own thread.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import anyio
 import numpy as np
 
 from talkmesh.serve.stream import Streamer, StreamFrame, push_together
+from talkmesh.serve.workers import RemoteStream, Worker, WorkerLost
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +99,8 @@ class Scheduler:
     def leave(self, work: Work) -> None:
         if work in self.works:
             self.works.remove(work)
+        if isinstance(work.stream, RemoteStream):
+            work.stream.leave()
         self.wake.set()  # the loop ends once no session is left
 
     async def submit(self, work: Work, audio: np.ndarray | None) -> None:
@@ -118,11 +125,7 @@ class Scheduler:
             if not ready:
                 continue
             jobs = [(w.stream, *w.take()) for w in ready]
-            try:
-                results = await anyio.to_thread.run_sync(push_together, jobs)
-            except Exception as e:  # a bug: end the sessions of this tick, keep serving
-                log.exception("a streaming tick failed")
-                results = [e] * len(ready)
+            results = await compute(jobs)
             self.ticks += 1
             self.stepped += len(ready)
             for work, (_, _, end), result in zip(ready, jobs, results):
@@ -131,6 +134,33 @@ class Scheduler:
                     work.send.send_nowait(None)
             if any(w.ready for w in self.works):
                 self.wake.set()
+
+
+async def compute(jobs: list[tuple]) -> list:
+    """One tick's (streamer, chunks, end) jobs -> :func:`push_together`'s results, the sessions
+    in worker processes computed there, every worker and the local streams at the same time."""
+    groups: dict[Worker | None, list[int]] = {}
+    for i, (stream, _, _) in enumerate(jobs):
+        groups.setdefault(stream.worker if isinstance(stream, RemoteStream) else None, []).append(i)
+    results: list = [None] * len(jobs)
+
+    async def run(worker: Worker | None, members: list[int]) -> None:
+        group = [jobs[i] for i in members]
+        try:
+            call = push_together if worker is None else worker.tick
+            out = await anyio.to_thread.run_sync(call, group)
+        except WorkerLost as e:  # its sessions end with the reason
+            out = [e] * len(group)
+        except Exception as e:  # a bug: end the sessions of this tick, keep serving
+            log.exception("a streaming tick failed")
+            out = [e] * len(group)
+        for i, result in zip(members, out):
+            results[i] = result
+
+    async with anyio.create_task_group() as tasks:
+        for worker, members in groups.items():
+            tasks.start_soon(run, worker, members)
+    return results
 
 
 async def frames_of(work: Work):

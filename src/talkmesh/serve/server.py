@@ -58,10 +58,10 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from talkmesh.audio.loading import SAMPLE_RATE, AudioTooLong, audio_duration
 from talkmesh.errors import MissingDependencyError, TalkmeshError
-from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
 from talkmesh.serve import limits as lim
 from talkmesh.serve.batching import DEFAULT_BATCH_WAIT_MS, Scheduler, Work, frames_of
+from talkmesh.serve.files import RenderError, animate_file, audio_suffix, neutral_head_glb
 from talkmesh.serve.limits import JobQueue, QueueFull
 from talkmesh.serve.protocol import (
     CLOSE_BUSY,
@@ -73,6 +73,7 @@ from talkmesh.serve.protocol import (
     encode_frame,
 )
 from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, open_stream
+from talkmesh.serve.workers import WorkerLost, WorkerPool, default_workers
 
 log = logging.getLogger(__name__)
 
@@ -88,16 +89,6 @@ SHUTDOWN_WAIT_S = 3.0  # sessions get this long to close with 1001 before uvicor
 UPLOAD_CHUNK = 1 << 16
 
 ANIMATE_FORMATS = {"glb": "model/gltf-binary", "mp4": "video/mp4"}
-# The first bytes of the audio files /animate takes, and the suffix the audio reader needs.
-AUDIO_SIGNATURES = (
-    (b"RIFF", ".wav"),
-    (b"RF64", ".wav"),
-    (b"fLaC", ".flac"),
-    (b"OggS", ".ogg"),
-    (b"ID3", ".mp3"),
-)
-
-
 # ---------------------------------------------------------------------------------------------
 # Models and sessions
 
@@ -218,6 +209,7 @@ class Service:
         limits: Limits,
         avatar: Path | None = None,
         batch_wait_s: float = DEFAULT_BATCH_WAIT_MS / 1000,
+        pool: WorkerPool | None = None,
     ):
         self.avatar_name, self.avatar_glb = None, None
         if avatar is not None:  # checked now: a bad avatar stops the server before it starts
@@ -230,6 +222,7 @@ class Service:
         self.limits = limits
         self.sessions = Sessions(limits.max_sessions)
         self.scheduler = Scheduler(batch_wait_s)
+        self.pool = pool  # procedural sessions are computed there (None: in this process)
         self.head = load_head()
         self.queue = JobQueue(limits.jobs, limits.max_queue, lim.DEFAULT_SHORT_SECONDS)
         self._head_glb: bytes | None = None
@@ -255,6 +248,8 @@ class Service:
                     self.sessions.leave(scope)
             except ClientError as e:
                 await _close(ws, e.code, str(e))
+            except WorkerLost as e:  # logged where it was found
+                await _close(ws, CLOSE_INTERNAL, str(e))
             except WebSocketDisconnect:
                 pass  # the client left: nothing to tell it
             except Exception as e:  # a bug: end this session only, and say so
@@ -269,10 +264,14 @@ class Service:
         """Hello, then audio in and frames out until the client's end message."""
         name, lookahead, offsets = self._parse_query(ws)
         source = self.models[name]
-        try:
-            stream = await anyio.to_thread.run_sync(
-                lambda: open_stream(source, lookahead_ms=lookahead, head=self.head, offsets=offsets)
+        if source == PROCEDURAL and self.pool is not None:
+            opener = lambda: self.pool.open(source, lookahead, offsets)  # noqa: E731
+        else:
+            opener = lambda: open_stream(  # noqa: E731
+                source, lookahead_ms=lookahead, head=self.head, offsets=offsets
             )
+        try:
+            stream = await anyio.to_thread.run_sync(opener)
         except TalkmeshError as e:
             raise ClientError(CLOSE_POLICY, str(e)) from None
         assert stream.sample_rate == SAMPLE_RATE, stream.sample_rate  # the protocol's PCM rate
@@ -392,6 +391,7 @@ class Service:
                 "avatar": self.avatar_name,
                 "ticks": self.scheduler.ticks,  # the scheduler's ticks, and the sessions they
                 "batched": self.scheduler.stepped,  # computed in all (their ratio: batch size)
+                "workers": [] if self.pool is None else self.pool.pids,  # process ids
             }
         )
 
@@ -518,54 +518,6 @@ def _error(status: int, message: str) -> JSONResponse:
     return JSONResponse({"type": "error", "message": message}, status_code=status)
 
 
-def audio_suffix(head: bytes) -> str | None:
-    """The file suffix of wav/flac/ogg/mp3 audio from its first bytes; None for anything else."""
-    for magic, suffix in AUDIO_SIGNATURES:
-        if head.startswith(magic):
-            return suffix
-    if len(head) >= 2 and head[0] == 0xFF and head[1] & 0xE0 == 0xE0:  # an MPEG frame sync
-        return ".mp3"
-    return None
-
-
-class RenderError(Exception):
-    """Writing the result failed: the server's fault (e.g. no renderer), not the upload's."""
-
-
-def animate_file(audio: Path, out: Path, model: str, max_seconds: float | None = None) -> None:
-    """Animate ``audio`` with ``model`` into ``out`` (.glb or .mp4), as ``talkmesh animate``;
-    audio longer than ``max_seconds`` is refused (:class:`AudioTooLong`) while it is decoded."""
-    from talkmesh.audio.loading import load_audio
-    from talkmesh.output import write_animation
-    from talkmesh.pipeline import animate
-
-    anim = animate(load_audio(audio, max_seconds=max_seconds), model=model)
-    try:
-        write_animation(anim, out, overwrite=True)
-    except TalkmeshError as e:
-        raise RenderError(str(e)) from None
-
-
-def neutral_head_glb() -> bytes:
-    """The bundled head as .glb: its 52 ARKit blendshapes as morph targets, one neutral frame."""
-    from talkmesh.animation import Animation
-    from talkmesh.output.formats import save_animation
-
-    head = load_head()
-    anim = Animation(
-        vertices=head.template[None],
-        faces=head.faces,
-        fps=30.0,
-        weights=np.zeros((1, len(ARKIT_NAMES)), np.float32),
-        weight_names=list(ARKIT_NAMES),
-        template=head.template,
-        basis=head.blendshapes,
-    )
-    with tempfile.TemporaryDirectory(prefix="talkmesh-serve-") as tmp:
-        (path,) = save_animation(anim, Path(tmp) / "head.glb")
-        return path.read_bytes()
-
-
 def _viewer_missing(request: Request) -> HTMLResponse:
     return HTMLResponse(
         "<!doctype html><title>talkmesh</title><h1>The browser viewer is not installed</h1>"
@@ -585,6 +537,7 @@ def create_app(
     static_dir: Path | None = STATIC_DIR,
     avatar: str | Path | None = None,
     batch_wait_ms: float = DEFAULT_BATCH_WAIT_MS,
+    workers: int = 0,
     **limit_options,
 ) -> Starlette:
     """The ASGI app. Every model is opened once here, so a bad one fails now, not per client.
@@ -592,16 +545,22 @@ def create_app(
     ``avatar``: a .glb/.vrm with ARKit morph targets that the viewer shows instead of the head;
     ``limit_options``: the other fields of :class:`Limits` (max_seconds, jobs, max_queue,
     request_timeout, first_message_timeout); ``batch_wait_ms``: how long the scheduler waits after
-    a session's audio arrives to gather others' into the same tick (:mod:`talkmesh.serve.batching`)."""
+    a session's audio arrives to gather others' into the same tick (:mod:`talkmesh.serve.batching`);
+    ``workers``: processes that compute the procedural sessions (:mod:`talkmesh.serve.workers`;
+    0: this process). With workers, close ``app.state.service.pool`` when done."""
     limits = Limits(
         max_sessions, max_message_bytes, max_upload_bytes, float(idle_timeout), **limit_options
     )
     if not 0.0 <= batch_wait_ms <= 1000.0:
         raise TalkmeshError(f"--batch-wait-ms must be 0 to 1000, got {batch_wait_ms:g}")
     avatar = None if avatar is None else Path(avatar)
+    if workers < 0:
+        raise TalkmeshError(f"--workers must be 0 or more, got {workers}")
     service = Service(resolve_models(models), limits, avatar, batch_wait_ms / 1000)
     for source in service.models.values():
         open_stream(source, head=service.head)
+    if workers and PROCEDURAL in service.models.values():
+        service.pool = WorkerPool(workers)
     routes = [
         WebSocketRoute("/ws/stream", service.stream),
         Route("/health", service.health),
@@ -644,10 +603,12 @@ def serve(
     *,
     quiet: bool = False,
     torch_threads: int | None = None,
+    workers: int | None = None,
     **app_options,
 ) -> None:
     """Run :func:`create_app` with uvicorn until Ctrl-C or SIGTERM, then close the sessions (1001);
-    ``torch_threads``: PyTorch's threads for the model steps (None: its default)."""
+    ``torch_threads``: PyTorch's threads for the model steps (None: its default); ``workers``:
+    processes for the procedural sessions (None: one per core, :func:`default_workers`)."""
     try:
         import uvicorn
     except ImportError:
@@ -659,7 +620,8 @@ def serve(
 
         torch.set_num_threads(torch_threads)
 
-    app = create_app(**app_options)
+    workers = default_workers() if workers is None else workers
+    app = create_app(workers=workers, **app_options)
     service: Service = app.state.service
 
     class _Server(uvicorn.Server):
@@ -691,6 +653,8 @@ def serve(
     try:
         _Server(config).run(sockets=[sock])
     finally:
+        if service.pool is not None:
+            service.pool.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
         sock.close()
