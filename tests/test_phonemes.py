@@ -180,3 +180,35 @@ def test_synthesize_speech(tmp_path):
     assert [p.label for p in phones if p.label in {"P", "B", "M"}] == ["B", "B", "M", "M", "P"]
     with pytest.raises(TalkmeshError, match="voice 'nosuchvoice'"):
         synthesize_speech("hello", tmp_path / "x.wav", voice="nosuchvoice")
+
+
+def test_phone_tidier_resumed_equals_tidying_from_scratch():
+    """The streaming recogniser's incremental tidying (PhoneTidier) gives _tidy's phones after
+    every chunk while the best path's tail is revised and the last frame's RMS changes."""
+    from talkmesh.audio.phonemes import Phone, PhoneTidier, _tidy
+
+    rng = np.random.default_rng(0)
+    labels = ["AA", "B", "SIL", "M", "+NSN+", "IY1", "S"]
+    loudness = rng.uniform(0, 0.05, 3000).astype(np.float32)
+    loudness[rng.random(3000) < 0.3] = 0.0  # silent frames turn phones into SIL
+    tidier, segments, resumed = PhoneTidier(), [], 0
+    for step in range(1, 300):
+        segments = segments[: max(0, len(segments) - int(rng.integers(0, 4)))]  # revised tail
+        t, n = (segments[-1][2] if segments else 0), 10 * step
+        while t < n:  # gaps and a last segment past the audio's end
+            start = t + int(rng.integers(0, 2))
+            t = start + int(rng.integers(1, 12))
+            segments.append((str(rng.choice(labels)), start, t))
+        rms = loudness[:n].copy()
+        rms[-1] = rng.uniform(0, 0.05)  # the zero-padded last frame
+        samples, offset, after = 160 * n - int(rng.integers(0, 160)), 2.5, rng.uniform(0, n / 100)
+        resumed += bool(tidier.segments)
+        got = tidier.phones(list(segments), rms, n - 1, samples, offset, after)
+        want = [
+            Phone(p.label, p.start + offset, p.end + offset)
+            for p in _tidy(segments, rms, samples)
+            if p.end + offset > after
+        ]
+        assert got == want, step
+        assert len(tidier.states) == len(segments)
+    assert resumed > 250

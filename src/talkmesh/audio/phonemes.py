@@ -325,31 +325,82 @@ def _label(name: str) -> str:
 def _tidy(segments: Segments, rms: np.ndarray, n_samples: int) -> list[Phone]:
     """Frames -> contiguous Phones from 0 to the clip's end: gaps and overlaps resolved,
     silent stretches labelled SIL, neighbouring SILs merged."""
-    n_frames = len(rms)
-    frames: Segments = []
+    return PhoneTidier().phones(segments, rms, len(rms), n_samples)
 
-    def add(label: str, start: int, end: int) -> None:
-        if frames and frames[-1][0] == label == SILENCE:
-            frames[-1] = (SILENCE, frames[-1][1], end)
+
+class PhoneTidier:
+    """:func:`_tidy` for an utterance that grows (the streaming recogniser reads its best path
+    after every chunk): each call resumes after the leading segments that are the previous call's
+    and lie in audio that was complete then (their frames' RMS was final), so a call costs what
+    the segments that changed cost, not the whole utterance, and gives what :func:`_tidy` gives."""
+
+    def __init__(self) -> None:
+        self.segments: Segments = []  # the previous call's, sorted by start
+        self.states: list[tuple[int, int, tuple | None]] = []  # after each: t, len(frames), last
+        self.frames: Segments = []  # tidied up to the last segment (no closing silence)
+        self.complete = 0  # RMS frames that were final at the previous call
+
+    def phones(
+        self,
+        segments: Segments,
+        rms: np.ndarray,
+        complete: int,
+        n_samples: int,
+        offset: float = 0.0,
+        after: float = -math.inf,
+    ) -> list[Phone]:
+        """The phones of ``segments`` (:func:`_tidy`'s), each shifted by ``offset`` seconds, that
+        end after ``after``; ``complete``: the leading frames of ``rms`` that will not change."""
+        frames = self._frames(segments, rms)
+        self.complete = complete
+        out: list[Phone] = []
+        for k in range(len(frames) - 1, -1, -1):  # the phones end in increasing order
+            label, start, end = frames[k]
+            # the last frame may overhang the clip
+            stop = (n_samples / SAMPLE_RATE if k == len(frames) - 1 else end / FRAME_RATE) + offset
+            if not stop > after:
+                break
+            out.append(Phone(label, start / FRAME_RATE + offset, stop))
+        return out[::-1]
+
+    def _frames(self, segments: Segments, rms: np.ndarray) -> Segments:
+        segments = sorted(segments, key=lambda s: s[1])
+        keep, old, same = 0, self.segments, min(len(segments), len(self.segments))
+        while keep < same and segments[keep] == old[keep] and old[keep][2] <= self.complete:
+            keep += 1
+        frames = self.frames
+        t = 0
+        if keep:
+            t, count, last = self.states[keep - 1]
+            del frames[count:]
+            if count:
+                frames[-1] = last
         else:
-            frames.append((label, start, end))
+            frames.clear()
+        del self.states[keep:]
+        self.segments = segments
+        n_frames = len(rms)
+        for name, start, end in segments[keep:]:
+            start, end = max(start, t), min(end, n_frames)
+            if end > start:
+                if start > t:
+                    _add(frames, SILENCE, t, start)
+                label = _label(name)
+                if label != SILENCE and rms[start:end].max() < SILENCE_RMS:
+                    label = SILENCE
+                _add(frames, label, start, end)
+                t = end
+            self.states.append((t, len(frames), frames[-1] if frames else None))
+        if t >= n_frames:
+            return frames
+        closed = frames[-1:]
+        _add(closed, SILENCE, t, n_frames)
+        return frames[:-1] + closed
 
-    t = 0
-    for name, start, end in sorted(segments, key=lambda s: s[1]):
-        start, end = max(start, t), min(end, n_frames)
-        if end <= start:
-            continue
-        if start > t:
-            add(SILENCE, t, start)
-        label = _label(name)
-        if label != SILENCE and rms[start:end].max() < SILENCE_RMS:
-            label = SILENCE
-        add(label, start, end)
-        t = end
-    if t < n_frames:
-        add(SILENCE, t, n_frames)
 
-    duration = n_samples / SAMPLE_RATE
-    phones = [Phone(label, start / FRAME_RATE, end / FRAME_RATE) for label, start, end in frames]
-    phones[-1] = phones[-1]._replace(end=duration)  # the last frame may overhang the clip
-    return phones
+def _add(frames: Segments, label: str, start: int, end: int) -> None:
+    """Append a segment to tidied ``frames``, merged into the last one if both are silence."""
+    if frames and frames[-1][0] == label == SILENCE:
+        frames[-1] = (SILENCE, frames[-1][1], end)
+    else:
+        frames.append((label, start, end))

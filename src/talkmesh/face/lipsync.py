@@ -209,17 +209,27 @@ def _expand_phones(phones: list[Phone]) -> tuple[np.ndarray, np.ndarray, np.ndar
     return np.array(centres), np.array(halves), np.array(centres) - np.array(halves), visemes
 
 
+def _viseme_rows(v: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A viseme's mouth-channel targets (len(MOUTH),), dominances (len(MOUTH),) and spread ()."""
+    return (
+        np.array([VISEMES[v].get(ch, 0.0) for ch in MOUTH]),
+        np.array([DOMINANCE.get(v, {}).get(ch, DEFAULT_DOMINANCE) for ch in MOUTH]),
+        np.array(SPREAD.get(v, DEFAULT_SPREAD), float),
+    )
+
+
+# looked up per phone many times a second by a streaming session: built once
+_VISEME_ROWS = {v: _viseme_rows(v) for v in VISEMES}
+
+
 def mouth_curves(phones: list[Phone], times: np.ndarray, style: SpeakingStyle) -> np.ndarray:
     """Timed phones -> (T, len(MOUTH)) mouth channel curves by dominance blending."""
     out = np.zeros((len(times), len(MOUTH)), dtype=np.float32)
     if not phones or not len(times):
         return out
     centres, halves, _, visemes = _expand_phones(phones)
-    targets = np.array([[VISEMES[v].get(ch, 0.0) for ch in MOUTH] for v in visemes])
-    alpha = np.array(
-        [[DOMINANCE.get(v, {}).get(ch, DEFAULT_DOMINANCE) for ch in MOUTH] for v in visemes]
-    )
-    spread = np.array([SPREAD.get(v, DEFAULT_SPREAD) for v in visemes])
+    rows = [_VISEME_ROWS[v] for v in visemes]
+    targets, alpha, spread = (np.stack([r[k] for r in rows]) for k in range(3))
     width = np.clip(halves, MIN_HALF_WIDTH, MAX_HALF_WIDTH) * spread * style.smoothing
     reach = 6 * width.max() * max(style.anticipation, 1.0)
     # Process in blocks of frames against the phones near them: bounded memory for any length

@@ -210,6 +210,7 @@ class ProceduralStreamer(Streamer):
         self.rms_tail = np.zeros(0, np.float32)  # samples of the incomplete frame
         self.utt_start = 0  # stream sample where the current utterance began
         self.utt_samples = 0
+        self.tidier = phonemes.PhoneTidier()  # the utterance's phones, re-read incrementally
         self.decoder.start_utt()
 
     def _receive(self, audio: np.ndarray) -> None:
@@ -240,21 +241,24 @@ class ProceduralStreamer(Streamer):
         tail = self._rms()[-int(PAUSE_S * FRAME_RATE) :]
         return float(np.sqrt(np.mean(np.square(tail)))) < SILENCE_RMS
 
-    def _utterance_phones(self) -> list[Phone]:
+    def _utterance_phones(self, after: float) -> list[Phone]:
+        """The current utterance's phones so far, in stream time, that end after ``after``."""
         if not self.utt_samples:
             return []
         segments = [(s.word, s.start_frame, s.end_frame + 1) for s in self.decoder.seg() or []]
+        rms = self._rms()
+        complete = len(rms) - (len(self.rms_tail) > 0)  # the zero-padded last frame may change
         offset = self.utt_start / SAMPLE_RATE
-        phones = self._ps._tidy(segments, self._rms(), self.utt_samples)
-        return [Phone(p.label, p.start + offset, p.end + offset) for p in phones]
+        return self.tidier.phones(segments, rms, complete, self.utt_samples, offset, after)
 
     def _end_utterance(self) -> None:
         self.decoder.end_utt()
-        phones = self._utterance_phones()
         now = (self.utt_start + self.utt_samples) / SAMPLE_RATE
+        phones = self._utterance_phones(now - PHONE_MEMORY_S)
         self.past = [p for p in [*self.past, *phones] if p.end > now - PHONE_MEMORY_S]
         self.utt_start += self.utt_samples
         self.utt_rms, self.rms_tail, self.utt_samples = [], np.zeros(0, np.float32), 0
+        self.tidier = self._ps.PhoneTidier()
         self.decoder.reinit_feat()
         self.decoder.start_utt()
 
@@ -267,9 +271,9 @@ class ProceduralStreamer(Streamer):
     def _frames(self, start: int, end: int, final: bool) -> tuple[np.ndarray, np.ndarray | None]:
         if final and self.utt_samples:
             self._end_utterance()
-        phones = [*self.past, *self._utterance_phones()]
         times = np.arange(start, end) / self.fps
-        recent = [p for p in phones if p.end > times[0] - PHONE_MEMORY_S]
+        after = times[0] - PHONE_MEMORY_S
+        recent = [p for p in self.past if p.end > after] + self._utterance_phones(after)
         weights = add_mouth(
             self.upper(start, end), mouth_curves(recent, times, self.style), self.style
         )
