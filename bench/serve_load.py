@@ -238,6 +238,8 @@ def run_config(args, model: str, name: str, n: int, pcm: bytes) -> str:
     if health.get("workers", []) != pids[1:]:
         raise SystemExit(f"a worker was replaced during the run: {pids[1:]} -> {health['workers']}")
     cpu_s = sum(u["cpu"] - i["cpu"] for u, i in zip(used, idle))
+    split = ", ".join(f"{(u['cpu'] - i['cpu']) / wall:.2f}" for u, i in zip(used, idle))
+    print(f"{n} sessions: CPU in cores of the server, then each worker: {split}", file=sys.stderr)
     cpu, per_cpu = cpu_s / wall, 100 * cpu_s / (n * len(pcm) / 2 / SAMPLE_RATE)
     peak = used[0]["VmHWM"] / 2**20
     worker_peak = f"{max(u['VmHWM'] for u in used[1:]) / 2**20:.0f}" if used[1:] else "-"

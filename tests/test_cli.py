@@ -329,7 +329,7 @@ COMMANDS = {
         [],
         "--avatar --batch-wait-ms --first-message-timeout --host --idle-timeout --jobs "
         "--max-message-bytes --max-queue --max-seconds --max-sessions --max-upload-mb --model "
-        "--port --quiet --request-timeout --torch-threads",
+        "--port --quiet --request-timeout --torch-threads --workers",
     ),
     "info": ([], ""),
 }

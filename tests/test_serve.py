@@ -225,6 +225,7 @@ def test_one_session_too_many_is_refused_until_one_ends(client):
         "queued": 0,
         "models": ["procedural"],
         "avatar": None,
+        "workers": [],  # create_app's default: procedural sessions in the server process
     }
     with (
         client.websocket_connect("/ws/stream") as a,

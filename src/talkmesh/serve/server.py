@@ -13,7 +13,8 @@ HTTP
 * ``GET /``: the browser viewer (``talkmesh/serve/static``), or a 503 page where it is not installed.
 * ``GET /health``: ``{"status": "ok", "sessions": n, "max_sessions": m, "jobs": running /animate
   jobs, "queued": waiting ones, "models": [...], "ticks": the streaming scheduler's ticks so far,
-  "batched": the session-ticks they computed}`` (batched / ticks: the mean batch).
+  "batched": the session-ticks they computed, "workers": the process ids of the workers that
+  compute procedural sessions}`` (batched / ticks: the mean batch).
 * ``GET /head.glb``: the bundled head with its 52 ARKit morph targets (named in
   ``meshes[0].extras.targetNames``), a one-frame neutral animation.
 * ``GET /avatar.glb``: the ``--avatar`` file as it is (.glb or .vrm), 404 without one; ``/health``
@@ -32,7 +33,8 @@ its first message within ``--first-message-timeout`` seconds (default 2) of the 
 The sessions' audio is computed in ticks by one scheduler (:mod:`talkmesh.serve.batching`): each
 tick runs the ready audio of every session in one worker-thread call, the streams of one model in
 shared model steps, so the event loop stays free and a misbehaving client only ends its own
-session.
+session. Procedural sessions are computed in ``--workers`` processes (:mod:`talkmesh.serve.workers`;
+:func:`create_app` computes them in this process unless asked for workers).
 """
 
 from __future__ import annotations
