@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -88,6 +89,7 @@ def unpack(packed: Packed, fps: float) -> list[StreamFrame]:
 
 def _serve_requests(conn) -> None:
     """A worker's loop (module docstring); returns when the server closes the pipe."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the server, which stops us
     try:  # one BLAS thread: the workers already use every core between them
         from threadpoolctl import threadpool_limits
 
