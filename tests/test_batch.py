@@ -125,6 +125,54 @@ def test_the_model_is_loaded_once_per_worker(library, tmp_path, monkeypatch):
     assert len(loads) == 1
 
 
+def test_forked_workers_share_the_model_loaded_once(library, tmp_path, monkeypatch):
+    import multiprocessing
+
+    import talkmesh.models.release as release
+    from talkmesh.face.assets import load_head
+    from talkmesh.models.voca import VOCA
+
+    if "fork" not in multiprocessing.get_all_start_methods():
+        pytest.skip("workers are spawned here: each loads the model")
+    path = release.save_model(
+        VOCA(VOCA.tiny_config(num_vertices=load_head().num_vertices)), tmp_path / "tiny.safetensors"
+    )
+    pids = tmp_path / "pids.txt"  # a worker's own load would be a line with its pid
+    real = release.load_model
+
+    def load(*a, **k):
+        with open(pids, "a") as f:
+            f.write(f"{os.getpid()}\n")
+        return real(*a, **k)
+
+    monkeypatch.setattr(release, "load_model", load)
+    audio = [i.audio for i in find_inputs([library / "alice", library / "bob" / "b1.wav"])]
+    settings = AnimateSettings(model=str(path), pause_gate=False, procedural_mix=0.0)
+    frames = {}
+    for workers in (1, 2):
+        outs = [[tmp_path / f"w{workers}" / f"{a.stem}.npy"] for a in audio]
+        result = animate_batch(audio, outs, settings, workers=workers)
+        assert [r.status for r in result.rows] == ["ok"] * 3
+        assert [r.file for r in result.rows] == [str(a) for a in audio]  # the input order
+        frames[workers] = [np.load(o[0]) for o in outs]
+    assert pids.read_text().split() == [str(os.getpid())] * 2  # once per run, in this process
+    for one, two in zip(frames[1], frames[2]):
+        np.testing.assert_allclose(one, two, rtol=0, atol=1e-6)
+
+
+def test_longest_files_go_first(library, tmp_path):
+    from talkmesh.batch.library import COMPRESSED_BYTES_PER_S, Job, longest_first
+
+    lengths = {c: sf.info(c).duration for c in CLIPS}
+    mp3 = tmp_path / "x.mp3"  # not probed: its size stands for its length
+    mp3.write_bytes(b"\0" * int(COMPRESSED_BYTES_PER_S * (max(lengths.values()) + 1)))
+    broken = library / "bob" / "broken.wav"
+    jobs = [Job(p, ()) for p in [broken, *CLIPS, mp3, tmp_path / "gone.wav"]]
+    order = [j.audio for j in longest_first(jobs)]
+    by_length = sorted(CLIPS, key=lambda c: -lengths[c])
+    assert order == [mp3, *by_length, broken, tmp_path / "gone.wav"]  # unreadable: 0 s, in order
+
+
 def outputs(out: Path) -> list[Path]:
     """The animations in ``out``, not the writers' hidden temporaries."""
     found = out.rglob("*") if out.is_dir() else []

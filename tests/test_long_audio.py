@@ -304,3 +304,13 @@ def test_long_audio_is_recognised_as_utterances_cut_in_pauses(monkeypatch):
     phones = phonemes.recognize_phones(audio)
     assert phones[0].start == 0 and abs(phones[-1].end - len(audio) / 16000) < 0.02
     assert sum(p.label != "SIL" for p in phones) > 10
+
+
+def test_frame_db_in_blocks_equals_the_whole_clip():
+    from talkmesh.face.pauses import frame_db
+
+    wave = np.random.default_rng(0).normal(0, 0.1, 16_000 * 3 + 77).astype(np.float32)
+    whole = frame_db(wave, block=10**9)
+    assert whole.shape == (300,)
+    for block in (1, 7, 299, 300):
+        np.testing.assert_array_equal(frame_db(wave, block=block), whole)

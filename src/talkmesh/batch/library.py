@@ -17,11 +17,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
+from talkmesh.audio.loading import SOUNDFILE_EXTENSIONS, audio_duration
 from talkmesh.errors import TalkmeshError, os_error_message
 from talkmesh.face.corrections import BILABIAL, GAIN, MIX
 from talkmesh.output import VIDEO_SIZE
 
 OK, SKIPPED, FAILED = "ok", "skipped", "failed"
+COMPRESSED_BYTES_PER_S = 16_000  # 128 kbit/s: a common mp3/m4a rate, to order files by length
 
 
 @dataclass(frozen=True)
@@ -194,7 +196,14 @@ def plan_jobs(
 
 def run_local(jobs: list[Job], settings: AnimateSettings, workers: int = 1) -> Iterator[Row]:
     """Animate ``jobs`` in this process (``workers`` 1) or in that many processes, each with its
-    own :class:`Animator` and an equal share of the cores; rows come in the order files finish."""
+    own :class:`Animator` and an equal share of the cores; rows come in the order files finish.
+
+    Several workers take the longest files first (:func:`longest_first`), so that they finish
+    together rather than one animating a long file while the others wait. Where processes fork,
+    the model is loaded once here and the workers share it (copy-on-write) instead of each
+    loading it again.
+    """
+    global _PRELOADED
     if workers <= 1 or len(jobs) <= 1:
         animator = Animator(settings)
         for job in jobs:
@@ -208,23 +217,70 @@ def run_local(jobs: list[Job], settings: AnimateSettings, workers: int = 1) -> I
     # bench/batch_throughput.py); torch resets its CPU thread pool in forked children
     methods = multiprocessing.get_all_start_methods()
     ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-    with ProcessPoolExecutor(
-        max_workers=min(workers, len(jobs)),
-        mp_context=ctx,
-        initializer=_start_worker,
-        initargs=(settings, threads),
-    ) as pool:
-        futures = {pool.submit(_work, job): job for job in jobs}
-        for future in as_completed(futures):
-            job = futures[future]
-            try:
-                yield future.result()
-            except BrokenProcessPool:
-                message = (
-                    f"{job.audio}: a worker process died (out of memory?): rerun the batch to "
-                    "resume, with fewer --workers"
-                )
-                yield Row(str(job.audio), None, None, 0.0, FAILED, message)
+    if ctx.get_start_method() == "fork":
+        _PRELOADED = _preload(settings)
+    try:
+        with ProcessPoolExecutor(
+            max_workers=min(workers, len(jobs)),
+            mp_context=ctx,
+            initializer=_start_worker,
+            initargs=(settings, threads),
+        ) as pool:
+            futures = {pool.submit(_work, job): job for job in longest_first(jobs)}
+            _PRELOADED = None  # the workers have forked with it: this process needs it no more
+            for future in as_completed(futures):
+                job = futures[future]
+                try:
+                    yield future.result()
+                except BrokenProcessPool:
+                    message = (
+                        f"{job.audio}: a worker process died (out of memory?): rerun the batch "
+                        "to resume, with fewer --workers"
+                    )
+                    yield Row(str(job.audio), None, None, 0.0, FAILED, message)
+    finally:
+        _PRELOADED = None
+
+
+def longest_first(jobs: list[Job]) -> list[Job]:
+    """``jobs`` from the longest audio to the shortest, ties in the given order: workers that
+    take the longest file left finish within about one short file of each other (LPT
+    scheduling), where in the given order a long file last keeps one worker busy while the
+    others idle. Lengths come from the headers of the files libsndfile reads; other files (mp3,
+    m4a: probing each would start an ffmpeg) count by size at ``COMPRESSED_BYTES_PER_S``; a file
+    that cannot be read counts as 0 s (it fails fast)."""
+
+    def seconds(job: Job) -> float:
+        try:
+            if job.audio.suffix.lower() in SOUNDFILE_EXTENSIONS:
+                return audio_duration(job.audio)
+            return job.audio.stat().st_size / COMPRESSED_BYTES_PER_S
+        except (TalkmeshError, OSError):
+            return 0.0
+
+    durations = [seconds(j) for j in jobs]
+    order = sorted(range(len(jobs)), key=lambda k: -durations[k])
+    return [jobs[k] for k in order]
+
+
+def _preload(settings: AnimateSettings) -> Animator | None:
+    """The :class:`Animator` the forked workers inherit (None when it cannot be made here: each
+    worker then makes its own and reports why on its files). Loaded with one thread, so that
+    this process starts no OpenMP thread team, which a forked child cannot use."""
+    try:
+        import torch
+    except ImportError:
+        torch = None
+    before = torch.get_num_threads() if torch is not None else None
+    try:
+        if torch is not None:
+            torch.set_num_threads(1)
+        return Animator(settings)
+    except Exception:
+        return None
+    finally:
+        if torch is not None:
+            torch.set_num_threads(before)
 
 
 def usable_cpus() -> int:
@@ -237,11 +293,17 @@ def usable_cpus() -> int:
 
 # The worker process's own Animator (or why it could not be made), set by _start_worker.
 _ANIMATOR: Animator | str | None = None
+# The Animator loaded before the workers fork (run_local), which they take as their own.
+_PRELOADED: Animator | None = None
 
 
 def _start_worker(settings: AnimateSettings, threads: int) -> None:
     global _ANIMATOR
     try:
+        if _PRELOADED is not None and _PRELOADED.settings == settings:
+            _set_threads(threads)
+            _ANIMATOR = _PRELOADED
+            return
         _ANIMATOR = Animator(settings, threads)
     except Exception as e:  # reported on every file it was given, instead of a dead pool
         _ANIMATOR = str(e) or type(e).__name__

@@ -30,6 +30,7 @@ TAIL_DB = 25.0  # a frame this far under the speech level is echo or silence, no
 TAIL_MAX_S = 0.15  # a pause moves back at most this far (RT60 0.5 s: the echo falls 18 dB)
 SPEECH_LEVEL_PERCENTILE = 95  # of the 10 ms frame energies: the clip's speech level
 HOP_S = 0.01
+DB_BLOCK = 4096  # frames of frame_db at once (5 MB of float64 at 16 kHz)
 
 
 def speech_gate(
@@ -75,12 +76,18 @@ def gate_mouth(
     return vertices
 
 
-def frame_db(wave: np.ndarray, hop_s: float = HOP_S) -> np.ndarray:
-    """(S,) waveform at 16 kHz -> (N,) energy in dB of consecutive ``hop_s`` frames."""
+def frame_db(wave: np.ndarray, hop_s: float = HOP_S, block: int = DB_BLOCK) -> np.ndarray:
+    """(S,) waveform at 16 kHz -> (N,) energy in dB of consecutive ``hop_s`` frames, computed
+    ``block`` frames at a time (a float64 copy of an hour's audio would be 460 MB; each frame's
+    mean is its own, so the blocks give the whole clip's numbers)."""
     hop = int(round(hop_s * SAMPLE_RATE))
     n = len(wave) // hop
-    x = np.asarray(wave[: n * hop], np.float64).reshape(n, hop)
-    return 10.0 * np.log10(np.mean(x**2, axis=1) + 1e-12)
+    out = np.empty(n, np.float64)
+    for f0 in range(0, n, block):
+        f1 = min(n, f0 + block)
+        x = np.asarray(wave[f0 * hop : f1 * hop], np.float64).reshape(f1 - f0, hop)
+        out[f0:f1] = np.mean(x**2, axis=1)
+    return 10.0 * np.log10(out + 1e-12)
 
 
 def tail_pauses(
