@@ -297,7 +297,7 @@ COMMANDS = {
     "animate": (
         ["audio"],
         "--avatar --bilabial-closure --camera --cluster --fps --identity --int8 --lip-closure "
-        "--loudness-gain --model --no-blinks --no-pause-gate --output --overwrite "
+        "--loudness-gain --model --no-bilabial-closure --no-blinks --no-pause-gate --output --overwrite "
         "--procedural-mix --quiet --seed --size --style --summary --template --text --workers",
     ),
     "render": (["anim"], "--audio --camera --fps --labels --output --overwrite --quiet --size"),

@@ -20,7 +20,7 @@ from talkmesh.face.corrections import (
     near_closures,
 )
 from talkmesh.face.lipsync import phones_to_weights
-from talkmesh.face.pauses import TAIL_MAX_S, tail_pauses
+from talkmesh.face.pauses import TAIL_MAX_S, speech_gate, tail_pauses
 
 FPS = 30.0
 SR = 16_000
@@ -126,7 +126,12 @@ def test_mix_moves_toward_procedural_but_keeps_the_models_closures():
     mixed = _mm(
         head,
         correct_mouth(
-            _dipping(head), head, PHONES, _wave(), FPS, Corrections(False, False, 0.5, 0.0)
+            _dipping(head),
+            head,
+            PHONES,
+            _wave(),
+            FPS,
+            Corrections(False, False, 0.5, 0.0, bilabial=False),
         ),
     )
     procedural = _mm(
@@ -151,7 +156,7 @@ def test_gain_opens_the_mouth_further_in_loud_speech_but_keeps_closures():
     head = load_head()
     rest = float(_mm(head, head.template[None])[0])
     bare = _mm(head, _dipping(head))
-    gain = Corrections(pause_gate=False, mix=0.0, gain=0.5)
+    gain = Corrections(pause_gate=False, mix=0.0, gain=0.5, bilabial=False)
     louder = _mm(head, correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, gain))
     speech = (t > 0.4) & (t < 0.55)  # loud, far from the closure at frame 20
     # the lips' displacement from the closed mouth grows by half
@@ -159,6 +164,27 @@ def test_gain_opens_the_mouth_further_in_loud_speech_but_keeps_closures():
     silent = (t > 1.1) & (t < 1.4)
     np.testing.assert_allclose(louder[silent], bare[silent], rtol=1e-6)  # no sound, no gain
     np.testing.assert_allclose(louder[19:22], bare[19:22], rtol=1e-6)  # the closure is kept
+
+
+def test_the_gain_fades_with_the_pause_gate():
+    """On the gate's ramps the gain's extra opening is scaled by the gate (then the gate scales
+    the whole opening again): no gained opening pops out as the mouth closes for a pause."""
+    head = load_head()
+    gate = speech_gate(tail_pauses(PHONES, _wave()), T, FPS)
+    ramp = (gate > 0) & (gate < 1)
+    assert ramp.sum() >= 2  # the gate closes and opens over a few frames
+
+    def opening(pause_gate: bool, gain: float) -> np.ndarray:
+        fix = Corrections(pause_gate=pause_gate, mix=0.0, gain=gain, bilabial=False)
+        return _mm(head, correct_mouth(_open_mouth(head), head, PHONES, _wave(), FPS, fix))
+
+    extra_gated = opening(True, 0.7) - opening(True, 0.0)
+    extra_free = opening(False, 0.7) - opening(False, 0.0)
+    loud = ramp & (extra_free > 1.0)  # ramp frames where the gain would open the mouth further
+    assert loud.sum() >= 2
+    np.testing.assert_allclose(extra_gated[ramp], gate[ramp] ** 2 * extra_free[ramp], atol=0.1)
+    speech = gate == 1
+    np.testing.assert_allclose(extra_gated[speech], extra_free[speech], atol=1e-4)
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 19, 20, 21, 22, 59])

@@ -143,8 +143,8 @@ def add_predict(sub: Subparsers) -> None:
     pr.add_argument(
         "--corrections",
         action="store_true",
-        help="correct the mouth with the phone recogniser as animate does by default (pause gate and "
-        "procedural mix)",
+        help="correct the mouth with the phone recogniser as animate does by default (pause gate, "
+        "procedural mix, loudness gain, bilabial closure)",
     )
     pr.add_argument("-o", "--out", required=True, help="output directory")
     add_quiet(pr)
