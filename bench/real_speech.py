@@ -43,7 +43,7 @@ from talkmesh.evaluation.real_speech import (
     truth_phones,
 )
 from talkmesh.face.assets import load_head
-from talkmesh.face.corrections import NONE, Corrections, correct_mouth
+from talkmesh.face.corrections import FAITHFUL, NONE, Corrections, correct_mouth
 from talkmesh.pipeline import animate, available_models
 from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, ProceduralStreamer
 
@@ -52,15 +52,16 @@ STREAMED = {"procedural-stream": ALLPHONE_STREAM, "procedural-stream-full": ALLP
 CHUNK = SAMPLE_RATE // 50  # 20 ms pushes, as bench/serve_load.py's clients send
 
 
-# method suffixes: a learned model with no correction (the bare model), one default one off, or
-# the bilabial closure or the lip closure at every near-closure on
+# method suffixes: a learned model with no correction (the bare model), one default one off, the
+# settings within 3% of the synthetic LVE (FAITHFUL) or the lip closure at every near-closure on
 VARIANTS = {
     "": Corrections(),
     "-raw": NONE,
     "-nogate": replace(Corrections(), pause_gate=False),
     "-nomix": replace(Corrections(), mix=0.0),
     "-nogain": replace(Corrections(), gain=0.0),
-    "-bilabial": replace(Corrections(), bilabial=True),
+    "-nobilabial": replace(Corrections(), bilabial=False),
+    "-faithful": FAITHFUL,
     "-closure": replace(Corrections(), lip_closure=True),
 }
 
@@ -174,9 +175,9 @@ def main() -> None:
         "--methods",
         default=",".join(default),
         help="procedural, procedural-stream(-full) (module docstring), bundled models as animate "
-        "runs them (default corrections), MODEL-raw (none), MODEL-nogate / -nomix / -nogain (one "
-        "off), MODEL-bilabial (with the bilabial closure), MODEL-closure (with the lip closure at "
-        "every near-closure)",
+        "runs them (default corrections), MODEL-raw (none), MODEL-nogate / -nomix / -nogain / "
+        "-nobilabial (one off), MODEL-faithful (the settings within 3% of the synthetic LVE), "
+        "MODEL-closure (with the lip closure at every near-closure)",
     )
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--clips", default="", help="comma-separated name prefixes (default: all)")
