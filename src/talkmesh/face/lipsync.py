@@ -209,17 +209,15 @@ def _expand_phones(phones: list[Phone]) -> tuple[np.ndarray, np.ndarray, np.ndar
     return np.array(centres), np.array(halves), np.array(centres) - np.array(halves), visemes
 
 
-def _viseme_rows(v: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A viseme's mouth-channel targets (len(MOUTH),), dominances (len(MOUTH),) and spread ()."""
-    return (
-        np.array([VISEMES[v].get(ch, 0.0) for ch in MOUTH]),
-        np.array([DOMINANCE.get(v, {}).get(ch, DEFAULT_DOMINANCE) for ch in MOUTH]),
-        np.array(SPREAD.get(v, DEFAULT_SPREAD), float),
-    )
-
-
-# looked up per phone many times a second by a streaming session: built once
-_VISEME_ROWS = {v: _viseme_rows(v) for v in VISEMES}
+# Per viseme (rows in _VISEME_INDEX order): mouth-channel targets and dominances
+# (len(VISEMES), len(MOUTH)) and spread (len(VISEMES),); looked up for every phone many times a
+# second by a streaming session, so built once.
+_VISEME_INDEX = {v: k for k, v in enumerate(VISEMES)}
+_VISEME_TARGETS = np.array([[VISEMES[v].get(ch, 0.0) for ch in MOUTH] for v in VISEMES])
+_VISEME_DOMINANCE = np.array(
+    [[DOMINANCE.get(v, {}).get(ch, DEFAULT_DOMINANCE) for ch in MOUTH] for v in VISEMES]
+)
+_VISEME_SPREAD = np.array([SPREAD.get(v, DEFAULT_SPREAD) for v in VISEMES], float)
 
 
 def mouth_curves(phones: list[Phone], times: np.ndarray, style: SpeakingStyle) -> np.ndarray:
@@ -228,8 +226,8 @@ def mouth_curves(phones: list[Phone], times: np.ndarray, style: SpeakingStyle) -
     if not phones or not len(times):
         return out
     centres, halves, _, visemes = _expand_phones(phones)
-    rows = [_VISEME_ROWS[v] for v in visemes]
-    targets, alpha, spread = (np.stack([r[k] for r in rows]) for k in range(3))
+    rows = [_VISEME_INDEX[v] for v in visemes]
+    targets, alpha, spread = _VISEME_TARGETS[rows], _VISEME_DOMINANCE[rows], _VISEME_SPREAD[rows]
     width = np.clip(halves, MIN_HALF_WIDTH, MAX_HALF_WIDTH) * spread * style.smoothing
     reach = 6 * width.max() * max(style.anticipation, 1.0)
     # Process in blocks of frames against the phones near them: bounded memory for any length

@@ -214,7 +214,9 @@ class ProceduralStreamer(Streamer):
         self.decoder.start_utt()
 
     def _receive(self, audio: np.ndarray) -> None:
-        self.decoder.process_raw(self._ps._pcm16(audio))
+        # 16-bit PCM as phonemes._pcm16 makes it; the audio is finite already (as_audio)
+        pcm = np.clip(audio * np.float32(32767.0), -32768, 32767).astype("<i2")
+        self.decoder.process_raw(pcm.tobytes())
         self.utt_samples += len(audio)
         tail = np.concatenate([self.rms_tail, audio])
         n = len(tail) // FRAME_SAMPLES * FRAME_SAMPLES
