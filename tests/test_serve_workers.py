@@ -110,3 +110,10 @@ def test_a_lost_worker_ends_its_sessions_with_a_reason_and_is_replaced(pcm):
             assert client.get("/health").json()["workers"] != [pid]
     finally:
         app.state.service.pool.close()
+
+
+def test_a_negative_worker_count_is_a_one_line_error():
+    from talkmesh.errors import TalkmeshError
+
+    with pytest.raises(TalkmeshError, match="--workers must be 0 or more"):
+        create_app(workers=-1)
