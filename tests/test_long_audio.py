@@ -314,3 +314,87 @@ def test_frame_db_in_blocks_equals_the_whole_clip():
     assert whole.shape == (300,)
     for block in (1, 7, 299, 300):
         np.testing.assert_array_equal(frame_db(wave, block=block), whole)
+
+
+@pytest.mark.parametrize(
+    "sr, channels, subtype", [(16_000, 1, "PCM_16"), (44_100, 2, "PCM_16"), (8_000, 1, "FLOAT")]
+)
+def test_waveform_slices_equal_the_whole_file_read(tmp_path, sr, channels, subtype):
+    """A Waveform's slices are load_audio's, also across resampling and at either end."""
+    import soundfile as sf
+
+    from talkmesh.audio.loading import load_audio
+    from talkmesh.audio.waveform import Waveform
+
+    rng = np.random.default_rng(1)
+    x = rng.normal(0, 0.2, (sr * 2 + 123, channels)).clip(-1, 1).astype(np.float32)
+    path = tmp_path / "x.wav"
+    sf.write(path, x, sr, subtype=subtype)
+    whole, wave = load_audio(path), Waveform(path)
+    S = len(whole)
+    assert len(wave) == S and wave.shape == (S,)
+    spans = [(0, 1), (0, S), (S - 1, S), (S - 7, S + 5), (3, 4), (16_000 - 1, 16_000 + 1)]
+    spans += [tuple(sorted(rng.integers(0, S + 1, 2))) for _ in range(10)]
+    for a, b in spans:
+        np.testing.assert_array_equal(wave[a:b], whole[a:b])
+    np.testing.assert_array_equal(np.asarray(wave), whole)
+    np.testing.assert_array_equal(np.concatenate(list(wave.blocks(999))), whole)
+
+
+def test_open_audio_checks_the_samples_as_load_audio(tmp_path):
+    import soundfile as sf
+
+    from talkmesh.audio.waveform import Waveform, open_audio
+
+    x = np.zeros(1600, np.float32)
+    sf.write(tmp_path / "ok.flac", x, 16_000)
+    assert isinstance(open_audio(tmp_path / "ok.flac"), Waveform)
+    x[700] = np.nan
+    sf.write(tmp_path / "nan.wav", x, 16_000, subtype="FLOAT")
+    with pytest.raises(TalkmeshError, match="1 NaN or infinite"):
+        open_audio(tmp_path / "nan.wav")
+    with pytest.raises(TalkmeshError, match="not found"):
+        open_audio(tmp_path / "gone.wav")
+
+
+def test_whisper_features_of_a_waveform_equal_the_tensors(tmp_path):
+    import soundfile as sf
+
+    from talkmesh.audio.waveform import Waveform
+
+    enc = tiny_whisper(window=7)
+    audio = (np.random.default_rng(0).standard_normal(20_777) * 0.1).astype(np.float32)
+    sf.write(tmp_path / "a.wav", audio, 16_000, subtype="FLOAT")
+    with torch.inference_mode():
+        whole = FrameFeatures(enc, torch.from_numpy(audio)[None], 41)
+        read = FrameFeatures(enc, Waveform(tmp_path / "a.wav"), 41)
+        for a in range(0, 41, 6):
+            torch.testing.assert_close(read(a, min(a + 6, 41)), whole(a, min(a + 6, 41)))
+
+
+def test_animate_blocks_reads_the_file_a_slice_at_a_time(tmp_path, tiny_codetalker):
+    """A file's frames and .npz (its audio member too) are those of its waveform loaded whole;
+    the blocks hold a Waveform, not the samples."""
+    import soundfile as sf
+
+    from talkmesh.audio.loading import load_audio
+    from talkmesh.audio.waveform import Waveform
+    from talkmesh.face.assets import load_head
+
+    path = tmp_path / "speech44.wav"  # 44.1 kHz stereo: resampled and mixed down as it is read
+    speech = load_audio(SPEECH, 44_100)
+    sf.write(path, np.stack([speech, 0.5 * speech], 1), 44_100)
+    head = load_head()
+    model = tiny_codetalker(causal=True, attention_window=7)
+    model = CodeTalker(replace(model.cfg, vq=replace(model.cfg.vq, num_vertices=head.num_vertices)))
+    learned = save_model(model.eval(), tmp_path / "m.safetensors")
+    for m in ("procedural", str(learned)):
+        read = animate_blocks(path, model=m, block=7)
+        assert isinstance(read.audio, Waveform)
+        whole = animate_blocks(load_audio(path), model=m, block=7)
+        save_blocks(read, [tmp_path / "read.npz"], overwrite=True)
+        save_blocks(whole, [tmp_path / "whole.npz"], overwrite=True)
+        a, b = zipfile.ZipFile(tmp_path / "read.npz"), zipfile.ZipFile(tmp_path / "whole.npz")
+        assert a.namelist() == b.namelist()
+        for name in a.namelist():
+            assert a.read(name) == b.read(name), (m, name)

@@ -9,8 +9,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from talkmesh.animation import Animation, AnimationBlocks
-from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.audio.phonemes import Phone, recognize_phones
+from talkmesh.audio.waveform import Waveform, open_audio
 from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, WeightFitter
@@ -142,13 +143,16 @@ def animate(
     ).collect()
 
 
-def _checked_wave(audio: str | Path | np.ndarray, fps: float | None, block: int) -> np.ndarray:
-    """The (S,) waveform of ``audio`` once ``fps`` and ``block`` are checked (one-line errors)."""
+def _checked_wave(
+    audio: str | Path | np.ndarray, fps: float | None, block: int
+) -> np.ndarray | Waveform:
+    """The (S,) waveform of ``audio`` once ``fps`` and ``block`` are checked (one-line errors):
+    a file libsndfile reads is a :class:`Waveform`, read from the file a slice at a time."""
     if fps is not None and not (0 < fps <= MAX_FPS):
         raise TalkmeshError(f"--fps must be in (0, {MAX_FPS:g}], got {fps:g}")
     if block < 1:
         raise TalkmeshError(f"block must be at least 1 frame, got {block}")
-    wave = load_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
+    wave = open_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
     if wave.ndim != 1 or not len(wave):
         raise TalkmeshError("audio must be a non-empty mono waveform")
     return wave
@@ -177,7 +181,9 @@ def animate_blocks(
     """:func:`animate` a ``block`` of frames at a time (arguments as there): memory does not grow
     with the audio (its waveform aside) when the model generates in chunks (the procedural
     animator, CodeTalker models with a causal VQ decoder); write it with
-    :func:`talkmesh.output.streaming.save_blocks`. The frames are :func:`animate`'s."""
+    :func:`talkmesh.output.streaming.save_blocks`. The frames are :func:`animate`'s. A file
+    libsndfile reads is read a slice at a time (the block's ``audio`` is then a
+    :class:`~talkmesh.audio.waveform.Waveform`), so not even the waveform is held whole."""
     wave = _checked_wave(audio, fps, block)
     head = head or load_head()
     if model is None:  # a transcript or phones ask for the phone-driven animator
@@ -392,7 +398,7 @@ def _learned_chunks(
     chunks = (
         c[0].numpy().astype(np.float32, copy=False)
         for c in net.generate_chunks(
-            torch.from_numpy(wave)[None],
+            wave if isinstance(wave, Waveform) else torch.from_numpy(wave)[None],
             torch.from_numpy(head.template)[None],
             style_weights=None if weights is None else torch.from_numpy(weights)[None],
             num_frames=net.default_frames(len(wave)),

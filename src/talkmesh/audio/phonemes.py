@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from talkmesh.audio.loading import SAMPLE_RATE, resample
+from talkmesh.audio.waveform import Waveform
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 
 if TYPE_CHECKING:
@@ -101,7 +102,8 @@ def recognize_phones(
     """Timed phones of a speech waveform.
 
     Args:
-        audio: (S,) mono waveform in [-1, 1] at ``sr`` (resampled to 16 kHz if needed).
+        audio: (S,) mono waveform in [-1, 1] at ``sr`` (resampled to 16 kHz if needed), or a
+            :class:`~talkmesh.audio.waveform.Waveform` (read a slice at a time).
         sr: sample rate of ``audio`` in Hz.
         text: the transcript, if known: the phones are then force-aligned to its words. If a
             word is not in the pronunciation dictionary, or the transcript cannot be aligned
@@ -111,11 +113,12 @@ def recognize_phones(
         Phones sorted by time, contiguous (each starts where the previous ends), from 0 to the
         clip's duration; gaps, pauses and noises are "SIL". Empty for empty audio.
     """
-    audio = np.asarray(audio, dtype=np.float32)
+    if not isinstance(audio, Waveform):  # a Waveform is read an utterance at a time
+        audio = np.asarray(audio, dtype=np.float32)
     if audio.ndim != 1:
         raise TalkmeshError(f"audio must be a (S,) mono waveform, got shape {audio.shape}")
     if sr != SAMPLE_RATE:
-        audio = resample(audio, sr, SAMPLE_RATE)
+        audio = resample(np.asarray(audio, np.float32), sr, SAMPLE_RATE)
     if not len(audio):
         return []
     rms = _frame_rms(audio)
@@ -183,7 +186,7 @@ def _decode(decoder: Decoder, audio: np.ndarray) -> None:
     decoder.reinit_feat()  # else the previous utterance's feature state changes the result
     decoder.start_utt()
     if len(audio) <= FULL_UTT_MAX_S * SAMPLE_RATE:
-        decoder.process_raw(_pcm16(audio), full_utt=True)
+        decoder.process_raw(_pcm16(audio[:]), full_utt=True)
     else:
         for i in range(0, len(audio), CHUNK_SAMPLES):
             decoder.process_raw(_pcm16(audio[i : i + CHUNK_SAMPLES]))

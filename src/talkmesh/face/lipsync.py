@@ -263,8 +263,10 @@ def pitch_track(audio: np.ndarray, sr: int, hop: float = 0.01) -> tuple[np.ndarr
     nfft = 1 << (2 * win - 1).bit_length()
     block = 1024  # frames at once: bounded memory for long audio (its spectra ~40 MB)
     for b0 in range(0, n, block):
-        idx = np.arange(b0, min(n, b0 + block))[:, None] * step + np.arange(win)[None]
-        frames = audio[idx].astype(np.float32)
+        b1 = min(n, b0 + block)
+        piece = np.asarray(audio[b0 * step : (b1 - 1) * step + win])  # a Waveform: one read
+        idx = np.arange(b1 - b0)[:, None] * step + np.arange(win)[None]
+        frames = piece[idx].astype(np.float32)
         frames -= frames.mean(1, keepdims=True)
         energy[b0 : b0 + len(frames)] = np.sqrt((frames**2).mean(1))
         spec = np.fft.rfft(frames * np.hanning(win), nfft)

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
+import torch
 from torch import Tensor, nn
 
 from talkmesh.constants import SAMPLE_RATE
@@ -164,7 +165,10 @@ class MotionModel(nn.Module, ABC):
         """:meth:`generate` for one sample, audio (1, S), template (1, V, 3), handed out as
         vertices (1, t, V, 3) of consecutive frames, ``chunk`` at a time. Families that generate
         incrementally override it so that memory does not grow with the audio; this default
-        generates the whole sequence first."""
+        generates the whole sequence first (a :class:`~talkmesh.audio.waveform.Waveform` is
+        read whole)."""
+        if not isinstance(audio, Tensor):
+            audio = torch.from_numpy(np.asarray(audio, np.float32))[None]
         verts = self.generate(
             audio,
             template,

@@ -508,7 +508,9 @@ class CodeTalker(MotionModel):
         bidirectional decode of all codes) and other modes generate the whole sequence."""
         self.check_mode(mode)
         vq, k = self.cfg.vq, self.cfg.stage2.audio_tokens_per_frame
-        if mode != "fast" or not vq.causal or vq.instance_norm or audio.shape[0] != 1:
+        streamed = not isinstance(audio, Tensor)  # a Waveform, read a window at a time
+        one = streamed or audio.shape[0] == 1
+        if mode != "fast" or not vq.causal or vq.instance_norm or not one:
             yield from super().generate_chunks(
                 audio,
                 template,
@@ -520,7 +522,7 @@ class CodeTalker(MotionModel):
             )
             return
         if num_frames is None:
-            num_frames = self.default_frames(audio.shape[1])
+            num_frames = self.default_frames(len(audio) if streamed else audio.shape[1])
         with torch.inference_mode():
             style = self.style_vector(None, style_weights)
             features = FrameFeatures(self.speech, audio, num_frames * k)

@@ -14,6 +14,7 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.output.files import bundled_head, check_magic, finite
 
 NPY_DEFAULT_FPS = MOTION_FPS  # FaceFormer / CodeTalker write VOCASET predictions at 30 fps
+AUDIO_BLOCK = 30 * SAMPLE_RATE  # samples of a streamed waveform written at a time
 NPZ_FORMAT_VERSION = 2  # 2: float16 offsets from the template, deflated; 1: float32 vertices
 
 
@@ -111,7 +112,10 @@ class NpzWriter:
         if header.basis is not None:
             arrays["basis"] = header.basis
         for name, arr in arrays.items():
-            self._put(name, arr)
+            if isinstance(arr, np.ndarray) or np.isscalar(arr) or isinstance(arr, np.generic):
+                self._put(name, arr)
+            else:  # a Waveform (talkmesh.audio.waveform): written as it is read, a block at a time
+                self._put_blocks(name, arr)
         self.name = "vertices" if self.template is None else "offsets"
         self.dtype = np.dtype("<f4" if self.template is None else "<f2")
         self.member = None
@@ -122,6 +126,14 @@ class NpzWriter:
     def _put(self, name: str, arr: np.ndarray) -> None:
         with self.zip.open(f"{name}.npy", "w", force_zip64=True) as f:
             np.lib.format.write_array(f, np.asarray(arr), allow_pickle=False)
+
+    def _put_blocks(self, name: str, wave) -> None:
+        """(S,) float32 ``wave`` read and written ``AUDIO_BLOCK`` samples at a time."""
+        with self.zip.open(f"{name}.npy", "w", force_zip64=True) as f:
+            header = {"descr": "<f4", "fortran_order": False, "shape": (len(wave),)}
+            np.lib.format.write_array_header_1_0(f, header)  # as np.save writes it
+            for a in range(0, len(wave), AUDIO_BLOCK):
+                f.write(np.ascontiguousarray(wave[a : a + AUDIO_BLOCK], "<f4").tobytes())
 
     def write(self, block: Animation) -> None:
         """The next frames."""
