@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import tempfile
 import zipfile
 from pathlib import Path
 
@@ -96,7 +97,9 @@ class NpzWriter:
             )
         self.template = header.template
         self.num_frames, self.done = num_frames, 0
-        self.weights: list[np.ndarray] = []
+        # the weights (T, 52) wait in a temporary file, not in memory (45 MB an hour)
+        self.weights = tempfile.TemporaryFile()
+        self.weight_columns: int | None = None
         self.weight_names = list(header.weight_names)
         self.zip = zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
         arrays: dict[str, np.ndarray] = {
@@ -146,7 +149,8 @@ class NpzWriter:
             motion = block.vertices if self.template is None else block.vertices - self.template
             self.member.write(np.ascontiguousarray(motion, self.dtype).tobytes())
         if block.weights is not None and self.weight_names:
-            self.weights.append(block.weights)
+            self.weight_columns = block.weights.shape[1]
+            self.weights.write(np.ascontiguousarray(block.weights, "<f4").tobytes())
         self.done += block.num_frames
 
     def close(self) -> None:
@@ -156,11 +160,22 @@ class NpzWriter:
                 self.member.close()
             if self.done != self.num_frames:
                 raise TalkmeshError(f"{self.done} frames written of {self.num_frames}")
-            if self.weights:
-                self._put("weights", np.concatenate(self.weights))
+            if self.weight_columns is not None:
+                self._put_weights()
                 self._put("weight_names", np.array(self.weight_names, dtype=np.str_))
         finally:
+            self.weights.close()
             self.zip.close()
+
+    def _put_weights(self) -> None:
+        """The (T, 52) float32 weights member, copied from the temporary file a piece at a time."""
+        shape = (self.num_frames, self.weight_columns)
+        with self.zip.open("weights.npy", "w", force_zip64=True) as f:
+            header = {"descr": "<f4", "fortran_order": False, "shape": shape}
+            np.lib.format.write_array_header_1_0(f, header)  # as np.save writes it
+            self.weights.seek(0)
+            while piece := self.weights.read(1 << 20):
+                f.write(piece)
 
 
 class NpyWriter:
