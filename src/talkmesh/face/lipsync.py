@@ -247,6 +247,10 @@ def mouth_curves(phones: list[Phone], times: np.ndarray, style: SpeakingStyle) -
     return out
 
 
+# frames of the pitch track at once: its spectra are about 65 kB a frame (complex128, 2048-point)
+PITCH_BLOCK = 256
+
+
 def pitch_track(audio: np.ndarray, sr: int, hop: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """Autocorrelation F0 (Hz, 0 where unvoiced) and RMS energy every ``hop`` seconds.
 
@@ -261,7 +265,7 @@ def pitch_track(audio: np.ndarray, sr: int, hop: float = 0.01) -> tuple[np.ndarr
     lo, hi = int(sr / 400), int(sr / 70)  # 70-400 Hz covers adult speech
     f0, energy = np.zeros(n), np.zeros(n)
     nfft = 1 << (2 * win - 1).bit_length()
-    block = 1024  # frames at once: bounded memory for long audio (its spectra ~40 MB)
+    block = PITCH_BLOCK
     for b0 in range(0, n, block):
         b1 = min(n, b0 + block)
         piece = np.asarray(audio[b0 * step : (b1 - 1) * step + win])  # a Waveform: one read
@@ -270,7 +274,8 @@ def pitch_track(audio: np.ndarray, sr: int, hop: float = 0.01) -> tuple[np.ndarr
         frames -= frames.mean(1, keepdims=True)
         energy[b0 : b0 + len(frames)] = np.sqrt((frames**2).mean(1))
         spec = np.fft.rfft(frames * np.hanning(win), nfft)
-        ac = np.fft.irfft(np.abs(spec) ** 2, nfft)[:, : hi + 1]
+        ac = np.fft.irfft(np.abs(spec) ** 2, nfft)[:, : hi + 1].copy()  # not a view: the
+        del spec  # block's (n, nfft) spectra go before the next block's are made
         lag = lo + np.argmax(ac[:, lo : hi + 1], axis=1)
         strength = ac[np.arange(len(ac)), lag] / (ac[:, 0] + 1e-9)
         voiced = strength > 0.45
