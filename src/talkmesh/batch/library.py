@@ -1,6 +1,7 @@
-"""Animate a library of speech files: each worker loads the head and the model once, then takes
-file after file; a file whose outputs all exist is done and skipped; a file that fails is
-reported in its summary row and the batch goes on.
+"""Animate a library of speech files: each worker holds the head and the model, loaded once (for
+forked local workers, once before they fork), then takes file after file, the longest first; a
+file whose outputs all exist is done and skipped; a file that fails is reported in its summary
+row and the batch goes on.
 
 Workers are local processes (``workers``) or Ray actors (:mod:`talkmesh.batch.cluster`); either
 way they run :class:`Animator`, so a file gives the same outputs wherever it is animated.
