@@ -296,8 +296,9 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
 COMMANDS = {
     "animate": (
         ["audio"],
-        "--avatar --bilabial-closure --camera --cluster --fps --identity --int8 --lip-closure "
-        "--loudness-gain --model --no-bilabial-closure --no-blinks --no-pause-gate --output --overwrite "
+        "--avatar --bilabial-closure --camera --cluster --fps --head --identity --int8 "
+        "--lip-closure --loudness-gain --model --no-bilabial-closure --no-blinks --no-pause-gate "
+        "--output --overwrite "
         "--procedural-mix --quiet --seed --size --style --summary --template --text --workers",
     ),
     "render": (["anim"], "--audio --camera --fps --labels --output --overwrite --quiet --size"),

@@ -32,13 +32,16 @@ class AnimateSettings:
     """What every file of a batch is animated with (the options of ``talkmesh animate``).
 
     ``model`` is ``procedural``, a bundled model's name or a release file; ``identity`` or
-    ``template`` picks the face; ``avatar`` makes .glb/.vrm outputs copies of that character.
+    ``template`` picks the face; ``avatar`` makes .glb/.vrm outputs copies of that character;
+    ``head`` is a plain head mesh the bundled head's motion is carried onto
+    (:meth:`talkmesh.face.rig.Rig.carry_blocks`), in its own units and axes.
     """
 
     model: str = "procedural"
     identity: str | None = None
     template: str | None = None
     avatar: str | None = None
+    head: str | None = None
     text: str | None = None
     fps: float | None = None  # None: the model's own (30 for the procedural animator)
     seed: int = 0
@@ -88,6 +91,11 @@ class Animator:
             _set_threads(threads)
         s = settings
         self.head = face_for(s) if s.template else load_head(s.identity)
+        self.rig = None
+        if s.head is not None:
+            from talkmesh.face.rig import load_rig
+
+            self.rig = load_rig(s.head)
         self.model: object = s.model
         self.int8 = s.int8
         if s.model != "procedural":
@@ -97,6 +105,7 @@ class Animator:
             self.model, self.int8 = (net.int8_copy(s.int8) if s.int8 else net), None
 
     def __call__(self, job: Job) -> Row:
+        from talkmesh.output import VIDEO_SUFFIXES, write_animation
         from talkmesh.output.avatar import AVATAR_SUFFIXES
         from talkmesh.output.streaming import save_blocks
         from talkmesh.pipeline import animate_blocks
@@ -126,12 +135,28 @@ class Animator:
                 for p in job.outputs
                 if s.avatar is not None and p.suffix.lower() in AVATAR_SUFFIXES
             ]
-            plain = [p for p in job.outputs if p not in rigged]
+            # a user's head: files in its own units and axes, videos seen from its front
+            videos = [
+                p
+                for p in job.outputs
+                if self.rig is not None and p.suffix.lower() in VIDEO_SUFFIXES
+            ]
+            plain = [p for p in job.outputs if p not in rigged and p not in videos]
+            if self.rig is not None:
+                anim = self.rig.carry_blocks(anim, self.head.template)
             whole = save_blocks(
-                anim, plain, overwrite=s.overwrite, size=s.size, camera=s.camera, keep=bool(rigged)
+                anim,
+                plain,
+                overwrite=s.overwrite,
+                size=s.size,
+                camera=s.camera,
+                keep=bool(rigged or videos),
             )
             for p in rigged:
                 write_avatar(whole, Path(s.avatar), p, s.overwrite)
+            for p in videos:
+                facing = self.rig.facing(whole)
+                write_animation(facing, p, overwrite=s.overwrite, size=s.size, camera=s.camera)
         except TalkmeshError as e:
             return _failed(job, start, str(e))
         except OSError as e:  # e.g. the input went away: this file's failure, not the batch's
@@ -324,6 +349,10 @@ def check_settings(settings: AnimateSettings) -> None:
         face_for(settings)
     else:
         load_head(settings.identity)
+    if settings.head:
+        from talkmesh.face.rig import load_rig
+
+        load_rig(settings.head)
     if settings.model != "procedural":
         from talkmesh.models.release import resolve
 

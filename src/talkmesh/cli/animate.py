@@ -47,6 +47,12 @@ def add_animate(sub: Subparsers) -> None:
         "own with its triangles (VOCASET: templates.pkl[:SUBJECT] beside FLAME_sample.ply; "
         "BIWI: BIWI.ply, a .vl frame or a rigid scan .obj)",
     )
+    who.add_argument(
+        "--head",
+        help="your own head mesh without a rig (.obj .ply .stl .off .glb .gltf, any units and "
+        "up-axis): registered to the bundled head and moved as the model moves it, outputs in "
+        "the mesh's own units and axes (as `talkmesh rig` finds them)",
+    )
     a.add_argument(
         "--avatar",
         help="your rigged character (.glb .vrm with ARKit-named morph targets): .glb/.vrm "
@@ -213,6 +219,18 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
     from talkmesh.face.assets import load_head
     from talkmesh.pipeline import available_models
 
+    if args.head:
+        if avatar is not None:
+            raise TalkmeshError("--head and --avatar: give one (a plain mesh or a rigged avatar)")
+        from talkmesh.face.rig import load_rig
+
+        rig = load_rig(args.head)  # registered once: forked workers share it
+        if not args.quiet:
+            print(
+                f"head {args.head}: {len(rig.vertices)} vertices, units {rig.units}, up "
+                f"{rig.up_axis}, registered within {rig.residual:.3g} (median, its units)"
+            )
+        return load_head()
     if not args.template:
         return load_head(args.identity)
     alone = next(iter(style_mix)) if style_mix and len(style_mix) == 1 else None
@@ -251,6 +269,7 @@ def animate_settings(args: argparse.Namespace):
         identity=args.identity,
         template=args.template,
         avatar=args.avatar,
+        head=args.head,
         text=args.text,
         fps=args.fps,
         seed=args.seed,
@@ -371,7 +390,8 @@ def add_rig(sub: Subparsers) -> None:
         metavar="FILE",
         help='landmark vertex ids of your mesh as JSON {"nose_tip": 1234, ...}, overriding the '
         "automatic ones (names: nose_tip chin upper_lip lower_lip mouth_left mouth_right "
-        "eyelid_left eyelid_right brow_left brow_right)",
+        "eyelid_left eyelid_right brow_left brow_right eye_inner_left eye_outer_left "
+        "eye_inner_right eye_outer_right)",
     )
     rg.add_argument(
         "--landmark",

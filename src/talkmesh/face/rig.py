@@ -5,8 +5,11 @@
 1. Registration (:mod:`talkmesh.face.registration`): rigid + scale (this gives the units, mm / cm
    / m, and the up-axis), then a non-rigid fit of the bundled head's skin onto the user's surface,
    held by landmarks (``LANDMARK_NAMES``): those the user gives as vertex ids (four or more also
-   start the rigid fit) and the nose tip, found as the user vertex farthest forward near where the
-   rigid fit puts it; the other landmarks are placed on the fitted head afterwards.
+   start the rigid fit; they always win) and those found on the mesh's own geometry near where
+   the rigid fit puts them (:mod:`talkmesh.face.landmarks`: nose tip, lips and mouth corners from
+   the lip gap, chin, eye corners from the eye openings; ``AUTOMATIC`` names those that hold the
+   fit, and only where the mesh is no coarser there than ``COARSER`` times the bundled head); the
+   other landmarks are placed on the fitted head afterwards.
 2. Checks: a mesh the bundled head cannot be fitted to is "not a head"; lips joined across the
    mouth (the shortest path over the surface from the upper to the lower lip landmark is shorter
    than ``SEALED_LIPS`` of the head's size) mean "no mouth opening": the jaw could not open.
@@ -22,12 +25,14 @@
 
 ``method="closest"`` skips steps 3-4 and gives every vertex the closest-point offsets (the
 comparison the bench makes). :meth:`Rig.carry` maps any motion of the bundled topology (a vertex
-model's prediction) onto the user's mesh through the same correspondence.
+model's prediction) onto the user's mesh through the same correspondence, and
+:meth:`Rig.carry_blocks` a whole animation (``talkmesh animate --head``; :func:`load_rig` registers
+a mesh file once per process).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -36,11 +41,12 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from talkmesh.animation import Animation
+from talkmesh.animation import Animation, AnimationBlocks
 from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import Head, load_head
+from talkmesh.face.landmarks import IDENTITY, Frame, eye_opening, find_landmarks
 from talkmesh.face.registration import (
     closest_points,
     nonrigid_fit,
@@ -58,18 +64,22 @@ from talkmesh.face.transfer import (
 
 FALLOFF = (0.02, 0.06)  # fraction of the head's RMS radius: full motion within, none beyond
 MIN_VERTICES = 100
+COARSER = 1.5  # a found landmark holds the fit where the mesh's edges are at most this x the head's
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 NOT_A_HEAD = 0.08  # median registration distance over RMS radius beyond which it is no head
-SEALED_LIPS = 0.12  # surface path between the lips shorter than this x the RMS radius: no mouth
+SEALED_LIPS = 0.2  # surface path between the lips shorter than this x the RMS radius: no mouth
+# (around the corners, the mouth's width: over 0.35 x; over welded lips about 0.1 x)
+# (around the mouth corners it is its width, over 0.35 x; over welded lips 0.1 x)
 METHODS = ("transfer", "closest")
 PART_SKIN = 8  # skin vertices nearest each part vertex whose mean motion the part takes
 PART_MATCH = 0.3  # mean distance to a part over its RMS radius within which a component is it
-NOSE_WINDOW = 0.015  # metres around the rigid fit's nose tip searched for the real one
 SKIN, EYE, TEETH, TONGUE = 0, 1, 2, 3  # Regions.vertex_part
 OTHER = -1  # a separate component that is no bundled part: closest-point offsets
 
 # Landmarks: name -> how to find it on the bundled head. "Left" is the face's own left (+x), as in
-# ARKit's names. Each is where a blendshape moves most, or a geometric extreme of the midline.
+# ARKit's names. The lips, mouth corners and chin are found from the geometry (as on a user's mesh,
+# :mod:`talkmesh.face.landmarks`); eyelids and brows where a blendshape moves most; eye corners at
+# the ends of the eye opening seen from the front.
 LANDMARK_SHAPES = {
     "mouth_left": "mouthSmileLeft",
     "mouth_right": "mouthSmileRight",
@@ -78,7 +88,19 @@ LANDMARK_SHAPES = {
     "brow_left": "browOuterUpLeft",
     "brow_right": "browOuterUpRight",
 }
-LANDMARK_NAMES = ("nose_tip", "chin", "upper_lip", "lower_lip", *LANDMARK_SHAPES)
+EYE_CORNERS = ("eye_inner_left", "eye_outer_left", "eye_inner_right", "eye_outer_right")
+LANDMARK_NAMES = ("nose_tip", "chin", "upper_lip", "lower_lip", *LANDMARK_SHAPES, *EYE_CORNERS)
+# The landmarks found on the user's geometry that hold the registration (the others found are
+# dropped: placed from the registered head like those not found).
+AUTOMATIC = (
+    "nose_tip",
+    "chin",
+    "upper_lip",
+    "lower_lip",
+    "mouth_left",
+    "mouth_right",
+    *EYE_CORNERS,
+)
 
 
 @lru_cache(maxsize=1)
@@ -88,8 +110,9 @@ def _bundled_landmarks() -> dict[str, int]:
 
 
 def head_landmarks(head: Head) -> dict[str, int]:
-    """The bundled head's landmark vertex ids, by name (see ``LANDMARK_NAMES``)."""
-    t, skin = head.template, head.regions.vertex_part == SKIN
+    """The bundled head's landmark vertex ids, by name (see ``LANDMARK_NAMES``): first guesses
+    from its blendshapes and extremes, refined as :func:`find_landmarks` finds them on any mesh."""
+    t, skin = head.template.astype(np.float64), head.regions.vertex_part == SKIN
     midline = skin & (np.abs(t[:, 0]) < 0.002)
     out = {"nose_tip": int(np.flatnonzero(midline)[np.argmax(t[midline, 2])])}
     chin = np.flatnonzero(midline & (t[:, 1] < -0.068))  # below the labiomental fold
@@ -98,6 +121,16 @@ def head_landmarks(head: Head) -> dict[str, int]:
     for name, shape in LANDMARK_SHAPES.items():
         size = np.linalg.norm(head.blendshapes[ARKIT_NAMES.index(shape)], axis=1) * skin
         out[name] = int(np.argmax(size))
+    faces = head.faces.astype(np.int64)
+    ids = np.flatnonzero(skin)
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        eye = t[(head.regions.vertex_part == EYE) & (sign * t[:, 0] > 0)].mean(0)
+        ends = eye_opening(t, faces, skin[faces].all(1), eye)
+        a, b = (int(ids[cKDTree(t[ids]).query(p)[1]]) for p in ends)
+        out[f"eye_inner_{side}"], out[f"eye_outer_{side}"] = (a, b) if sign > 0 else (b, a)
+    predicted = {k: t[i] for k, i in out.items()}
+    found = find_landmarks(t, faces, vertex_normals(t, faces), IDENTITY, predicted)
+    out.update({k: i for k, i in found.items() if skin[i]})
     return out
 
 
@@ -154,6 +187,42 @@ class Rig:
         moved = np.einsum("vc,tvcx->tvx", self.weights, offsets[:, self.corners])
         return (self.scale * moved @ self.rotation.T).astype(np.float32)
 
+    def carry_blocks(self, anim: AnimationBlocks, template: np.ndarray) -> AnimationBlocks:
+        """``anim`` (a vertex model's or the procedural animator's motion of the bundled topology,
+        its (Vh, 3) neutral ``template`` in metres) moving the user's mesh, block by block: every
+        frame is ``vertices + carry(frame - template)``, in the user's units and axes. ARKit
+        weights pass through unchanged; no basis (the motion is the model's, not the shapes')."""
+        template = np.asarray(template, np.float32)
+
+        def blocks():
+            for block in anim.blocks:
+                assert block.vertices.shape[1:] == template.shape, block.vertices.shape
+                moved = self.vertices + self.carry(block.vertices - template)
+                yield Animation(
+                    vertices=moved,
+                    faces=self.faces,
+                    fps=block.fps,
+                    weights=block.weights,
+                    weight_names=list(block.weight_names),
+                )
+
+        return AnimationBlocks(
+            blocks=blocks(),
+            num_frames=anim.num_frames,
+            faces=self.faces,
+            fps=anim.fps,
+            audio=anim.audio,
+            sample_rate=anim.sample_rate,
+            weight_names=list(anim.weight_names),
+            template=self.vertices,
+        )
+
+    def facing(self, anim: Animation) -> Animation:
+        """``anim`` of the user's mesh turned and scaled into the bundled head's axes and metres
+        (y up, looking along +z), as the renderer's front camera expects."""
+        vertices = (anim.vertices - self.translation) @ self.rotation / self.scale
+        return replace(anim, vertices=vertices, template=None, basis=None)
+
     def neutral_animation(self) -> Animation:
         """One neutral frame with the 52 blendshapes as its ``basis`` (all weights zero): saved as
         .glb it is the rigged head, one ARKit-named morph target per blendshape."""
@@ -188,6 +257,25 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if not len(faces):
         raise TalkmeshError(f"{path}: no triangles in the file")
     return np.asarray(mesh.vertices, np.float64), faces.astype(np.int64)
+
+
+def load_rig(path: str | Path) -> Rig:
+    """The head mesh at ``path`` registered to the bundled head (the closest-point shapes: what
+    :meth:`Rig.carry` needs), once per file and process (a CLI check and the workers forked
+    after it share it). One-line TalkmeshErrors for a file that is no head mesh."""
+    path = Path(path)
+    if not path.is_file():
+        raise TalkmeshError(f"{path}: no such file")
+    return _rig_file(str(path.resolve()), path.stat().st_mtime)
+
+
+@lru_cache(maxsize=2)
+def _rig_file(path: str, mtime: float) -> Rig:
+    try:
+        return rig_head(*load_mesh(path), method="closest")
+    except TalkmeshError as e:
+        message = str(e)
+        raise TalkmeshError(message if path in message else f"{path}: {message}") from None
 
 
 def read_landmarks(path: str | Path) -> dict[str, int]:
@@ -266,7 +354,15 @@ def _check_mouth(vertices, faces, upper: int, lower: int, radius: float) -> None
         )
 
 
-def _register(vertices, faces, head, landmarks):
+def _edge_lengths(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V,) the mean length of the edges at each vertex."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    total = np.bincount(edges.ravel(), np.repeat(length, 2), minlength=len(vertices))
+    return total / np.maximum(np.bincount(edges.ravel(), minlength=len(vertices)), 1)
+
+
+def _register(vertices, faces, head, landmarks, automatic):
     """Rigid + non-rigid registration of the head's skin; returns (s, R, t, residual, skin ids,
     skin faces, registered skin (S, 3), user landmark ids by name)."""
     source = head.template.astype(np.float64)
@@ -290,17 +386,22 @@ def _register(vertices, faces, head, landmarks):
     skin_faces = local[head.faces[(local[head.faces] >= 0).all(1)]]
     rigid = scale * source[skin] @ rotation.T + shift
     user_normals = vertex_normals(vertices, faces)
-    # The fit is held by the landmarks given and by the nose tip (the user vertex farthest forward
-    # near where the rigid fit puts it, a feature that closest points alone let slide); the other
-    # landmarks are placed on the fitted head afterwards.
-    held = dict(given)
-    if "nose_tip" not in held:
-        forward = rotation[:, 2]
-        window = np.flatnonzero(
-            np.linalg.norm(vertices - rigid[local[marks["nose_tip"]]], axis=1) < NOSE_WINDOW * scale
-        )
-        if len(window):
-            held["nose_tip"] = int(window[np.argmax(vertices[window] @ forward)])
+    # The fit is held by the landmarks given and by those found on the user's geometry near where
+    # the rigid fit puts them (features that closest points alone let slide: the nose tip, the lip
+    # gap and its corners, the chin, eye openings); the others are placed on the fitted head
+    # afterwards.
+    predicted = {k: scale * source[i] @ rotation.T + shift for k, i in marks.items()}
+    frame = Frame(scale, rotation, shift)
+    found = find_landmarks(vertices, faces, user_normals, frame, predicted)
+    # A landmark found on a mesh coarser there than the bundled head is a vertex up to half an
+    # edge off the feature: the registration's closest points do better (the bench's coarse cases).
+    user_edge, head_edge = _edge_lengths(vertices, faces), scale * _edge_lengths(source, head.faces)
+    held = {
+        k: i
+        for k, i in found.items()
+        if k in automatic and user_edge[i] <= COARSER * head_edge[marks[k]]
+    }
+    held.update(given)
     ids = local[[marks[k] for k in held]]
     registered = nonrigid_fit(
         rigid, skin_faces, vertices, faces, (ids, vertices[list(held.values())].reshape(-1, 3))
@@ -323,6 +424,7 @@ def rig_head(
     *,
     landmarks: dict[str, int] | None = None,
     method: str = "transfer",
+    automatic: tuple[str, ...] = AUTOMATIC,
 ) -> Rig:
     """The bundled head's 52 blendshapes carried onto the mesh (V, 3) vertices, (F, 3) faces.
 
@@ -333,6 +435,8 @@ def rig_head(
             automatic ones; four or more also start the rigid fit.
         method: "transfer" (deformation transfer, the default) or "closest" (closest-point
             offsets everywhere).
+        automatic: the landmarks found on the mesh's own geometry that hold the registration
+            (:mod:`talkmesh.face.landmarks`; ``("nose_tip",)`` is the fit before they were).
     """
     if method not in METHODS:
         raise TalkmeshError(f"unknown rig method '{method}': choose one of {', '.join(METHODS)}")
@@ -341,7 +445,7 @@ def rig_head(
     _check_input(vertices, faces)
     head = head or load_head()
     scale, rotation, shift, radius, skin, skin_faces, registered, found, user_normals = _register(
-        vertices, faces, head, landmarks
+        vertices, faces, head, landmarks, automatic
     )
     # Closest-point correspondence of every user vertex on the registered head (its skin as
     # fitted, eyes, teeth and tongue moved with the skin around them).
