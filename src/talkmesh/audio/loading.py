@@ -76,13 +76,28 @@ def load_audio(
     assert audio.ndim == 1 and audio.dtype == np.float32
     if not len(audio):
         raise TalkmeshError(f"{path} contains no audio samples: re-export or re-record it")
-    bad = np.count_nonzero(~np.isfinite(audio))
+    refuse_nonfinite(path, int(np.count_nonzero(~np.isfinite(audio))))
+    return audio
+
+
+def refuse_nonfinite(path: Path, bad: int) -> None:
+    """A one-line error when ``bad`` samples of ``path`` are NaN or infinite."""
     if bad:
         raise TalkmeshError(
             f"{path} holds {bad} NaN or infinite samples (a broken float WAV): re-export it as "
             "16-bit PCM or repair the samples"
         )
-    return audio
+
+
+def warn_if_cut(path: Path, present_s: float, stated_s: float, sr: int, stacklevel: int) -> None:
+    """Warn when less audio is present than the file's header states (a cut-off file)."""
+    if present_s < stated_s - 2 / sr:
+        warnings.warn(
+            f"{path}: the header says {stated_s:.2f} s but only {present_s:.2f} s of audio is "
+            "present (a cut-off file?): animating what is there",
+            TalkmeshWarning,
+            stacklevel=stacklevel + 1,
+        )
 
 
 def audio_duration(path: str | Path) -> float:
@@ -177,13 +192,7 @@ def _load_soundfile(path: Path, sr: int, max_seconds: float | None = None) -> np
         audio = _resample_blocks(blocks, f.frames, f.samplerate, sr)
         # libsndfile trims a WAV's frame count to the bytes present: ask the header itself
         stated = _riff_stated_seconds(path) or f.frames / f.samplerate
-    if len(audio) / sr < stated - 2 / sr:
-        warnings.warn(
-            f"{path}: the header says {stated:.2f} s but only {len(audio) / sr:.2f} s of audio is "
-            "present (a cut-off file?): animating what is there",
-            TalkmeshWarning,
-            stacklevel=3,
-        )
+    warn_if_cut(path, len(audio) / sr, stated, sr, stacklevel=3)
     return audio
 
 

@@ -13,7 +13,6 @@ decodes them through a pipe) whole, as before.
 from __future__ import annotations
 
 import math
-import warnings
 from fractions import Fraction
 from pathlib import Path
 
@@ -29,9 +28,11 @@ from talkmesh.audio.loading import (
     _check_file,
     _riff_stated_seconds,
     load_audio,
+    refuse_nonfinite,
+    warn_if_cut,
 )
 from talkmesh.constants import SAMPLE_RATE
-from talkmesh.errors import TalkmeshError, TalkmeshWarning
+from talkmesh.errors import TalkmeshError
 
 
 class Waveform:
@@ -124,20 +125,8 @@ def open_audio(
         raise TalkmeshError(f"{path} contains no audio samples: re-export or re-record it")
     limit = MAX_DURATION_S if max_seconds is None else max_seconds
     _check_duration(path, wave.frames / wave.orig_sr, limit)
-    bad = 0
-    for block in wave.blocks(int(BLOCK_S * sr)):
-        bad += int(np.count_nonzero(~np.isfinite(block)))
-    if bad:
-        raise TalkmeshError(
-            f"{path} holds {bad} NaN or infinite samples (a broken float WAV): re-export it as "
-            "16-bit PCM or repair the samples"
-        )
+    bad = sum(int(np.count_nonzero(~np.isfinite(b))) for b in wave.blocks(int(BLOCK_S * sr)))
+    refuse_nonfinite(path, bad)
     stated = _riff_stated_seconds(path) or wave.frames / wave.orig_sr
-    if len(wave) / sr < stated - 2 / sr:
-        warnings.warn(
-            f"{path}: the header says {stated:.2f} s but only {len(wave) / sr:.2f} s of audio is "
-            "present (a cut-off file?): animating what is there",
-            TalkmeshWarning,
-            stacklevel=2,
-        )
+    warn_if_cut(path, len(wave) / sr, stated, sr, stacklevel=2)
     return wave
