@@ -30,6 +30,7 @@ from tqdm import tqdm
 from talkmesh.audio.loading import SAMPLE_RATE
 from talkmesh.audio.phonemes import recognize_phones
 from talkmesh.datasets.reader import open_dataset
+from talkmesh.errors import TalkmeshError
 from talkmesh.evaluation.evaluate import _identities, bundled_lip_pairs
 from talkmesh.evaluation.metrics import pool, score_sequence
 from talkmesh.evaluation.real_speech import METRICS, score_opening
@@ -130,4 +131,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except TalkmeshError as e:  # a missing corpus or a bad file: one line, no traceback
+        raise SystemExit(f"synthetic_lips: {e}") from None
