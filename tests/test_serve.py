@@ -423,3 +423,36 @@ def test_ticks_wait_for_more_sessions_by_default(monkeypatch):
     app_default = inspect.signature(create_app).parameters["batch_wait_ms"].default
     assert app_default == DEFAULT_BATCH_WAIT_MS
     assert Scheduler().batch_wait_s == DEFAULT_BATCH_WAIT_MS / 1000
+
+
+def test_each_worker_ticks_its_sessions_in_a_lane_of_its_own():
+    """The server's own sessions wait --batch-wait-ms to batch their model steps; each worker's
+    procedural sessions tick in a lane of their own, at once, never waiting for another lane's
+    tick; a lane goes when its last session leaves."""
+    import asyncio
+
+    from talkmesh.serve.batching import Scheduler
+    from talkmesh.serve.stream import open_stream
+    from talkmesh.serve.workers import RemoteStream
+
+    class FakeWorker:
+        def __init__(self) -> None:
+            self.sessions, self.closed = set(), []
+
+    async def run() -> None:
+        scheduler = Scheduler(0.015)
+        w1, w2 = FakeWorker(), FakeWorker()
+        remote = [RemoteStream(w, k, 30.0, 50.0, []) for k, w in enumerate((w1, w1, w2))]
+        local = open_stream("procedural")
+        works = [scheduler.join(s) for s in [*remote, local]]
+        assert set(scheduler.lanes) == {w1, w2, None}
+        assert works[0].lane is works[1].lane is scheduler.lanes[w1]
+        assert scheduler.lanes[w1].batch_wait_s == scheduler.lanes[w2].batch_wait_s == 0.0
+        assert scheduler.lanes[None].batch_wait_s == 0.015
+        for work in works:
+            scheduler.leave(work)
+        assert scheduler.lanes == {} and scheduler.works == []
+        await asyncio.sleep(0.05)  # the lanes' loops end
+        assert all(w.lane.runner.done() for w in works)
+
+    asyncio.run(run())

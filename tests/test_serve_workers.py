@@ -117,3 +117,64 @@ def test_a_negative_worker_count_is_a_one_line_error():
 
     with pytest.raises(TalkmeshError, match="--workers must be 0 or more"):
         create_app(workers=-1)
+
+
+class _Echo:
+    """The worker's end of a pipe answered by a thread: each request's reply after ``delay`` s;
+    stands in for a worker process (``alive``, ``kill``, ``join``, ``exitcode``, ``pid``)."""
+
+    def __init__(self, conn, delay: float) -> None:
+        import threading
+
+        self.conn, self.delay, self.exitcode, self.pid = conn, delay, None, 0
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        import time
+
+        while True:
+            try:
+                request = self.conn.recv()
+            except (EOFError, OSError):
+                return
+            time.sleep(self.delay)
+            self.conn.send(("reply to", request, b"x" * 300_000))  # over a pipe's buffer
+
+    def is_alive(self) -> bool:
+        return True
+
+    def kill(self) -> None:
+        pass
+
+    def join(self, timeout=None) -> None:
+        pass
+
+
+@pytest.mark.parametrize("loop", ["asyncio", "uvloop"])
+def test_worker_calls_on_the_event_loop_keep_the_pipe_whole(loop):
+    """The server awaits a worker's reply as its pipe becoming readable (no thread per tick).
+    uvloop leaves a watched descriptor non-blocking, which made a reply larger than the pipe's
+    buffer fail half-way (the session ended with "the process ... stopped"); and a caller
+    cancelled while it waits (its client left) must not leave its reply for the next request."""
+    import asyncio
+    import multiprocessing
+
+    from talkmesh.serve.workers import Worker
+
+    ours, theirs = multiprocessing.Pipe()
+    worker = Worker(_Echo(theirs, delay=0.2), ours)
+
+    async def calls():
+        with pytest.raises(TimeoutError):  # cancelled while the worker computes
+            await asyncio.wait_for(worker.call("first"), 0.05)
+        for k in range(3):
+            reply = await worker.call(f"next {k}")
+            assert reply[:2] == ("reply to", f"next {k}") and len(reply[2]) == 300_000
+        assert os.get_blocking(ours.fileno())
+
+    if loop == "uvloop":
+        uvloop = pytest.importorskip("uvloop")  # uvicorn[standard] installs it
+        uvloop.run(calls())
+    else:
+        asyncio.run(calls())
+    assert worker.lost is None

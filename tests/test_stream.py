@@ -218,3 +218,25 @@ def test_streams_pushed_together_get_the_frames_they_get_alone(
             np.testing.assert_allclose(
                 np.stack([f.offsets for f in b]), np.stack([f.offsets for f in a]), atol=1e-5
             )
+
+
+def test_a_recogniser_from_the_pool_recognises_as_a_new_one():
+    """A server makes its sessions' recognisers up front and takes a closed session's back
+    (DecoderPool): the next session on it must get the frames of a fresh recogniser, even when
+    the previous one was dropped in the middle of an utterance."""
+    from talkmesh.serve.stream import DecoderPool
+
+    librivox = "/usr/share/pocketsphinx/test/data/librivox/sense_and_sensibility_01_austen_64kb"
+    clip = np.concatenate([load_audio(f"{librivox}-{k}.wav") for k in ("0870", "0880")])
+    fresh = np.stack([f.weights for f in stream_all(open_stream(lookahead_ms=50), clip, [320])])
+    pool = DecoderPool()
+    first = open_stream(lookahead_ms=50, decoders=pool)
+    first.push(clip[: 3 * SR][::-1].copy())  # other speech, then dropped mid-utterance
+    first.release()
+    assert len(pool.spares) == 1
+    with pytest.raises(TalkmeshError, match="open a new one"):
+        first.push(clip[:320])
+    again = open_stream(lookahead_ms=50, decoders=pool)
+    assert not pool.spares  # it took the released recogniser
+    reused = np.stack([f.weights for f in stream_all(again, clip, [320])])
+    np.testing.assert_array_equal(reused, fresh)

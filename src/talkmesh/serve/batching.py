@@ -1,4 +1,4 @@
-"""The server's scheduler: the streaming sessions' work in ticks, one worker-thread call per tick.
+"""The server's scheduler: the streaming sessions' work in ticks, one computation call per tick.
 
 Each session's receiving coroutine hands its audio to the :class:`Scheduler` as it arrives
 (:meth:`Scheduler.submit`) and keeps reading. The scheduler's loop takes the audio of every
@@ -14,8 +14,12 @@ waits that long after the first ready chunk before a tick, to gather more sessio
 throughput, that much latency); ``--torch-threads`` sets the threads of the batched model steps.
 
 Procedural sessions opened in worker processes (:mod:`talkmesh.serve.workers`, ``--workers``)
-are computed there: a tick sends each worker its sessions' audio, and the workers and the
-server's own model steps compute at the same time, each waited for in its own thread.
+are computed there. Each place the sessions compute (the server process, each worker) has its
+own :class:`Lane`, a loop that ticks over its sessions alone: a worker's sessions never wait for
+another worker's tick or for the model steps, and they tick without ``--batch-wait-ms`` (their
+recognisers gain nothing from a batch), each tick taking the audio that arrived while the
+previous one computed. 32 procedural sessions on 2 cores: p95 latency 225 -> about 155 ms
+with the asynchronous worker calls (docs/results/serve-batching-2026-11-25.md).
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ class Work:
         self.taken_end = False
         self.send, self.outbox = anyio.create_memory_object_stream(math.inf)
         self.drained = anyio.Event()
+        self.lane: Lane | None = None  # set by Scheduler.join
 
     def take(self) -> tuple[list[np.ndarray], bool]:
         """The chunks for this tick (at most ``MAX_TICK_S`` of audio) and whether the stream ends
@@ -78,42 +83,22 @@ class Work:
         return bool(self.inbox) or (self.end and not self.taken_end)
 
 
-class Scheduler:
-    """Ticks over the sessions' work (module docstring); runs while sessions are open."""
+class Lane:
+    """The sessions computed in one place (the server process, or one worker process) and the
+    loop that ticks over them. Lanes tick independently: a worker's sessions never wait for
+    another worker's tick or for the server's model steps."""
 
-    def __init__(self, batch_wait_s: float = DEFAULT_BATCH_WAIT_MS / 1000) -> None:
+    def __init__(self, scheduler: Scheduler, batch_wait_s: float) -> None:
+        self.scheduler = scheduler
         self.batch_wait_s = batch_wait_s
         self.works: list[Work] = []
         self.wake = anyio.Event()
         self.runner: asyncio.Task | None = None
-        self.ticks = 0
-        self.stepped = 0  # session-ticks computed (their mean per tick: the batch size)
 
-    def join(self, stream: Streamer) -> Work:
-        work = Work(stream)
+    def join(self, work: Work) -> None:
         self.works.append(work)
         if self.runner is None or self.runner.done():
             self.runner = asyncio.get_running_loop().create_task(self._run())
-        return work
-
-    def leave(self, work: Work) -> None:
-        if work in self.works:
-            self.works.remove(work)
-        if isinstance(work.stream, RemoteStream):
-            work.stream.leave()
-        self.wake.set()  # the loop ends once no session is left
-
-    async def submit(self, work: Work, audio: np.ndarray | None) -> None:
-        """Queue a session's audio (None: its end); waits while its backlog is too long."""
-        if audio is None:
-            work.end = True
-        else:
-            work.inbox.append(audio)
-            work.pending += len(audio)
-        self.wake.set()
-        while work.pending > MAX_PENDING_S * 16_000:
-            work.drained = anyio.Event()
-            await work.drained.wait()
 
     async def _run(self) -> None:
         while self.works:
@@ -126,14 +111,64 @@ class Scheduler:
                 continue
             jobs = [(w.stream, *w.take()) for w in ready]
             results = await compute(jobs)
-            self.ticks += 1
-            self.stepped += len(ready)
+            self.scheduler.ticks += 1
+            self.scheduler.stepped += len(ready)
             for work, (_, _, end), result in zip(ready, jobs, results):
                 work.send.send_nowait(result)
                 if end and not isinstance(result, Exception):
                     work.send.send_nowait(None)
             if any(w.ready for w in self.works):
                 self.wake.set()
+
+
+class Scheduler:
+    """Ticks over the sessions' work (module docstring), in one :class:`Lane` per place the
+    sessions compute; runs while sessions are open."""
+
+    def __init__(self, batch_wait_s: float = DEFAULT_BATCH_WAIT_MS / 1000) -> None:
+        self.batch_wait_s = batch_wait_s
+        self.lanes: dict[Worker | None, Lane] = {}
+        self.ticks = 0
+        self.stepped = 0  # session-ticks computed (their mean per tick: the batch size)
+
+    @property
+    def works(self) -> list[Work]:
+        return [w for lane in self.lanes.values() for w in lane.works]
+
+    def join(self, stream: Streamer) -> Work:
+        work = Work(stream)
+        worker = stream.worker if isinstance(stream, RemoteStream) else None
+        if worker not in self.lanes:
+            # a worker's procedural sessions gain nothing from waiting for each other (their
+            # recognisers run one after another whatever the batch): they tick at once, each
+            # tick taking what arrived while the previous one computed
+            wait = self.batch_wait_s if worker is None else 0.0
+            self.lanes[worker] = Lane(self, wait)
+        work.lane = self.lanes[worker]
+        work.lane.join(work)
+        return work
+
+    def leave(self, work: Work) -> None:
+        lane = work.lane
+        if work in lane.works:
+            lane.works.remove(work)
+        if isinstance(work.stream, RemoteStream):
+            work.stream.leave()
+        lane.wake.set()  # the lane's loop ends once no session is left in it
+        if not lane.works and self.lanes.get(getattr(work.stream, "worker", None)) is lane:
+            del self.lanes[getattr(work.stream, "worker", None)]
+
+    async def submit(self, work: Work, audio: np.ndarray | None) -> None:
+        """Queue a session's audio (None: its end); waits while its backlog is too long."""
+        if audio is None:
+            work.end = True
+        else:
+            work.inbox.append(audio)
+            work.pending += len(audio)
+        work.lane.wake.set()
+        while work.pending > MAX_PENDING_S * 16_000:
+            work.drained = anyio.Event()
+            await work.drained.wait()
 
 
 async def compute(jobs: list[tuple]) -> list:
@@ -147,8 +182,10 @@ async def compute(jobs: list[tuple]) -> list:
     async def run(worker: Worker | None, members: list[int]) -> None:
         group = [jobs[i] for i in members]
         try:
-            call = push_together if worker is None else worker.tick
-            out = await anyio.to_thread.run_sync(call, group)
+            if worker is None:
+                out = await anyio.to_thread.run_sync(push_together, group)
+            else:
+                out = await worker.tick(group)
         except WorkerLost as e:  # its sessions end with the reason
             out = [e] * len(group)
         except Exception as e:  # a bug: end the sessions of this tick, keep serving

@@ -266,14 +266,14 @@ class Service:
         """Hello, then audio in and frames out until the client's end message."""
         name, lookahead, offsets = self._parse_query(ws)
         source = self.models[name]
-        if source == PROCEDURAL and self.pool is not None:
-            opener = lambda: self.pool.open(source, lookahead, offsets)  # noqa: E731
-        else:
-            opener = lambda: open_stream(  # noqa: E731
-                source, lookahead_ms=lookahead, head=self.head, offsets=offsets
-            )
         try:
-            stream = await anyio.to_thread.run_sync(opener)
+            if source == PROCEDURAL and self.pool is not None:
+                stream = await self.pool.open(source, lookahead, offsets)
+            else:
+                opener = lambda: open_stream(  # noqa: E731
+                    source, lookahead_ms=lookahead, head=self.head, offsets=offsets
+                )
+                stream = await anyio.to_thread.run_sync(opener)
         except TalkmeshError as e:
             raise ClientError(CLOSE_POLICY, str(e)) from None
         assert stream.sample_rate == SAMPLE_RATE, stream.sample_rate  # the protocol's PCM rate
@@ -562,7 +562,8 @@ def create_app(
     for source in service.models.values():
         open_stream(source, head=service.head)
     if workers and PROCEDURAL in service.models.values():
-        service.pool = WorkerPool(workers)
+        # each worker makes its share of the sessions' recognisers up front (WorkerPool)
+        service.pool = WorkerPool(workers, spares=-(-limits.max_sessions // workers))
     routes = [
         WebSocketRoute("/ws/stream", service.stream),
         Route("/health", service.health),
@@ -638,6 +639,8 @@ def serve(
         log_level="warning" if quiet else "info",
         ws_max_size=max(WS_FRAME_LIMIT, 4 * service.limits.max_message_bytes),
         http=lim.head_timeout_protocol(service.limits.request_timeout),
+        # PCM chunks and float frames do not compress: deflate would only cost both ends CPU
+        ws_per_message_deflate=False,
         timeout_graceful_shutdown=SHUTDOWN_WAIT_S,
     )
     sock = _listen(host, port)

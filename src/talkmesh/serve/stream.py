@@ -185,6 +185,36 @@ class UpperFace:
         return w
 
 
+class DecoderPool:
+    """Spare streaming phone recognisers. Making one reads the acoustic model (about 65 ms and
+    32 MB), which would stall every other session of a process that opens a stream while they
+    run; a server makes its share up front (:meth:`fill`) and takes a closed stream's back
+    (:meth:`give`): reset, it recognises as a new one does (``tests/test_stream.py``)."""
+
+    def __init__(self, search: AllphoneSearch = ALLPHONE_STREAM) -> None:
+        self.search = search
+        self.spares: list = []
+
+    def fill(self, n: int) -> None:
+        from talkmesh.audio import phonemes
+
+        while len(self.spares) < n:
+            self.spares.append(phonemes._decoder(align=False, search=self.search))
+
+    def take(self):
+        if not self.spares:
+            self.fill(1)
+        return self.spares.pop()
+
+    def give(self, decoder) -> None:
+        try:
+            decoder.end_utt()
+        except RuntimeError:  # no utterance open
+            pass
+        decoder.reinit_feat()
+        self.spares.append(decoder)
+
+
 class ProceduralStreamer(Streamer):
     """Incremental phone recognition + the procedural lip sync (module docstring)."""
 
@@ -197,12 +227,16 @@ class ProceduralStreamer(Streamer):
         seed: int = 0,
         style: SpeakingStyle | None = None,
         search: AllphoneSearch = ALLPHONE_STREAM,
+        decoders: DecoderPool | None = None,
     ) -> None:
         super().__init__(fps, lookahead_ms, head, offsets)
         from talkmesh.audio import phonemes
 
         self._ps = phonemes
-        self.decoder = phonemes._decoder(align=False, search=search)
+        if decoders is not None and decoders.search != search:
+            raise ValueError("the pool's recognisers have other search settings")
+        self.decoders = decoders
+        self.decoder = decoders.take() if decoders else phonemes._decoder(False, search)
         self.style = style or SpeakingStyle()
         self.upper = UpperFace(self.fps, seed, self.style)
         self.past: list[Phone] = []  # finished utterances' phones (the last seconds), stream time
@@ -212,6 +246,13 @@ class ProceduralStreamer(Streamer):
         self.utt_samples = 0
         self.tidier = phonemes.PhoneTidier()  # the utterance's phones, re-read incrementally
         self.decoder.start_utt()
+
+    def release(self) -> None:
+        """The stream is done with: its recogniser goes back to the pool it came from."""
+        if self.decoders is not None and self.decoder is not None:
+            self.decoders.give(self.decoder)
+        self.decoder = None
+        self.closed = True
 
     def _receive(self, audio: np.ndarray) -> None:
         # 16-bit PCM as phonemes._pcm16 makes it; the audio is finite already (as_audio)
@@ -467,13 +508,16 @@ def open_stream(
     fps: float = MOTION_FPS,
     style_weights: np.ndarray | None = None,
     blinks: bool = True,
+    decoders: DecoderPool | None = None,
 ) -> Streamer:
     """A streamer for ``model``: ``procedural`` or the path of a release that streams (today a
     streaming CodeTalker, ``configs/codetalker_stream.yaml``).
 
     ``lookahead_ms`` (default 100): audio after a frame's time that it waits for, 0-300 ms (a
     model accepts the range it was trained for). ``offsets``: also return vertex
-    offsets per frame. ``fps`` applies to the procedural animator (a model has its own).
+    offsets per frame. ``fps`` applies to the procedural animator (a model has its own), and
+    ``decoders`` (a :class:`DecoderPool` its recogniser comes from and goes back to, by
+    ``release()``).
     """
     lookahead = DEFAULT_LOOKAHEAD_MS if lookahead_ms is None else float(lookahead_ms)
     if not 0.0 <= lookahead <= MAX_LOOKAHEAD_MS:
@@ -487,7 +531,7 @@ def open_stream(
     if name == "procedural":
         if not 1.0 <= fps <= 240.0:
             raise TalkmeshError(f"fps {fps:g} is out of range: use 1 to 240")
-        return ProceduralStreamer(lookahead, head, offsets, fps=fps, seed=seed)
+        return ProceduralStreamer(lookahead, head, offsets, fps=fps, seed=seed, decoders=decoders)
     path = Path(name)
     if path.suffix != ".safetensors" or not path.is_file():
         raise TalkmeshError(

@@ -4,9 +4,12 @@ A procedural session's cost is its phone recogniser (PocketSphinx's search, C co
 GIL, and the Python that reads and tidies its phones): one server process tops out at one core
 (docs/results/serve-batching-2026-11-25.md). ``talkmesh serve --workers N`` (default: one per
 core) starts N processes; each owns the :class:`~talkmesh.serve.stream.ProceduralStreamer` of the
-sessions assigned to it (a new session goes to the worker with the fewest). The server's
-scheduler (:mod:`talkmesh.serve.batching`) sends every worker the audio of its sessions in one
-message per tick and gets back their frames, the workers computing in parallel while the event
+sessions assigned to it (a new session goes to the worker with the fewest) and makes its share
+of ``--max-sessions`` recognisers before it is ready, so that opening a session (65 ms of
+reading the acoustic model) does not stall the others. The server's scheduler
+(:mod:`talkmesh.serve.batching`) ticks each worker's sessions in a lane of their own: one
+message with their audio per tick, the reply awaited on the event loop as the pipe becoming
+readable (no thread hand-off per tick), the workers computing in parallel while the event
 loop serves the sockets. A worker runs :func:`~talkmesh.serve.stream.push_together`, the code a
 session runs in the server process, so its frames are those of the session alone.
 
@@ -27,14 +30,15 @@ Messages on a worker's pipe, always one request then one reply:
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import multiprocessing
 import os
 import signal
-import threading
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+import anyio
 import numpy as np
 
 from talkmesh.errors import TalkmeshError
@@ -87,8 +91,10 @@ def unpack(packed: Packed, fps: float) -> list[StreamFrame]:
 # The worker process
 
 
-def _serve_requests(conn) -> None:
-    """A worker's loop (module docstring); returns when the server closes the pipe."""
+def _serve_requests(conn, spares: int = 1) -> None:
+    """A worker's loop (module docstring); returns when the server closes the pipe. ``spares``:
+    recognisers made before the worker says it is ready (its share of the server's sessions), so
+    that opening a session does not stall the others' ticks."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the server, which stops us
     try:  # one BLAS thread: the workers already use every core between them
         from threadpoolctl import threadpool_limits
@@ -97,10 +103,13 @@ def _serve_requests(conn) -> None:
     except ImportError:
         pass
     from talkmesh.face.assets import load_head
-    from talkmesh.serve.stream import open_stream, push_together
+    from talkmesh.serve.stream import DecoderPool, open_stream, push_together
 
     head = load_head()
-    open_stream("procedural", head=head)  # imports and first-use costs before the first session
+    decoders = DecoderPool()
+    # imports and first-use costs before the first session
+    open_stream("procedural", head=head, decoders=decoders).release()
+    decoders.fill(spares)
     conn.send(("ready",))
     streams = {}
     while True:
@@ -111,7 +120,9 @@ def _serve_requests(conn) -> None:
         if request[0] == "open":
             _, sid, source, lookahead, offsets = request
             try:
-                s = open_stream(source, lookahead_ms=lookahead, head=head, offsets=offsets)
+                s = open_stream(
+                    source, lookahead_ms=lookahead, head=head, offsets=offsets, decoders=decoders
+                )
             except TalkmeshError as e:
                 conn.send(("error", str(e)))
                 continue
@@ -120,7 +131,7 @@ def _serve_requests(conn) -> None:
             continue
         _, closed, jobs = request
         for sid in closed:
-            streams.pop(sid, None)
+            _release(streams.pop(sid, None))
         try:
             results = push_together([(streams[sid], chunks, end) for sid, chunks, end in jobs])
             reply = [r if isinstance(r, Exception) else pack(r) for r in results]
@@ -130,7 +141,12 @@ def _serve_requests(conn) -> None:
         conn.send(reply)
         for (sid, _, end), r in zip(jobs, reply):
             if end or isinstance(r, Exception):
-                streams.pop(sid, None)
+                _release(streams.pop(sid, None))
+
+
+def _release(stream) -> None:
+    if stream is not None and hasattr(stream, "release"):
+        stream.release()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -162,20 +178,28 @@ class Worker:
     conn: object  # the server's end of the pipe
     sessions: set[int] = field(default_factory=set)
     closed: list[int] = field(default_factory=list)  # sessions that left, for the next tick
-    lock: threading.Lock = field(default_factory=threading.Lock)
+    lock: asyncio.Lock | None = None  # one request at a time (made in the event loop)
     lost: str | None = None  # why the worker is gone
 
-    def call(self, message):
-        """Send a request and wait for its reply (in a worker thread, not the event loop).
+    async def call(self, message):
+        """Send a request and wait for its reply, the event loop serving the sockets meanwhile
+        (the reply is awaited as the pipe's readability: no thread per call). A caller that is
+        cancelled (its client left) does not leave the reply in the pipe for the next request:
+        the exchange runs to its end in a task of its own.
 
         Raises:
             WorkerLost: the worker died, or did not answer within ``REPLY_TIMEOUT_S``.
         """
-        with self.lock:
+        return await asyncio.shield(asyncio.ensure_future(self._exchange(message)))
+
+    async def _exchange(self, message):
+        if self.lock is None:
+            self.lock = asyncio.Lock()
+        async with self.lock:
             if self.lost is None:
                 try:
                     self.conn.send(message)
-                    if self.conn.poll(REPLY_TIMEOUT_S):
+                    if await _readable(self.conn, REPLY_TIMEOUT_S):
                         return self.conn.recv()
                     self.lost = f"did not answer within {REPLY_TIMEOUT_S:g} s"
                     self.process.kill()
@@ -188,38 +212,69 @@ class Worker:
                 "reconnect to start a new one"
             )
 
-    def tick(self, jobs: list[tuple[RemoteStream, list[np.ndarray], bool]]) -> list:
+    async def tick(self, jobs: list[tuple[RemoteStream, list[np.ndarray], bool]]) -> list:
         """This worker's sessions' audio -> their frames or errors (``push_together``'s)."""
         closed = []
         while self.closed:  # appended to by the event loop meanwhile: pop, which is atomic
             closed.append(self.closed.pop())
-        reply = self.call(("tick", closed, [(s.sid, chunks, end) for s, chunks, end in jobs]))
+        reply = await self.call(("tick", closed, [(s.sid, chunks, end) for s, chunks, end in jobs]))
         return [
             r if isinstance(r, Exception) else unpack(r, s.fps) for (s, _, _), r in zip(jobs, reply)
         ]
 
 
-class WorkerPool:
-    """``workers`` processes computing procedural sessions (module docstring)."""
+async def _readable(conn, timeout: float) -> bool:
+    """Wait until the pipe has a message (True) or ``timeout`` seconds pass (False)."""
+    if conn.poll(0):
+        return True
+    loop = asyncio.get_running_loop()
+    ready = loop.create_future()
+    fd = conn.fileno()
+    loop.add_reader(fd, lambda: ready.done() or ready.set_result(None))
+    try:
+        await asyncio.wait_for(ready, timeout)
+        return True
+    except TimeoutError:
+        return False
+    finally:
+        loop.remove_reader(fd)
+        # uvloop (libuv) leaves a watched descriptor non-blocking: the pipe's reads and writes of
+        # a message larger than its buffer would fail half-way with BlockingIOError
+        os.set_blocking(fd, True)
 
-    def __init__(self, workers: int) -> None:
+
+class WorkerPool:
+    """``workers`` processes computing procedural sessions (module docstring); each makes
+    ``spares`` recognisers before it is ready (the server passes its share of
+    ``--max-sessions``: 32 MB each)."""
+
+    def __init__(self, workers: int, spares: int = 1) -> None:
         if workers < 1:
             raise TalkmeshError(f"--workers must be 0 or more, got {workers}")
         self._context = multiprocessing.get_context("spawn")  # no forked event loop or threads
+        self.spares = max(1, spares)
         self.workers = [self._start() for _ in range(workers)]
         for w in self.workers:
             self._wait_ready(w)
         self._next_sid = 0
-        self._lock = threading.Lock()
+        self._lock: asyncio.Lock | None = None
 
     def _start(self) -> Worker:
         ours, theirs = self._context.Pipe()
         process = self._context.Process(
-            target=_serve_requests, args=(theirs,), daemon=True, name="talkmesh-stream-worker"
+            target=_serve_requests,
+            args=(theirs, self.spares),
+            daemon=True,
+            name="talkmesh-stream-worker",
         )
         process.start()
         theirs.close()
         return Worker(process, ours)
+
+    def _restart(self) -> Worker:
+        worker = self._start()
+        self._wait_ready(worker)
+        return worker
 
     def _wait_ready(self, worker: Worker) -> None:
         """Wait for a new worker's first message (it is ready to open sessions)."""
@@ -238,24 +293,25 @@ class WorkerPool:
     def pids(self) -> list[int]:
         return [w.process.pid for w in self.workers]
 
-    def open(self, source: str, lookahead_ms: float, offsets: bool) -> RemoteStream:
+    async def open(self, source: str, lookahead_ms: float, offsets: bool) -> RemoteStream:
         """A session on the least busy worker (a lost one is replaced first).
 
         Raises:
             TalkmeshError: the stream's options are wrong (as :func:`open_stream` says).
             WorkerLost: the worker died while opening it.
         """
-        with self._lock:
+        if self._lock is None:
+            self._lock = asyncio.Lock()
+        async with self._lock:
             for k, w in enumerate(self.workers):
                 if w.lost is not None or not w.process.is_alive():
-                    self.workers[k] = self._start()
-                    self._wait_ready(self.workers[k])
+                    self.workers[k] = await anyio.to_thread.run_sync(self._restart)
             worker = min(self.workers, key=lambda w: len(w.sessions))
             self._next_sid += 1
             sid = self._next_sid
             worker.sessions.add(sid)
         try:
-            reply = worker.call(("open", sid, source, lookahead_ms, offsets))
+            reply = await worker.call(("open", sid, source, lookahead_ms, offsets))
         except WorkerLost:
             worker.sessions.discard(sid)
             raise
