@@ -39,3 +39,23 @@ def test_renders_use_the_colours():
     head = load_head()
     np.testing.assert_array_equal(head_vertex_colors(head.num_vertices), head_colors(head))
     assert head_vertex_colors(head.num_vertices + 1) is None
+
+
+def test_the_pupils_follow_the_gaze_shapes():
+    """The pupil-coloured vertices move as the eyeLook* shapes turn the eye (the face's own left
+    is +x): out and in sideways, up and down, each by millimetres."""
+    from talkmesh.face.arkit import ARKIT_NAMES
+
+    head = load_head()
+    colors, part = head_colors(head), head.regions.vertex_part
+    for side, sign in (("Left", 1.0), ("Right", -1.0)):
+        eye = (part == 1) & (np.sign(head.template[:, 0]) == sign)
+        pupil = eye & np.all(np.isclose(colors, PUPIL), axis=1)
+        for shape, axis, direction in (
+            ("eyeLookOut", 0, sign),
+            ("eyeLookIn", 0, -sign),
+            ("eyeLookUp", 1, 1.0),
+            ("eyeLookDown", 1, -1.0),
+        ):
+            moved = head.blendshapes[ARKIT_NAMES.index(shape + side)][pupil].mean(0)
+            assert direction * moved[axis] > 0.002, (shape + side, moved)  # over 2 mm

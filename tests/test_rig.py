@@ -106,13 +106,13 @@ def test_landmarks_can_be_given_and_are_checked(head):
         rig_head(v, head.faces, head, landmarks={"chin": 5000})
 
 
-def test_a_head_with_sealed_lips_is_refused(head):
-    """Merging the inner lip vertices of the upper and lower lip closes the mouth opening."""
+def test_a_head_with_sealed_lips_is_one_cli_error(head, tmp_path, capsys):
+    """Merging the inner lip vertices of the upper and lower lip closes the mouth opening:
+    `talkmesh rig` refuses it in one line and writes nothing."""
     v, f = head.template.astype(np.float64), head.faces.astype(np.int64)
     lips = head.regions.lips
     upper, lower = head.regions.lip_pair
     inner = lips[np.linalg.norm(v[lips] - v[[upper, lower]].mean(0), axis=1) < 0.03]
-    keep = v.copy()
     # weld: each inner lower-lip vertex within 3 mm of an upper-lip vertex becomes it
     tree = trimesh.proximity.cKDTree(v[inner])
     remap = np.arange(len(v))
@@ -123,8 +123,54 @@ def test_a_head_with_sealed_lips_is_refused(head):
     sealed = remap[f]
     sealed = sealed[(sealed[:, 0] != sealed[:, 1]) & (sealed[:, 1] != sealed[:, 2])]
     sealed = sealed[sealed[:, 0] != sealed[:, 2]]
-    with pytest.raises(TalkmeshError, match="no mouth opening"):
-        rig_head(keep, sealed, head)
+    trimesh.Trimesh(v, sealed, process=False).export(tmp_path / "sealed.obj")
+    out = tmp_path / "sealed.glb"
+    assert main(["rig", str(tmp_path / "sealed.obj"), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no mouth opening" in err and len(err.splitlines()) == 1, err
+    assert not out.exists()
+
+
+def _hand() -> trimesh.Trimesh:
+    """A hand-like blob: a flat palm and five finger capsules (the thumb shorter, to the side)."""
+    palm = trimesh.creation.icosphere(subdivisions=3)
+    palm.apply_scale([0.045, 0.055, 0.015])
+    parts = [palm]
+    thumb, fingers = [(-0.055, 0.03, 0.04)], [(x, 0.08, 0.06) for x in (-0.03, -0.01, 0.01, 0.03)]
+    for x, y, length in thumb + fingers:
+        finger = trimesh.creation.capsule(height=length, radius=0.008)
+        finger.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+        finger.apply_translation([x, y, 0.0])
+        parts.append(finger)
+    return trimesh.util.concatenate(parts)
+
+
+def _not_heads() -> dict[str, trimesh.Trimesh]:
+    """Head-sized meshes that are no head (each refused at 10-20% where a head fits under 8%)."""
+    box = trimesh.creation.box((0.15, 0.2, 0.18))
+    square = trimesh.Trimesh(
+        [[0, 0, 0], [0.2, 0, 0], [0.2, 0.25, 0], [0, 0.25, 0]], [[0, 1, 2], [0, 2, 3]]
+    )
+    return {
+        "sphere": trimesh.creation.icosphere(subdivisions=3, radius=0.1),
+        "cube": trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(box.vertices, box.faces, 0.02)),
+        "plane": trimesh.Trimesh(
+            *trimesh.remesh.subdivide_to_size(square.vertices, square.faces, 0.01)
+        ),
+        "hand": _hand(),
+    }
+
+
+@pytest.mark.parametrize("name", ["sphere", "cube", "plane", "hand"])
+def test_a_mesh_that_is_no_head_is_one_cli_error(name, tmp_path, capsys):
+    """`talkmesh rig` on a sphere, a cube, a plane, a hand: exit 2, one line naming the file."""
+    path, out = tmp_path / f"{name}.obj", tmp_path / f"{name}.glb"
+    _not_heads()[name].export(path)
+    assert main(["rig", str(path), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert "does not look like a head" in err and f"{name}.obj" in err, err
+    assert not out.exists()
 
 
 @pytest.mark.slow

@@ -420,7 +420,13 @@ def cmd_rig(args: argparse.Namespace) -> int:
         if not index.strip().isdigit():
             raise TalkmeshError(f"--landmark {item}: give NAME=VERTEX_ID, e.g. nose_tip=1234")
         landmarks[name.strip()] = int(index)
-    rig = rig_head(*load_mesh(args.mesh), landmarks=landmarks)
+    try:
+        rig = rig_head(*load_mesh(args.mesh), landmarks=landmarks)
+    except TalkmeshError as e:
+        message = str(e)
+        raise TalkmeshError(
+            message if args.mesh in message else f"{args.mesh}: {message}"
+        ) from None
     save_animation(rig.neutral_animation(), out, overwrite=args.overwrite)
     if not args.quiet:
         parts = ", ".join(f"{n} {k}" for k, n in rig.parts.items()) or "none"
