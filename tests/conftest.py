@@ -3,6 +3,7 @@ serving and long-audio tests build (one configuration, so that they test the sam
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -89,3 +90,10 @@ def tiny_stream_model(tmp_path) -> Callable[..., Path]:
         return save_model(model, tmp_path / f"stream{next(count)}.safetensors")
 
     return make
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _own_cache(tmp_path_factory):
+    """Registrations saved by `talkmesh rig` and `animate --head` (talkmesh.face.rig_cache) go to
+    a folder of this test run, never the user's cache."""
+    os.environ["TALKMESH_CACHE"] = str(tmp_path_factory.mktemp("cache"))

@@ -202,12 +202,23 @@ def test_not_a_head(head):
         rig_head(sphere.vertices[:50], sphere.faces[:10], head)
 
 
-def test_cli_rig_then_animate_as_avatar(tmp_path, capsys):
+def test_cli_rig_then_animate_as_avatar(tmp_path, capsys, monkeypatch):
+    """The rigged .glb drives like any avatar; `animate --head` on the same mesh file reads the
+    registration `talkmesh rig` saved instead of registering again."""
+    import talkmesh.face.rig as rig_module
+
     head = load_head()
     mesh = trimesh.Trimesh(1000 * head.template, head.faces, process=False)  # millimetres
     mesh.export(tmp_path / "me.obj")
     assert main(["rig", str(tmp_path / "me.obj"), "-o", str(tmp_path / "me.glb")]) == 0
     assert "units mm, up +y" in capsys.readouterr().out
+    rig_module._rig_file.cache_clear()
+    monkeypatch.setattr(rig_module, "rig_head", None)  # registering again would fail
+    saved = rig_module.load_rig(tmp_path / "me.obj")
+    rig_module._rig_file.cache_clear()
+    jaw = ARKIT_NAMES.index("jawOpen")
+    assert saved.units == "mm" and saved.landmarks == head_landmarks(head)
+    np.testing.assert_allclose(saved.blendshapes[jaw], 1000 * head.blendshapes[jaw], atol=1e-3)
     gltf, _ = read_glb(tmp_path / "me.glb")
     assert gltf["meshes"][0]["extras"]["targetNames"] == list(ARKIT_NAMES)
     weights = np.zeros((10, 52), np.float32)

@@ -406,7 +406,7 @@ def add_rig(sub: Subparsers) -> None:
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
-    from talkmesh.face.rig import load_mesh, read_landmarks, rig_head
+    from talkmesh.face.rig import load_mesh, read_landmarks, rig_head, save_registration
     from talkmesh.output.formats import save_animation
 
     out = Path(args.output)
@@ -428,6 +428,7 @@ def cmd_rig(args: argparse.Namespace) -> int:
             message if args.mesh in message else f"{args.mesh}: {message}"
         ) from None
     save_animation(rig.neutral_animation(), out, overwrite=args.overwrite)
+    save_registration(args.mesh, rig)  # `animate --head` on the same file reads it back
     if not args.quiet:
         parts = ", ".join(f"{n} {k}" for k, n in rig.parts.items()) or "none"
         print(

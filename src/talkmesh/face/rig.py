@@ -27,7 +27,7 @@
 comparison the bench makes). :meth:`Rig.carry` maps any motion of the bundled topology (a vertex
 model's prediction) onto the user's mesh through the same correspondence, and
 :meth:`Rig.carry_blocks` a whole animation (``talkmesh animate --head``; :func:`load_rig` registers
-a mesh file once per process).
+a mesh file once, and saves the registration for later runs: :mod:`talkmesh.face.rig_cache`).
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ from scipy.spatial import cKDTree
 from talkmesh.animation import Animation, AnimationBlocks
 from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.face import rig_cache
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import Head, load_head
 from talkmesh.face.landmarks import IDENTITY, Frame, eye_opening, find_landmarks
@@ -256,7 +257,8 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 def load_rig(path: str | Path) -> Rig:
     """The head mesh at ``path`` registered to the bundled head (the closest-point shapes: what
     :meth:`Rig.carry` needs), once per file and process (a CLI check and the workers forked
-    after it share it). One-line TalkmeshErrors for a file that is no head mesh."""
+    after it share it), and across runs through the saved registration of the same file bytes
+    (:mod:`talkmesh.face.rig_cache`). One-line TalkmeshErrors for a file that is no head mesh."""
     path = Path(path)
     if not path.is_file():
         raise TalkmeshError(f"{path}: no such file")
@@ -265,11 +267,69 @@ def load_rig(path: str | Path) -> Rig:
 
 @lru_cache(maxsize=2)
 def _rig_file(path: str, mtime: float) -> Rig:
+    vertices, faces = load_mesh(path)
+    head = load_head()
+    digest, head_id = rig_cache.file_digest(path), _head_id(head)
+    saved = rig_cache.load(digest, head_id, len(vertices), head.num_vertices)
+    if saved is not None:
+        arrays, landmarks = saved
+        return _closest_rig(vertices, faces, head, landmarks=landmarks, **arrays)
     try:
-        return rig_head(*load_mesh(path), method="closest")
+        rig = rig_head(vertices, faces, head, method="closest")
     except TalkmeshError as e:
         message = str(e)
         raise TalkmeshError(message if path in message else f"{path}: {message}") from None
+    rig_cache.save(digest, head_id, _correspondence(rig), rig.landmarks)
+    return rig
+
+
+def save_registration(path: str | Path, rig: Rig) -> None:
+    """Save ``rig``'s registration of the mesh file at ``path`` (``talkmesh rig``) for
+    :func:`load_rig` (``animate --head``) to read back instead of registering the file again."""
+    rig_cache.save(
+        rig_cache.file_digest(path), _head_id(load_head()), _correspondence(rig), rig.landmarks
+    )
+
+
+def _head_id(head: Head) -> str:
+    return rig_cache.head_fingerprint(head.template.tobytes(), head.faces.tobytes())
+
+
+def _correspondence(rig: Rig) -> dict[str, np.ndarray]:
+    """The arrays a saved registration keeps (``rig_cache.FIELDS``)."""
+    return {
+        "scale": np.float64(rig.scale),
+        "rotation": rig.rotation,
+        "translation": rig.translation,
+        "residual": np.float64(rig.residual),
+        "corners": rig.corners,
+        "weights": rig.weights,
+    }
+
+
+def _closest_rig(
+    vertices, faces, head, *, scale, rotation, translation, residual, corners, weights, landmarks
+) -> Rig:
+    """The closest-point Rig (``method="closest"``) from a correspondence: every vertex takes the
+    bundled offsets at its corresponding point (``weights`` over the ``corners``)."""
+    scale, residual = float(scale), float(residual)
+    return Rig(
+        vertices=np.asarray(vertices, np.float32),
+        faces=np.asarray(faces, np.int32),
+        blendshapes=_closest_shapes(head, corners, weights, scale, rotation).astype(np.float32),
+        scale=scale,
+        rotation=rotation,
+        translation=translation,
+        residual=residual,
+        landmarks=landmarks,
+        corners=corners,
+        weights=weights,
+    )
+
+
+def _closest_shapes(head, corners, weights, scale, rotation) -> np.ndarray:
+    """(52, V, 3) float64 the bundled shapes at each vertex's corresponding point, user axes."""
+    return scale * np.einsum("vc,kvcx->kvx", weights, head.blendshapes[:, corners]) @ rotation.T
 
 
 def read_landmarks(path: str | Path) -> dict[str, int]:
@@ -451,7 +511,7 @@ def rig_head(
     fade = np.clip((far - dist) / (far - near), 0.0, 1.0)
     corners = head_faces[face]
     weights = bary * fade[:, None]
-    guess = scale * np.einsum("vc,kvcx->kvx", weights, head.blendshapes[:, corners]) @ rotation.T
+    guess = _closest_shapes(head, corners, weights, scale, rotation)
     parts: dict[str, int] = {}
     if method == "transfer":
         labels = _components(faces, len(vertices))
