@@ -242,3 +242,47 @@ def test_failed_render_leaves_the_old_file_and_no_partial_file(tmp_path):
         render_video(talking(5, audio_seconds=0.2), target, 64, crf=-5)
     assert target.read_bytes() == b"old video"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mp4"]
+
+
+def dome(rows: int, cols: int, apex: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A head-like ellipsoid cap of rows x cols vertices (+ one at its top, fanned to the first
+    row): radii 0.08 x 0.11 x 0.09, facing +z, every vertex in a triangle."""
+    lat = np.linspace(0.15, 0.85 * np.pi, rows)[:, None]
+    lon = np.linspace(-0.6 * np.pi, 0.6 * np.pi, cols)[None, :]
+    grid = np.stack(
+        [np.sin(lat) * np.sin(lon), np.cos(lat) + 0 * lon, np.sin(lat) * np.cos(lon)], -1
+    )
+    vertices = (grid.reshape(-1, 3) * [0.08, 0.11, 0.09]).astype(np.float32)
+    at = np.arange(rows * cols).reshape(rows, cols)
+    a, b, c, d = at[:-1, :-1], at[:-1, 1:], at[1:, :-1], at[1:, 1:]
+    faces = np.concatenate([np.stack([a, c, b], -1), np.stack([b, c, d], -1)]).reshape(-1, 3)
+    if apex:
+        top = len(vertices)
+        vertices = np.concatenate([vertices, np.float32([[0, 0.11, 0]])])
+        fan = np.stack([np.full(cols - 1, top), at[0, :-1], at[0, 1:]], -1)
+        faces = np.concatenate([faces, fan])
+    return vertices, faces
+
+
+@pytest.mark.parametrize(
+    "name, rows, cols, apex, scale, shift",
+    [
+        ("FLAME", 81, 62, True, 1.0, (0.0, 0.0, 0.0)),  # 5023 vertices, metres
+        ("BIWI", 123, 190, False, 1000.0, (20.0, -30.0, 900.0)),  # 23370, millimetres, off-centre
+    ],
+)
+def test_any_topology_renders_framed_and_shaded(name, rows, cols, apex, scale, shift):
+    """Meshes of FLAME's and BIWI's vertex counts, in their units and placements, render in plain
+    skin colour, framed (the head fills a good part of the image, not all of it), shaded, from
+    both cameras."""
+    vertices, faces = dome(rows, cols, apex)
+    vertices = scale * vertices + np.float32(shift)
+    assert len(vertices) == {"FLAME": 5023, "BIWI": 23370}[name]
+    for camera in ("front", "three-quarter"):
+        with Renderer(faces, 96, reference=vertices, camera=camera) as renderer:
+            image = renderer.render(vertices).astype(float)
+        background = image[0, 0]
+        head = np.abs(image - background).max(-1) > 20
+        assert 0.15 < head.mean() < 0.9, (camera, head.mean())
+        skin = image[head]
+        assert skin[:, 0].mean() > skin[:, 2].mean() + 20 and skin[:, 0].std() > 3, camera
