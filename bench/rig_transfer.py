@@ -18,12 +18,15 @@ shape's own mean displacement, averaged over the 52 shapes (and the worst shape)
 jawOpen, truth vs transfer.
 
     PYTHONPATH=src python bench/rig_transfer.py [--quick] [--landmarks] [--automatic nose_tip,...]
+        [--no-pre-fit] [--only identity,coarser,...]
 
 ``--landmarks`` prints instead how far (mm) each landmark the rig places automatically (the nose
 tip, lips, mouth corners, chin and eye corners found on the user's mesh, the others placed from
 the registered head) lies from its true point. ``--automatic`` names the landmarks found on the
 mesh that hold the registration (default: all of ``rig.AUTOMATIC``; ``nose_tip`` alone is the fit
-before the others were found).
+before the others were found). ``--no-pre-fit`` starts the non-rigid solve from the rigid fit
+(the registration before the smoothed pull came first); ``--only`` keeps the cases whose names
+contain one of the words given.
 """
 
 from __future__ import annotations
@@ -127,12 +130,12 @@ def cases(head, quick: bool):
         )
 
 
-def landmark_table(head, quick: bool, automatic: tuple[str, ...]) -> None:
+def landmark_table(head, chosen, options) -> None:
     """The automatic landmarks' distance (mm) from the true points, per landmark and case."""
     print("| case | " + " | ".join(LANDMARK_NAMES) + " | mean |")
     print("|---|" + "---|" * (len(LANDMARK_NAMES) + 1))
-    for name, v, f, _, unit, at in cases(head, quick):
-        rig = rig_head(v, f, head, method="closest", automatic=automatic)
+    for name, v, f, _, unit, at in chosen:
+        rig = rig_head(v, f, head, method="closest", **options)
         placed = v[[rig.landmarks[k] for k in LANDMARK_NAMES]]
         err = np.linalg.norm(placed - at, axis=1) / unit * 1000
         print(f"| {name} | " + " | ".join(f"{e:.1f}" for e in err) + f" | {err.mean():.1f} |")
@@ -151,21 +154,32 @@ def main() -> None:
         default=",".join(AUTOMATIC),
         help="landmarks found on the mesh that hold the fit, comma-separated",
     )
+    parser.add_argument(
+        "--no-pre-fit",
+        action="store_true",
+        help="start the non-rigid solve from the rigid fit, not the smoothed pull",
+    )
+    parser.add_argument("--only", default="", help="cases whose names contain one of these words")
     args = parser.parse_args()
-    automatic = tuple(k for k in args.automatic.split(",") if k)
+    options = {
+        "automatic": tuple(k for k in args.automatic.split(",") if k),
+        "pre_fit": not args.no_pre_fit,
+    }
+    words = [w for w in args.only.split(",") if w]
     head = load_head()
+    chosen = (c for c in cases(head, args.quick) if not words or any(w in c[0] for w in words))
     if args.landmarks:
-        landmark_table(head, args.quick, automatic)
+        landmark_table(head, chosen, options)
         return
     print(
         "| case | method | vertices | units | up | mean err mm | worst shape mm | mean % | "
         "worst % | jaw gap mm true/ours | close+jaw gap mm true/ours | s |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, v, f, truth, unit, _ in cases(head, args.quick):
+    for name, v, f, truth, unit, _ in chosen:
         for method in METHODS:
             t = time.perf_counter()
-            rig = rig_head(v, f, head, method=method, automatic=automatic)
+            rig = rig_head(v, f, head, method=method, **options)
             seconds = time.perf_counter() - t
             err = np.linalg.norm(rig.blendshapes - truth, axis=2).mean(1) / unit * 1000
             mag = np.linalg.norm(truth, axis=2).mean(1) / unit * 1000
