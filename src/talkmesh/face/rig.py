@@ -4,12 +4,13 @@
 
 1. Registration (:mod:`talkmesh.face.registration`): rigid + scale (this gives the units, mm / cm
    / m, and the up-axis), a smoothed closest-point pull, then a non-rigid fit of the bundled
-   head's skin onto the user's surface started from it, held by landmarks (``LANDMARK_NAMES``): those the user gives as vertex ids (four or more also
-   start the rigid fit; they always win) and those found on the mesh's own geometry near where
-   the rigid fit puts them (:mod:`talkmesh.face.landmarks`: nose tip, lips and mouth corners from
-   the lip gap, chin, eye corners from the eye openings; ``AUTOMATIC`` names those that hold the
-   fit, and only where the mesh is no coarser there than ``COARSER`` times the bundled head); the
-   other landmarks are placed on the fitted head afterwards.
+   head's skin onto the user's surface started from it, held by landmarks (``LANDMARK_NAMES``):
+   those the user gives as vertex ids (four or more also start the rigid fit; they always win)
+   and those found on the mesh's own geometry near where the rigid fit puts them
+   (:mod:`talkmesh.face.landmarks`: nose tip, lips and mouth corners from the lip gap, chin, eye
+   corners from the eye openings; ``AUTOMATIC`` names those that hold the fit, and only where the
+   mesh is no coarser there than ``COARSER`` times the bundled head); the other landmarks are
+   placed on the fitted head afterwards.
 2. Checks: a mesh the bundled head cannot be fitted to is "not a head"; lips joined across the
    mouth (the shortest path over the surface from the upper to the lower lip landmark is shorter
    than ``SEALED_LIPS`` of the head's size) mean "no mouth opening": the jaw could not open.
