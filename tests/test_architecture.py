@@ -20,6 +20,7 @@ LEVELS: dict[str, int] = {
     "errors": 0,
     "constants": 0,
     "version": 0,
+    "heap": 0,
     "config": 1,
     "animation": 1,
     "audio": 2,

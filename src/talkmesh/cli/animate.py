@@ -158,6 +158,9 @@ def cmd_animate(args: argparse.Namespace) -> int:
 
     from talkmesh.batch import animate_batch, find_inputs, is_batch_source, write_summary
     from talkmesh.batch.summary import read_summary, with_earlier
+    from talkmesh.heap import fix_mmap_threshold
+
+    fix_mmap_threshold()  # flat memory on long audio (talkmesh.heap)
 
     sources = [Path(a) for a in args.audio]
     library = any(is_batch_source(p) for p in sources)
