@@ -18,8 +18,8 @@ are computed there. Each place the sessions compute (the server process, each wo
 own :class:`Lane`, a loop that ticks over its sessions alone: a worker's sessions never wait for
 another worker's tick or for the model steps, and they tick without ``--batch-wait-ms`` (their
 recognisers gain nothing from a batch), each tick taking the audio that arrived while the
-previous one computed. 32 procedural sessions on 2 cores: p95 latency 225 -> about 155 ms
-with the asynchronous worker calls (docs/results/serve-batching-2026-11-25.md).
+previous one computed. With the worker replies awaited on the event loop, 32 procedural
+sessions on 2 cores went from p95 217 to 113 ms (docs/results/serve-batching-2026-11-25.md).
 """
 
 from __future__ import annotations
