@@ -7,7 +7,7 @@ freed, the buffers that every block of a long run allocates and frees (feature w
 activations, frames) come from the heap instead, where freed space fragments and stays resident:
 `talkmesh animate` on the bundled model swung between 700 and 805 MB over 6 minutes of audio and
 its peak grew with the length. Fixing the threshold (which stops the raising) keeps those buffers
-mapped and returned: 640-680 MB, peak 711 MB on the same run (docs/results/long-audio.md).
+mapped and returned: 640-680 MB, peak 702 MB on the same run (docs/results/long-audio.md).
 """
 
 from __future__ import annotations

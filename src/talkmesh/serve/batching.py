@@ -88,8 +88,9 @@ class Lane:
     loop that ticks over them. Lanes tick independently: a worker's sessions never wait for
     another worker's tick or for the server's model steps."""
 
-    def __init__(self, scheduler: Scheduler, batch_wait_s: float) -> None:
+    def __init__(self, scheduler: Scheduler, key: Worker | None, batch_wait_s: float) -> None:
         self.scheduler = scheduler
+        self.key = key  # the worker computing its sessions (None: the server process)
         self.batch_wait_s = batch_wait_s
         self.works: list[Work] = []
         self.wake = anyio.Event()
@@ -143,7 +144,7 @@ class Scheduler:
             # recognisers run one after another whatever the batch): they tick at once, each
             # tick taking what arrived while the previous one computed
             wait = self.batch_wait_s if worker is None else 0.0
-            self.lanes[worker] = Lane(self, wait)
+            self.lanes[worker] = Lane(self, worker, wait)
         work.lane = self.lanes[worker]
         work.lane.join(work)
         return work
@@ -155,8 +156,8 @@ class Scheduler:
         if isinstance(work.stream, RemoteStream):
             work.stream.leave()
         lane.wake.set()  # the lane's loop ends once no session is left in it
-        if not lane.works and self.lanes.get(getattr(work.stream, "worker", None)) is lane:
-            del self.lanes[getattr(work.stream, "worker", None)]
+        if not lane.works and self.lanes.get(lane.key) is lane:
+            del self.lanes[lane.key]
 
     async def submit(self, work: Work, audio: np.ndarray | None) -> None:
         """Queue a session's audio (None: its end); waits while its backlog is too long."""

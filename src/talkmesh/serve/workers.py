@@ -145,7 +145,8 @@ def _serve_requests(conn, spares: int = 1) -> None:
 
 
 def _release(stream) -> None:
-    if stream is not None and hasattr(stream, "release"):
+    """A closed session's recogniser goes back to the worker's pool."""
+    if stream is not None:
         stream.release()
 
 
@@ -214,9 +215,7 @@ class Worker:
 
     async def tick(self, jobs: list[tuple[RemoteStream, list[np.ndarray], bool]]) -> list:
         """This worker's sessions' audio -> their frames or errors (``push_together``'s)."""
-        closed = []
-        while self.closed:  # appended to by the event loop meanwhile: pop, which is atomic
-            closed.append(self.closed.pop())
+        closed, self.closed = self.closed, []  # sessions that left since the last tick
         reply = await self.call(("tick", closed, [(s.sid, chunks, end) for s, chunks, end in jobs]))
         return [
             r if isinstance(r, Exception) else unpack(r, s.fps) for (s, _, _), r in zip(jobs, reply)
