@@ -3,6 +3,8 @@
 #   espeak-ng             speech synthesis for the demo; drives the MBROLA voices
 #   mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1
 #                         synthetic voices with exact phone timings (contrib / non-free)
+#   mbrola-af1 ... mbrola-tl1  the multilingual corpus's voices (talkmesh.audio.languages;
+#                         never the voices reserved for outside checks)
 #   festival festvox-*    four more synthetic voices with exact segment times (festvox-don: a fifth)
 #   flite libttspico-utils  more voices for corpora beyond 12 subjects (phones by forced alignment)
 #   pocketsphinx-testdata real recorded speech (LibriVox clips) used by tests and docs
@@ -12,6 +14,11 @@
 set -euo pipefail
 pkgs=(espeak-ng pocketsphinx-testdata alsa-utils
       mbrola mbrola-us1 mbrola-us2 mbrola-us3 mbrola-en1
+      mbrola-af1 mbrola-ar1 mbrola-ar2 mbrola-br3 mbrola-br4 mbrola-cr1 mbrola-de2 mbrola-de3
+      mbrola-de4 mbrola-de6 mbrola-ee1 mbrola-es2 mbrola-es3 mbrola-fr2 mbrola-fr4 mbrola-fr6
+      mbrola-hb1 mbrola-hb2 mbrola-ic1 mbrola-id1 mbrola-in1 mbrola-in2 mbrola-ir1 mbrola-it1
+      mbrola-it4 mbrola-jp1 mbrola-jp2 mbrola-jp3 mbrola-lt1 mbrola-lt2 mbrola-ma1 mbrola-mx1
+      mbrola-nl1 mbrola-nl3 mbrola-pt1 mbrola-tl1
       festival festvox-kallpc16k festvox-kdlpc16k festvox-rablpc16k festvox-us-slt-hts festvox-don
       flite libttspico-utils
       chromium)

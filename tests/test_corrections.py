@@ -34,6 +34,8 @@ PHONES = [
 ]
 T = 60
 t = (np.arange(T) + 0.5) / FPS
+# the pause gate on the pauses of PHONES (the tests' waves are tones, not speech)
+RECOGNISED = Corrections(mix=0.0, pauses="recognizer")
 
 
 def _open_mouth(head):
@@ -175,7 +177,9 @@ def test_the_gain_fades_with_the_pause_gate():
     assert ramp.sum() >= 2  # the gate closes and opens over a few frames
 
     def opening(pause_gate: bool, gain: float) -> np.ndarray:
-        fix = Corrections(pause_gate=pause_gate, mix=0.0, gain=gain, bilabial=False)
+        fix = Corrections(
+            pause_gate=pause_gate, mix=0.0, gain=gain, bilabial=False, pauses="recognizer"
+        )
         return _mm(head, correct_mouth(_open_mouth(head), head, PHONES, _wave(), FPS, fix))
 
     extra_gated = opening(True, 0.7) - opening(True, 0.0)
@@ -191,7 +195,7 @@ def test_the_gain_fades_with_the_pause_gate():
 def test_chunks_are_corrected_as_the_whole_clip(size):
     """Chunk edges next to the near-closure at frame 20: the look-ahead must see its neighbours."""
     head = load_head()
-    every = Corrections(pause_gate=True, lip_closure=True, mix=0.5, gain=0.3)
+    every = Corrections(pause_gate=True, lip_closure=True, mix=0.5, gain=0.3, pauses="recognizer")
     whole = correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, every)
     verts = _dipping(head)
     chunks = (verts[i : i + size] for i in range(0, T, size))
@@ -206,9 +210,7 @@ def test_chunks_are_corrected_as_the_whole_clip(size):
 def test_pause_gate_shuts_the_mouth_in_pauses():
     head = load_head()
     rest = float(_mm(head, head.template[None])[0])
-    gated = _mm(
-        head, correct_mouth(_open_mouth(head), head, PHONES, _wave(), FPS, Corrections(mix=0.0))
-    )
+    gated = _mm(head, correct_mouth(_open_mouth(head), head, PHONES, _wave(), FPS, RECOGNISED))
     assert np.all(np.abs(gated[(t >= 1.15) & (t < 1.35)] - rest) < 0.1)
     mixed = _mm(
         head,
@@ -264,3 +266,42 @@ def test_default_corrections_shut_a_reverberant_pause_the_bare_model_leaves_open
 
     # the echo hides most of the pause from the recogniser; the bare model stays ~8 mm open
     assert pause_mm(bare) > 3.0 and pause_mm(fixed) < 1.0
+
+
+def test_voice_activity_finds_pauses_in_real_speech_and_in_other_languages(tmp_path):
+    """The default pause gate needs no English: voice activity finds the pause between the
+    demo recording's two sentences, and between two German sentences; the gate shuts the mouth
+    there."""
+    import subprocess
+
+    from talkmesh.audio.loading import load_audio
+    from talkmesh.audio.vad import speech_pauses
+
+    demo = load_audio("examples/librivox-sense-and-sensibility.flac")
+    pauses = [p for p in speech_pauses(demo) if p.label == "SIL" and p.end - p.start >= 0.2]
+    assert any(2.7 < (p.start + p.end) / 2 < 3.4 for p in pauses), pauses
+    parts = []
+    for k, text in enumerate(["Mein Bruder baut ein Boot.", "Bitte bring mir Brot."]):
+        wav = tmp_path / f"de{k}.wav"
+        subprocess.run(["espeak-ng", "-v", "de", "-w", str(wav), text], check=True)
+        parts.append(load_audio(wav))
+    german = np.concatenate([parts[0], np.zeros(int(0.5 * SR), np.float32), parts[1]])
+    segments = speech_pauses(german)
+    assert sum(p.label == "SPEECH" for p in segments) >= 2
+    inner = [p for p in segments[1:-1] if p.label == "SIL"]
+    assert inner and max(p.end - p.start for p in inner) >= 0.4
+    assert segments[0].start == 0 and abs(segments[-1].end - len(german) / SR) < 1e-6
+    head = load_head()
+    n = int(len(german) / SR * FPS)
+    w = np.zeros((n, len(ARKIT_NAMES)), np.float32)
+    w[:, ARKIT_NAMES.index("jawOpen")] = 0.3
+    wide = head.vertices_from_weights(w)
+    gated = _mm(
+        head, correct_mouth(wide, head, [], german, FPS, Corrections(mix=0.0, bilabial=False))
+    )
+    gap = max(inner, key=lambda p: p.end - p.start)
+    mid = int((gap.start + gap.end) / 2 * FPS)
+    rest = float(_mm(head, head.template[None])[0])
+    assert abs(gated[mid] - rest) < 0.1
+    first_word = next(p for p in segments if p.label == "SPEECH")
+    assert gated[int((first_word.start + first_word.end) / 2 * FPS)] > rest + 3  # speech: open

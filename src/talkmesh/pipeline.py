@@ -16,7 +16,15 @@ from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, WeightFitter
 from talkmesh.face.assets import Head, load_head
-from talkmesh.face.corrections import BILABIAL, GAIN, MIX, NONE, Corrections, correct_mouth_chunks
+from talkmesh.face.corrections import (
+    BILABIAL,
+    GAIN,
+    MIX,
+    NONE,
+    PAUSE_SOURCE,
+    Corrections,
+    correct_mouth_chunks,
+)
 from talkmesh.face.lipsync import (
     SpeakingStyle,
     blink_gaze_weights,
@@ -79,6 +87,7 @@ def animate(
     procedural_mix: float = MIX,
     loudness_gain: float = GAIN,
     bilabial_closure: bool = BILABIAL,
+    pause_source: str = PAUSE_SOURCE,
 ) -> Animation:
     """Animate a face from speech.
 
@@ -119,6 +128,8 @@ def animate(
             its lip closures, in [0, 2]; 0 turns it off.
         bilabial_closure: learned models: shut the lips fully where the model nearly closes them
             by a /p b m/ that the phone recogniser finds.
+        pause_source: learned models: where the pause gate finds pauses, ``vad`` (voice
+            activity, any language) or ``recognizer`` (the English phone recogniser).
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
@@ -140,6 +151,7 @@ def animate(
         procedural_mix=procedural_mix,
         loudness_gain=loudness_gain,
         bilabial_closure=bilabial_closure,
+        pause_source=pause_source,
     ).collect()
 
 
@@ -176,6 +188,7 @@ def animate_blocks(
     procedural_mix: float = MIX,
     loudness_gain: float = GAIN,
     bilabial_closure: bool = BILABIAL,
+    pause_source: str = PAUSE_SOURCE,
     block: int = BLOCK,
 ) -> AnimationBlocks:
     """:func:`animate` a ``block`` of frames at a time (arguments as there): memory does not grow
@@ -202,7 +215,7 @@ def animate_blocks(
             "them or pass --model procedural"
         )
     corrections = Corrections(
-        pause_gate, lip_closure, procedural_mix, loudness_gain, bilabial_closure
+        pause_gate, lip_closure, procedural_mix, loudness_gain, bilabial_closure, pause_source
     )
     net, weights = _learned_model(model, head, style_mix, int8)
     fps = net.motion_fps if fps is None else fps
@@ -220,8 +233,8 @@ def animate_blocks(
             sample_rate=SAMPLE_RATE,
             template=head.template,
         )
-    if corrections != NONE:  # the recogniser corrects the model's mouth
-        phones = recognize_phones(wave, SAMPLE_RATE)
+    if corrections != NONE:  # the recogniser (English) and voice activity correct the mouth
+        phones = recognize_phones(wave, SAMPLE_RATE) if corrections.needs_phones else []
         chunks = correct_mouth_chunks(
             chunks, frames, head, phones, wave, fps, corrections, style=style, seed=seed
         )

@@ -51,6 +51,8 @@ class Voice:
     speed: int = 160  # espeak-ng -s (words per minute), MBROLA voices only
     description: str = ""
     phoneset: str = "radio"  # Festival voices: "radio" (US) or "mrpa" (British rab)
+    language: str = "en"  # espeak-ng language; MBROLA voices of other languages map their SAMPA
+    # dialect through talkmesh.audio.languages.sampa_label
 
 
 VOICES: tuple[Voice, ...] = (
@@ -177,18 +179,42 @@ def _run(cmd: list[str], **kw) -> subprocess.CompletedProcess:
         raise TalkmeshError(f"{cmd[0]} failed: {msg[-1] if msg else e.returncode}") from None
 
 
-def _phones_from_pho(pho: str) -> list[Phone]:
+def _phones_from_pho(pho: str, language: str = "en") -> list[Phone]:
+    """An MBROLA .pho file -> timed phones: each phone lasts exactly the ms the file gives it.
+
+    English voices use the ARPABET table above (an unknown symbol is an error); other languages'
+    SAMPA dialects go through :func:`talkmesh.audio.languages.sampa_label`.
+    """
+    from talkmesh.audio.languages import sampa_label
+
+    english = language.split("-")[0] == "en"
     phones, t = [], 0.0
     for line in pho.splitlines():
         parts = line.split()
         if len(parts) < 2 or line.startswith(";"):
             continue
         sym, ms = parts[0], float(parts[1])
-        if sym not in SAMPA_TO_ARPABET:
-            raise TalkmeshError(f"MBROLA phone '{sym}' has no ARPABET mapping")
-        phones.append(Phone(SAMPA_TO_ARPABET[sym], t, t + ms / 1000.0))
+        if english:
+            if sym not in SAMPA_TO_ARPABET:
+                raise TalkmeshError(f"MBROLA phone '{sym}' has no ARPABET mapping")
+            label = SAMPA_TO_ARPABET[sym]
+        else:
+            label = sampa_label(sym)
+        phones.append(Phone(label, t, t + ms / 1000.0))
         t += ms / 1000.0
     return phones
+
+
+def mbrola_voice(db: str, language: str, pitch: int = 50, speed: int = 160) -> Voice:
+    """An MBROLA voice of any language (``db``: the database, e.g. ``de2``), refused when it is
+    reserved for outside checks."""
+    from talkmesh.audio.languages import check_not_reserved
+
+    check_not_reserved(db, language)
+    name = f"mb-{db}" + ("" if (pitch, speed) == (50, 160) else f"-p{pitch}-s{speed}")
+    return Voice(
+        name, "mbrola", f"mb-{db}", pitch, speed, f"{language} (MBROLA {db})", language=language
+    )
 
 
 def _merge(phones: list[Phone], duration: float) -> list[Phone]:
@@ -239,7 +265,8 @@ def synthesize_mbrola(voice: Voice, text: str, wav: Path) -> tuple[list[Phone], 
     import soundfile as sf
 
     info = sf.info(str(wav))
-    return _merge(_phones_from_pho(pho), info.frames / info.samplerate), info.samplerate
+    phones = _phones_from_pho(pho, voice.language)
+    return _merge(phones, info.frames / info.samplerate), info.samplerate
 
 
 def _scheme_string(text: str) -> str:

@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 from talkmesh.audio.loading import SOUNDFILE_EXTENSIONS, audio_duration
 from talkmesh.errors import TalkmeshError, os_error_message
-from talkmesh.face.corrections import BILABIAL, GAIN, MIX
+from talkmesh.face.corrections import BILABIAL, GAIN, MIX, PAUSE_SOURCE
 from talkmesh.output import VIDEO_SIZE
 
 OK, SKIPPED, FAILED = "ok", "skipped", "failed"
@@ -52,6 +52,7 @@ class AnimateSettings:
     procedural_mix: float = MIX
     loudness_gain: float = GAIN
     bilabial_closure: bool = BILABIAL
+    pause_source: str = PAUSE_SOURCE
     int8: str | None = None
     size: int = VIDEO_SIZE
     camera: str = "front"
@@ -127,6 +128,7 @@ class Animator:
                 procedural_mix=s.procedural_mix,
                 loudness_gain=s.loudness_gain,
                 bilabial_closure=s.bilabial_closure,
+                pause_source=s.pause_source,
                 int8=self.int8,
             )
             # .npz and .npy stream as frames are made; the other formats get the whole animation

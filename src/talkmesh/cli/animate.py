@@ -19,7 +19,7 @@ from talkmesh.cli.common import (
 )
 from talkmesh.constants import INT8_LAYERS
 from talkmesh.errors import TalkmeshError
-from talkmesh.face.corrections import BILABIAL, GAIN, MIX
+from talkmesh.face.corrections import BILABIAL, GAIN, MIX, PAUSE_SOURCE, PAUSE_SOURCES
 from talkmesh.output import write_animation
 
 
@@ -94,8 +94,15 @@ def _add_corrections(a) -> None:
     a.add_argument(
         "--no-pause-gate",
         action="store_true",
-        help="learned models: keep the model's mouth in pauses instead of closing it where the "
-        "phone recogniser finds no speech",
+        help="learned models: keep the model's mouth in pauses instead of closing it where "
+        "nobody speaks",
+    )
+    a.add_argument(
+        "--pause-source",
+        choices=PAUSE_SOURCES,
+        default=PAUSE_SOURCE,
+        help="learned models: where the pause gate finds pauses: vad (voice activity, any "
+        "language; default) or recognizer (the English phone recogniser's silences)",
     )
     a.add_argument(
         "--lip-closure",
@@ -283,6 +290,7 @@ def animate_settings(args: argparse.Namespace):
         procedural_mix=args.procedural_mix,
         loudness_gain=args.loudness_gain,
         bilabial_closure=args.bilabial_closure,
+        pause_source=args.pause_source,
         int8=args.int8,
         size=args.size,
         camera=args.camera,

@@ -14,10 +14,25 @@ def add_synth(sub: Subparsers) -> None:
     sy = sub.add_parser("synth", help="make a multi-speaker synthetic talking-face corpus")
     sy.add_argument("--out", required=True, help="output directory (VOCASET layout)")
     sy.add_argument("--subjects", type=int, default=12, help="number of speakers (default 12)")
-    sy.add_argument("--sentences", type=int, default=40, help="sentences per speaker (default 40)")
+    sy.add_argument(
+        "--sentences",
+        type=int,
+        default=None,
+        help="sentences per speaker (default 40; with --multilingual, utterances per voice, 12)",
+    )
     sy.add_argument("--seed", type=int, default=0, help="seed (same seed, same bytes)")
     sy.add_argument("--workers", type=int, help="processes (default: all cores)")
     sy.add_argument("--overwrite", action="store_true", help="write into a non-empty directory")
+    sy.add_argument(
+        "--multilingual",
+        action="store_true",
+        help="the multilingual corpus: every MBROLA voice of talkmesh.audio.languages (19 "
+        "languages; held-out voices and never-trained languages make the test split), motion "
+        "truth from the teacher (lips met through /p b m/, rest in pauses)",
+    )
+    sy.add_argument(
+        "--languages", default="", help="with --multilingual: comma-separated codes (default all)"
+    )
     add_quiet(sy)
     sy.set_defaults(func=cmd_synth)
 
@@ -25,10 +40,28 @@ def add_synth(sub: Subparsers) -> None:
 def cmd_synth(args: argparse.Namespace) -> int:
     from talkmesh.datasets.synth import make_corpus
 
+    if args.multilingual:
+        from talkmesh.datasets.multilingual import make_multilingual_corpus
+
+        languages = [c for c in args.languages.split(",") if c] or None
+        info = make_multilingual_corpus(
+            Path(args.out),
+            utterances_per_voice=args.sentences or 12,
+            languages=languages,
+            seed=args.seed,
+            workers=args.workers,
+            progress=not args.quiet,
+            overwrite=args.overwrite,
+        )
+        if not args.quiet:
+            print(f"wrote {info}")
+        return 0
+    if args.languages:
+        raise TalkmeshError("--languages needs --multilingual")
     info = make_corpus(
         Path(args.out),
         subjects=args.subjects,
-        sentences=args.sentences,
+        sentences=40 if args.sentences is None else args.sentences,
         seed=args.seed,
         workers=args.workers,
         progress=not args.quiet,

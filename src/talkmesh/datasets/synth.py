@@ -79,14 +79,15 @@ def _subject_job(job: dict) -> list[dict]:
     import soundfile as sf
 
     from talkmesh.audio.loading import SAMPLE_RATE, resample
-    from talkmesh.audio.voices import get_voice, synthesize
+    from talkmesh.audio.voices import Voice, get_voice, synthesize
     from talkmesh.face.assets import load_head
     from talkmesh.face.lipsync import SpeakingStyle, phones_to_weights
+    from talkmesh.face.teacher import teach
 
     root = Path(job["root"])
     head = load_head(job["identity"])
     style = SpeakingStyle(**job["style"])
-    voice = get_voice(job["voice"])
+    voice = Voice(**job["voice_spec"]) if "voice_spec" in job else get_voice(job["voice"])
     names = [f"{job['subject']}_{sid}" for sid in job["sentence_ids"]]
     tmp_wavs = [root / "wav" / f"{n}.wav.tmp.wav" for n in names]
     results = synthesize(voice, list(zip(job["texts"], tmp_wavs)))
@@ -109,15 +110,32 @@ def _subject_job(job: dict) -> list[dict]:
         os.replace(str(wav_path) + ".tmp", wav_path)
         duration = len(audio) / sr
         num_frames = max(1, int(round(duration * DISK_FPS)))
+        audio16 = resample(audio, sr, SAMPLE_RATE) if sr != SAMPLE_RATE else audio
         weights = phones_to_weights(
             phones,
             num_frames,
             DISK_FPS,
-            audio=resample(audio, sr, SAMPLE_RATE) if sr != SAMPLE_RATE else audio,
+            audio=audio16,
             sr=SAMPLE_RATE,
             style=style,
             seed=job["seed"] * 1000 + k,
         ).astype(np.float32)
+        if job.get("teacher"):
+            teach(
+                weights,
+                phones,
+                DISK_FPS,
+                head,
+                audio=audio16,
+                jaw_scale=style.jaw * style.articulation,
+            )
+        if job.get("phones_dir"):
+            _atomic_write(
+                Path(job["phones_dir"]) / f"{name}.json",
+                json.dumps(
+                    [[p.label, round(p.start, 6), round(p.end, 6)] for p in phones]
+                ).encode(),
+            )
         vertices = head.vertices_from_weights(weights).reshape(num_frames, -1).astype(np.float32)
         _atomic_write(root / "vertices_npy" / f"{name}.npy", _npy_bytes(vertices))
         _atomic_write(root / "arkit" / f"{name}.npy", _npy_bytes(weights))

@@ -6,8 +6,10 @@ pauses of real recordings, miss lip closures and open less on vowels than the pr
 phones, supply what the model lacks. Five corrections, each with its own switch
 (:class:`Corrections`), move the mouth region (``Regions.mouth_weight``) only:
 
-* ``pause_gate``: the mouth shuts in recognised pauses (:mod:`talkmesh.face.pauses`), their
-  starts moved back over a reverberant tail;
+* ``pause_gate``: the mouth shuts in pauses (:mod:`talkmesh.face.pauses`), their starts moved
+  back over a reverberant tail; the pauses come from a voice activity detector trained on many
+  languages (``pauses="vad"``, :mod:`talkmesh.audio.vad`, the default) or from the English phone
+  recogniser (``pauses="recognizer"``, the default until 2026-11-27);
 * ``mix``: a share of the procedural animator's mouth everywhere except at the model's own lip
   closures (so it does not lift them): the mouth follows the loudness more closely;
 * ``gain``: the model's mouth opens further where the audio is loud (its displacement from the
@@ -61,6 +63,8 @@ GAIN = 0.7  # the loudest speech opens the model's mouth this much further (vowe
 LOUDNESS_SPAN_DB = 30.0  # from this far under the clip's speech level (no gain) up to it (full)
 LOUDNESS_SMOOTH_S = 0.1  # the loudness is a moving average over this long
 BLOCK = 2048  # frames of procedural vertices built at once (ten minutes would not fit)
+PAUSE_SOURCES = ("vad", "recognizer")
+PAUSE_SOURCE = "vad"  # any language; "recognizer": the English phone recogniser's pauses
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,8 @@ class Corrections:
         mix: share of the procedural animator's mouth, in [0, 1] (0: none).
         gain: how much further the loudest speech opens the mouth, in [0, 2] (0: none).
         bilabial: shut the lips fully at the model's near-closures by a recognised /p b m/.
+        pauses: where the pause gate finds pauses: ``vad`` (voice activity, any language) or
+            ``recognizer`` (the English phone recogniser's silences).
     """
 
     pause_gate: bool = True
@@ -80,8 +86,18 @@ class Corrections:
     mix: float = MIX
     gain: float = GAIN
     bilabial: bool = BILABIAL
+    pauses: str = PAUSE_SOURCE
+
+    @property
+    def needs_phones(self) -> bool:
+        """Whether a correction reads the recognised phones (not only the pauses)."""
+        return self.mix > 0 or self.bilabial or (self.pause_gate and self.pauses == "recognizer")
 
     def __post_init__(self):
+        if self.pauses not in PAUSE_SOURCES:
+            raise TalkmeshError(
+                f"--pause-source must be one of {', '.join(PAUSE_SOURCES)}, got {self.pauses!r}"
+            )
         if not 0.0 <= self.mix <= 1.0:
             raise TalkmeshError(f"--procedural-mix must be in [0, 1], got {self.mix:g}")
         if not 0.0 <= self.gain <= 2.0:
@@ -107,6 +123,15 @@ def loudness_curve(wave: np.ndarray, num_frames: int, fps: float) -> np.ndarray:
     loud = np.convolve(loud, np.ones(k) / k, mode="same")
     at = ((np.arange(num_frames) + 0.5) / fps / HOP_S).astype(int)
     return loud[np.clip(at, 0, len(loud) - 1)].astype(np.float32)
+
+
+def find_pauses(wave: np.ndarray, corrections: Corrections, phones: list[Phone]) -> list[Phone]:
+    """The pause gate's segments: voice activity (any language) or the recognised ``phones``."""
+    if corrections.pauses == "vad":
+        from talkmesh.audio.vad import speech_pauses
+
+        return speech_pauses(wave)
+    return phones
 
 
 def near_closures(opening: np.ndarray, rest: float, within: float = NEAR_CLOSED_MM) -> np.ndarray:
@@ -150,17 +175,28 @@ def correct_mouth(
     *,
     style: SpeakingStyle | None = None,
     seed: int = 0,
+    pauses: list[Phone] | None = None,
 ) -> np.ndarray:
     """(T, V, 3) ``vertices`` of a learned model with their mouth corrected, in place.
 
     ``phones`` are recognised from ``wave`` ((S,) at 16 kHz); ``head`` is the face the vertices
     animate (its template is the closed mouth, its blendshapes make the procedural animator's
-    mouth); ``style`` and ``seed`` as in :func:`phones_to_weights`.
+    mouth); ``style`` and ``seed`` as in :func:`phones_to_weights`. ``pauses``: the pause gate's
+    ``SIL`` segments (default: found as ``corrections.pauses`` says).
     """
     T, V, _ = vertices.shape
     assert V == head.num_vertices, (V, head.num_vertices)
     chunks = correct_mouth_chunks(
-        iter([vertices]), T, head, phones, wave, fps, corrections, style=style, seed=seed
+        iter([vertices]),
+        T,
+        head,
+        phones,
+        wave,
+        fps,
+        corrections,
+        style=style,
+        seed=seed,
+        pauses=pauses,
     )
     for _ in chunks:
         pass
@@ -178,6 +214,7 @@ def correct_mouth_chunks(
     *,
     style: SpeakingStyle | None = None,
     seed: int = 0,
+    pauses: list[Phone] | None = None,
 ) -> Iterator[np.ndarray]:
     """:func:`correct_mouth` on consecutive (t, V, 3) chunks of ``num_frames`` frames, each
     corrected in place and yielded in order: the same frames as the whole clip at once.
@@ -200,7 +237,9 @@ def correct_mouth_chunks(
     if corrections.mix > 0:
         weights = phones_to_weights(phones, num_frames, fps, audio=wave, style=style, seed=seed)
     if corrections.pause_gate:
-        gate = speech_gate(tail_pauses(phones, wave), num_frames, fps)
+        if pauses is None:
+            pauses = find_pauses(wave, corrections, phones)
+        gate = speech_gate(tail_pauses(pauses, wave), num_frames, fps)
     opening: np.ndarray | None = None
     pending: list[np.ndarray] = []
     done = known = 0  # frames yielded, frames whose opening is known

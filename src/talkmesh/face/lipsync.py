@@ -59,7 +59,7 @@ MOUTH_TO_ARKIT = {
     "tongue": ("tongueOut",),
 }
 
-VOWELS = frozenset("AA AE AH AO AW AY EH ER EY IH IY OW OY UH UW".split())
+VOWELS = frozenset("AA AE AH AO AW AY EH ER EY IH IY OW OY UH UW UY OE".split())
 # Diphthongs glide between two targets: first half, second half.
 DIPHTHONGS = {
     "AW": ("AA", "UH"),
@@ -81,6 +81,9 @@ VISEMES: dict[str, dict[str, float]] = {
     "UH": {"jaw": 0.16, "funnel": 0.4, "pucker": 0.35},
     "IY": {"jaw": 0.1, "stretch": 0.5, "smile": 0.3},
     "UW": {"jaw": 0.08, "pucker": 0.85, "funnel": 0.35},
+    # rounded front vowels (German ü ö, French u eu, ...): lips rounded, tongue front
+    "UY": {"jaw": 0.1, "pucker": 0.75, "funnel": 0.25, "stretch": 0.05},
+    "OE": {"jaw": 0.2, "pucker": 0.5, "funnel": 0.4},
     "P": {"press": 0.55, "rollLower": 0.1, "rollUpper": 0.1},
     "F": {"jaw": 0.04, "rollLower": 0.65, "upperUp": 0.15, "shrugUpper": 0.15},
     "TH": {"jaw": 0.1, "tongue": 0.35, "lowerDown": 0.1},
@@ -128,6 +131,8 @@ DOMINANCE: dict[str, dict[str, float]] = {
     "F": {**_LIP_CLOSURE, "upperUp": 5.0, "rollLower": 6.0},
     "W": {"pucker": 5.0, "funnel": 3.0, "jaw": 2.0},
     "UW": {"pucker": 3.0, "funnel": 2.0},
+    "UY": {"pucker": 3.0, "funnel": 2.0},
+    "OE": {"pucker": 2.5, "funnel": 2.0},
     "SH": {"funnel": 3.0, "pucker": 2.0},
     "S": {"jaw": 2.0, "stretch": 1.5},
     "TH": {"tongue": 4.0},

@@ -111,6 +111,35 @@ class Recipe:
     data: DataConfig = DataConfig()
     train: TrainConfig = TrainConfig()
     init: str | None = None
+    # a release whose weights start this stage where their shapes match (a model trained on
+    # other speakers: everything but the style table); the rest keeps its initialisation
+    warm_start: str | None = None
+
+
+def warm_start(model, release: Path) -> tuple[int, list[str]]:
+    """Copies every tensor of the release at ``release`` whose name and shape match into
+    ``model``, except in frozen parts (a stage's ``init``: stage 2's VQ-VAE); returns (tensors
+    copied, names left as they were)."""
+    from talkmesh.models.release import load_model
+
+    source = load_model(release).state_dict()
+    own = model.state_dict()
+    frozen = tuple(
+        f"{name}."
+        for name, child in model.named_children()
+        if any(True for _ in child.parameters())
+        and not any(p.requires_grad for p in child.parameters())
+    )
+    copied, skipped = {}, []
+    for name, tensor in own.items():
+        if name.startswith(frozen):
+            continue
+        if name in source and source[name].shape == tensor.shape:
+            copied[name] = source[name]
+        else:
+            skipped.append(name)
+    model.load_state_dict(copied, strict=False)
+    return len(copied), skipped
 
 
 def load_recipe(path: str | Path | None, overrides: list[str] = ()) -> Recipe:
@@ -596,6 +625,9 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     info = dataset_info(train_set)
     init = _init_path(recipe.init)
     system = build_system(recipe, info, init)
+    if recipe.warm_start and ckpt is None:
+        copied, skipped = warm_start(system.model, _init_path(recipe.warm_start))
+        print(f"warm start from {recipe.warm_start}: {copied} tensors; kept {', '.join(skipped)}")
     if ckpt is not None:  # every check before the first write into the run folder
         checkpoints.check_state_shapes(ckpt, system.state_dict())
         checkpoints.announce(ckpt)

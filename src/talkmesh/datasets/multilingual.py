@@ -1,0 +1,153 @@
+"""``talkmesh synth --multilingual``: the synthetic corpus in many languages, with the teacher's truth.
+
+Every voice of :data:`talkmesh.audio.languages.LANGUAGES` is a subject: its ``train`` voices make
+the train split (one per language goes to val where a language has three or more), its ``test``
+voices (held-out voices of trained languages, and every voice of the never-trained languages) the
+test split. Each utterance is two of the language's sentences with the pause between them, read by
+an MBROLA voice at the pitch and rate given to its subject; the motion truth is the procedural
+animator with the teacher's rules (:mod:`talkmesh.face.teacher`) on the synthesiser's exact phone
+timings, which are also saved (``phones/NAME.json``: ``[[label, start, end], ...]``) for the
+multilingual benchmark.
+
+The layout is the synthetic corpus's (:mod:`talkmesh.datasets.synth`), so training and
+evaluation read it unchanged. Voices reserved for outside checks are refused
+(:func:`talkmesh.audio.languages.check_not_reserved`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from talkmesh.datasets import synth
+from talkmesh.datasets.synth import CorpusInfo, _atomic_write, _check_request
+from talkmesh.errors import TalkmeshError
+
+FORMAT_VERSION = 2  # the teacher's truth and saved phone timings
+
+
+def utterances(sentences: tuple[str, ...], count: int, rng: np.random.Generator) -> list[str]:
+    """``count`` texts of two different sentences each (a pause between them), no pair twice."""
+    pairs = list(itertools.permutations(range(len(sentences)), 2))
+    order = rng.permutation(len(pairs))[:count]
+    return [f"{sentences[pairs[k][0]]} {sentences[pairs[k][1]]}" for k in order]
+
+
+def plan_subjects(languages: list[str] | None = None) -> list[tuple[str, str, str]]:
+    """(split, language code, MBROLA database) of every subject, in corpus order."""
+    from talkmesh.audio.languages import LANGUAGES, check_not_reserved
+
+    chosen = [lang for lang in LANGUAGES if languages is None or lang.code in languages]
+    unknown = set(languages or ()) - {lang.code for lang in LANGUAGES}
+    if unknown:
+        raise TalkmeshError(f"unknown language(s) {', '.join(sorted(unknown))}")
+    out = []
+    for lang in chosen:
+        for k, db in enumerate(lang.train):
+            check_not_reserved(db, lang.code)
+            out.append(("val" if k == 2 else "train", lang.code, db))
+        for db in lang.test:
+            check_not_reserved(db, lang.code)
+            out.append(("test", lang.code, db))
+    return out
+
+
+def installed(db: str) -> bool:
+    return (Path("/usr/share/mbrola") / db / db).is_file()
+
+
+def make_multilingual_corpus(
+    out: str | Path,
+    *,
+    utterances_per_voice: int = 10,
+    languages: list[str] | None = None,
+    seed: int = 0,
+    workers: int | None = None,
+    progress: bool = True,
+    overwrite: bool = False,
+) -> CorpusInfo:
+    """Write the multilingual corpus to ``out``; returns a summary."""
+    from talkmesh.audio.languages import get_language
+    from talkmesh.audio.voices import mbrola_voice
+    from talkmesh.face.assets import list_identities
+    from talkmesh.face.lipsync import SpeakingStyle
+
+    root = Path(out)
+    _check_request(root, 1, utterances_per_voice, overwrite)
+    plan = [row for row in plan_subjects(languages) if installed(row[2])]
+    if not plan:
+        raise TalkmeshError(
+            "no MBROLA voice of the chosen languages is installed: "
+            "`sudo apt-get install mbrola-de2 mbrola-fr2 ...` (see docs/results/multilingual.md)"
+        )
+    rng = np.random.default_rng(seed)
+    identities = list_identities()
+    jobs, subjects, texts, splits = [], {}, {}, {"train": {}, "val": {}, "test": {}}
+    ids = [f"utt{k + 1:02d}" for k in range(utterances_per_voice)]
+    for s, (split, code, db) in enumerate(plan):
+        lang = get_language(code)
+        identity = identities[s % len(identities)]
+        subject = f"ML_{code.replace('-', '')}_{db}_{identity}"
+        pitch, speed = int(rng.integers(35, 66)), int(rng.integers(135, 186))
+        voice = mbrola_voice(db, code, pitch, speed)
+        style = SpeakingStyle.random(rng)
+        mine = utterances(lang.sentences, utterances_per_voice, rng)
+        subjects[subject] = {
+            "identity": identity,
+            "voice": voice.name,
+            "engine": voice.engine,
+            "language": code,
+            "family": lang.family,
+            "style": asdict(style),
+        }
+        texts.update({f"{subject}_{i}": t for i, t in zip(ids, mine)})
+        splits[split][subject] = ids
+        jobs.append(
+            {
+                "root": str(root),
+                "subject": subject,
+                "identity": identity,
+                "voice_spec": asdict(voice),
+                "style": asdict(style),
+                "texts": mine,
+                "sentence_ids": ids,
+                "seed": seed * 100 + s,
+                "teacher": True,
+                "phones_dir": str(root / "phones"),
+            }
+        )
+    for sub in ("wav", "vertices_npy", "arkit", "regions", "phones"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    total_s = synth._run_jobs(jobs, len(jobs) * utterances_per_voice, workers, progress)
+    num_vertices = synth._write_shared(root, subjects)
+    manifest = {
+        "format": synth.FORMAT,
+        "version": FORMAT_VERSION,
+        "seed": seed,
+        "fps": synth.DISK_FPS,
+        "motion_fps": synth.MOTION_FPS,
+        "num_vertices": num_vertices,
+        "faces_file": synth.FACES_FILE,
+        "train_subjects": list(splits["train"]),
+        "splits": splits,
+        "subjects": subjects,
+        "sentences": texts,
+        "teacher": True,
+    }
+    _atomic_write(
+        root / "manifest.json", (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode()
+    )
+    size = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
+    return CorpusInfo(root, len(jobs), len(jobs) * utterances_per_voice, total_s, size / 1e6)
+
+
+def read_phones(root: Path, name: str):
+    """The exact phone timings of one sequence (``phones/NAME.json``)."""
+    from talkmesh.audio.phonemes import Phone
+
+    rows = json.loads((Path(root) / "phones" / f"{name}.json").read_text())
+    return [Phone(str(label), float(a), float(b)) for label, a, b in rows]

@@ -1,0 +1,130 @@
+"""The teacher's rules on small cases: lips met through /p b m/, rest in pauses, rounding, open
+vowels by loudness; and the phone labels of other languages' SAMPA."""
+
+import numpy as np
+import pytest
+
+from talkmesh.audio.languages import sampa_label
+from talkmesh.audio.phonemes import SILENCE, Phone
+from talkmesh.face.assets import lip_opening, load_head
+from talkmesh.face.lipsync import INDEX, SpeakingStyle, phones_to_weights
+from talkmesh.face.teacher import (
+    CLOSURE_MM,
+    MOUTH_CHANNELS,
+    REST_RAMP_S,
+    close_lips,
+    pause_gate,
+    teach,
+)
+
+FPS = 60.0
+
+
+def _phones(spec):
+    out, t = [], 0.0
+    for label, dur in spec:
+        out.append(Phone(label, t, t + dur))
+        t += dur
+    return out, t
+
+
+def _animate(spec, head, audio=None, style=None):
+    phones, total = _phones(spec)
+    n = int(round(total * FPS))
+    w = phones_to_weights(phones, n, FPS, style=style or SpeakingStyle(), seed=0)
+    raw = w.copy()
+    teach(w, phones, FPS, head, audio=audio, sr=16_000)
+    return phones, raw, w
+
+
+@pytest.fixture(scope="module")
+def head():
+    return load_head()
+
+
+def _opening_mm(head, w):
+    return lip_opening(head.vertices_from_weights(w), head.regions) * 1000
+
+
+def test_lips_meet_through_every_bilabial(head):
+    spec = [(SILENCE, 0.3), ("AA", 0.12), ("P", 0.06), ("AA", 0.12), ("M", 0.05), ("IY", 0.1)]
+    spec += [("B", 0.04), ("AE", 0.15), (SILENCE, 0.3)]
+    phones, raw, w = _animate(spec, head)
+    centres = (np.arange(len(w)) + 0.5) / FPS
+    before, after = _opening_mm(head, raw), _opening_mm(head, w)
+    for p in phones:
+        if p.label in {"P", "B", "M"}:
+            inside = (centres >= p.start) & (centres < p.end)
+            assert inside.any()
+            assert after[inside].max() <= CLOSURE_MM, (p, after[inside])
+            assert before[inside].max() > CLOSURE_MM  # the animator alone leaves them apart
+
+
+def test_closure_solve_reaches_the_target_from_a_wide_open_frame(head):
+    w = np.zeros((3, 52), np.float32)
+    w[:, INDEX["jawOpen"]] = 0.4
+    w[:, INDEX["mouthFunnel"]] = 0.3
+    mask = close_lips(w, [Phone("M", 0.0, 3 / FPS)], FPS, head)
+    assert mask.all()
+    assert _opening_mm(head, w).max() <= CLOSURE_MM
+    assert ((w >= 0) & (w <= 1)).all()
+
+
+def test_mouth_rests_in_long_pauses_not_in_short_ones(head):
+    spec = [("AA", 0.2), (SILENCE, 0.4), ("AA", 0.2), (SILENCE, 0.1), ("AE", 0.2)]
+    phones, raw, w = _animate(spec, head)
+    t = np.arange(len(w)) / FPS
+    long_pause = (t > 0.2 + REST_RAMP_S + 1e-6) & (t < 0.6 - REST_RAMP_S - 1e-6)
+    assert np.abs(w[long_pause][:, MOUTH_CHANNELS]).max() == 0.0
+    assert np.abs(raw[long_pause][:, MOUTH_CHANNELS]).max() > 0.01  # the animator drifts there
+    short = (t > 0.82) & (t < 0.88)
+    assert w[short][:, INDEX["jawOpen"]].max() > 0.0  # a 100 ms gap is no rest
+    gate = pause_gate(phones, FPS, len(w))
+    assert gate.min() == 0.0 and gate.max() == 1.0
+
+
+def test_rounded_vowels_of_every_language_round_the_lips(head):
+    for label in ("UY", "OE", "UW", "OW"):
+        _, _, w = _animate([(SILENCE, 0.2), (label, 0.2), (SILENCE, 0.2)], head)
+        mid = int(0.3 * FPS)
+        assert w[mid, INDEX["mouthPucker"]] > 0.3, label
+    _, _, spread = _animate([(SILENCE, 0.2), ("IY", 0.2), (SILENCE, 0.2)], head)
+    assert spread[int(0.3 * FPS), INDEX["mouthPucker"]] < 0.05
+
+
+def test_labiodentals_tuck_the_lower_lip(head):
+    _, _, w = _animate([("AA", 0.15), ("F", 0.1), ("AA", 0.15)], head)
+    assert w[int(0.2 * FPS), INDEX["mouthRollLower"]] > 0.4
+
+
+def test_open_vowels_open_with_loudness(head):
+    spec = [(SILENCE, 0.2), ("AA", 0.1), (SILENCE, 0.3), ("AA", 0.1), (SILENCE, 0.2)]
+    sr = 16_000
+    t = np.arange(int(0.9 * sr)) / sr
+    tone = np.sin(2 * np.pi * 150 * t)
+    audio = np.zeros_like(t)
+    loud, soft = (t >= 0.2) & (t < 0.3), (t >= 0.6) & (t < 0.7)
+    audio[loud] = 0.8 * tone[loud]
+    audio[soft] = 0.1 * tone[soft]  # 18 dB softer
+    phones, raw, w = _animate(spec, head, audio=audio.astype(np.float32))
+    op = _opening_mm(head, w)
+    a, b = op[int(0.2 * FPS) : int(0.3 * FPS)].max(), op[int(0.6 * FPS) : int(0.7 * FPS)].max()
+    assert a > 1.5 * b
+    assert a > _opening_mm(head, raw)[int(0.2 * FPS) : int(0.3 * FPS)].max()
+
+
+@pytest.mark.parametrize(
+    "symbol,label",
+    [
+        ("y", "UY"), ("y:", "UY"), ("Y", "UY"), ("2:", "OE"), ("9", "OE"), ("9~", "OE"),
+        ("u:", "UW"), ("o", "OW"), ("O", "AO"), ("a:", "AA"), ("a~", "AA"), ("p", "P"),
+        ("b", "B"), ("m", "M"), ("f", "F"), ("v", "V"), ("pf", "F"), ("_", SILENCE),
+        ("p_h", "P"), ("bh", "B"), ("R", "G"), ("w", "W"), ("H", "W"), ("zz!", "Z"),
+    ],
+)  # fmt: skip
+def test_sampa_of_any_voice_maps_to_the_animator_labels(symbol, label):
+    assert sampa_label(symbol) == label
+
+
+def test_an_unknown_symbol_is_speech_not_silence():
+    assert sampa_label("QQQ") not in (SILENCE, "")
