@@ -42,8 +42,8 @@ import time
 import torch
 
 from talkmesh.audio.loading import SAMPLE_RATE
-from talkmesh.models.codetalker import CodeTalker, paper_vocaset_config, small_synth_config
-from talkmesh.models.codetalker_generate import FrameGenerator
+from talkmesh.models.codetalker.generate import FrameGenerator
+from talkmesh.models.codetalker.model import CodeTalker, paper_vocaset_config, small_synth_config
 from talkmesh.models.int8 import quantize_int8
 
 SR = SAMPLE_RATE

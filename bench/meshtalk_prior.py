@@ -19,7 +19,7 @@ from functools import partial
 import torch
 
 from talkmesh.audio.loading import SAMPLE_RATE
-from talkmesh.models.meshtalk_prior import AutoregressivePrior, prior_config
+from talkmesh.models.meshtalk.prior import AutoregressivePrior, prior_config
 
 FPS = 30.0
 

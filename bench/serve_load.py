@@ -102,7 +102,7 @@ def untrained_stream_model(out: Path) -> Path:
 
     from talkmesh.config import read_yaml
     from talkmesh.face.assets import load_head
-    from talkmesh.models.codetalker import CodeTalker
+    from talkmesh.models.codetalker.model import CodeTalker
     from talkmesh.models.release import save_model
     from talkmesh.training.codetalker import build_config
     from talkmesh.training.trainer import DatasetInfo

@@ -24,7 +24,7 @@ ROWS: list[list[tuple[str, str]]] = [
     [("core", "constants, errors, config, animation")],
     [("audio", "load + resample, phones, voices")],
     [("face", "head, ARKit rig, procedural lip sync")],
-    [("models", "one interface, a file per family"), ("datasets", "readers, synthetic corpus")],
+    [("models", "one interface, a folder per family"), ("datasets", "readers, synthetic corpus")],
     [("output", "formats registry, renderer")],
     [("pipeline", "animate()"), ("retarget", "retarget, dub")],
     [("training", "recipes, Lightning system"), ("batch", "libraries, Ray cluster")],

@@ -11,8 +11,8 @@ import pytest
 import torch
 from fixtures import TINY_WAV2VEC2
 
-from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
-from talkmesh.models.codetalker_vq import VQConfig
+from talkmesh.models.codetalker.model import CodeTalker, CodeTalkerConfig, Stage2Config
+from talkmesh.models.codetalker.vq import VQConfig
 from talkmesh.models.speech import SpeechEncoderConfig
 
 TINY_V = 20  # vertices of the tiny model's face

@@ -209,3 +209,64 @@ def test_size_check_can_fail(tmp_path):
     assert size_violations(tmp_path) == [f"talkmesh/long.py:1 f(): {MAX_FUNCTION_LINES + 1} lines"]
     (pkg / "big.py").write_text("x = 1\n" * (MAX_MODULE_LINES + 1))
     assert f"talkmesh/big.py: {MAX_MODULE_LINES + 1} lines" in size_violations(tmp_path)
+
+
+MODELS = SRC / "talkmesh" / "models"
+
+
+def family_folders(models: Path) -> set[str]:
+    """The folders of talkmesh/models: one per model family (docs/adding-a-model.md)."""
+    return {p.parent.name for p in models.glob("*/__init__.py")}
+
+
+def family_violations(graph: dict[str, set[str]], families: set[str]) -> list[str]:
+    """A family folder imports the shared models modules and its own files, never another
+    family; the shared modules reach a family only through the registry's names."""
+
+    def family(module: str) -> str | None:
+        parts = module.split(".")
+        return (
+            parts[2] if len(parts) > 2 and parts[1] == "models" and parts[2] in families else None
+        )
+
+    bad = []
+    for module, deps in sorted(graph.items()):
+        if unit(module) != "models" or module == "talkmesh.models":
+            continue
+        for dep in sorted(deps):
+            if unit(dep) == "models" and family(dep) not in (None, family(module)):
+                who = f"the {family(module)} family" if family(module) else "a shared module"
+                bad.append(f"{module} -> {dep}: {who} may not import the {family(dep)} family")
+    return bad
+
+
+def test_one_folder_per_family_in_the_registry():
+    from talkmesh.models.registry import FAMILY_MODELS, family_package
+
+    assert family_folders(MODELS) == set(FAMILY_MODELS)
+    assert all(family_package(f) == f"talkmesh.models.{f}" for f in FAMILY_MODELS)
+    # names that carry a family belong in its folder
+    flat = {p.stem for p in MODELS.glob("*.py")}
+    assert not [n for n in flat for f in FAMILY_MODELS if n.startswith(f) or n.endswith(f)]
+
+
+def test_families_import_only_shared_modules_and_their_own_folder():
+    assert family_violations(import_graph(SRC), family_folders(MODELS)) == []
+
+
+def test_family_check_can_fail(tmp_path):
+    copy = tmp_path / "src"
+    shutil.copytree(
+        SRC / "talkmesh", copy / "talkmesh", ignore=shutil.ignore_patterns("data", "static")
+    )
+    voca = copy / "talkmesh" / "models" / "voca" / "model.py"
+    voca.write_text(voca.read_text() + "\nfrom talkmesh.models.codetalker.vq import VQConfig\n")
+    layers = copy / "talkmesh" / "models" / "layers.py"
+    layers.write_text(layers.read_text() + "\nimport talkmesh.models.meshtalk.prior\n")
+    bad = family_violations(import_graph(copy), family_folders(copy / "talkmesh" / "models"))
+    assert bad == [
+        "talkmesh.models.layers -> talkmesh.models.meshtalk.prior: a shared module may not "
+        "import the meshtalk family",
+        "talkmesh.models.voca.model -> talkmesh.models.codetalker.vq: the voca family may not "
+        "import the codetalker family",
+    ]

@@ -178,7 +178,7 @@ def test_finetune_continues_a_release_on_augmented_audio(corpus, tmp_path):
     import torch
 
     from talkmesh.datasets.reader import open_dataset
-    from talkmesh.models.codetalker import CodeTalker
+    from talkmesh.models.codetalker.model import CodeTalker
     from talkmesh.models.release import load_model, save_model
     from talkmesh.training.trainer import load_recipe, train
 

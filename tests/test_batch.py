@@ -110,7 +110,7 @@ def test_a_list_of_paths(library, tmp_path, capsys):
 def test_the_model_is_loaded_once_per_worker(library, tmp_path, monkeypatch):
     import talkmesh.models.release as release
     from talkmesh.face.assets import load_head
-    from talkmesh.models.voca import VOCA
+    from talkmesh.models.voca.model import VOCA
 
     path = release.save_model(
         VOCA(VOCA.tiny_config(num_vertices=load_head().num_vertices)), tmp_path / "tiny.safetensors"
@@ -130,7 +130,7 @@ def test_forked_workers_share_the_model_loaded_once(library, tmp_path, monkeypat
 
     import talkmesh.models.release as release
     from talkmesh.face.assets import load_head
-    from talkmesh.models.voca import VOCA
+    from talkmesh.models.voca.model import VOCA
 
     if "fork" not in multiprocessing.get_all_start_methods():
         pytest.skip("workers are spawned here: each loads the model")

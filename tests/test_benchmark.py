@@ -109,7 +109,7 @@ def test_stages_are_repointed_per_method_and_seed(bench_root):
 def test_the_default_benchmark_names_real_recipes_stages_and_keys():
     from dataclasses import fields
 
-    from talkmesh.models.codetalker_vq import VQConfig
+    from talkmesh.models.codetalker.vq import VQConfig
 
     root = Path(__file__).resolve().parents[1]
     cfg = load_benchmark(root / "configs" / "benchmark_synth.yaml", check_data=False)

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker import CodeTalker, Stage2Config
-from talkmesh.models.codetalker_generate import FrameGenerator, generate_fast
-from talkmesh.models.codetalker_vq import DecoderStep, Quantizer, VQConfig
+from talkmesh.models.codetalker.generate import FrameGenerator, generate_fast
+from talkmesh.models.codetalker.model import CodeTalker, Stage2Config
+from talkmesh.models.codetalker.vq import DecoderStep, Quantizer, VQConfig
 from talkmesh.models.int8 import Int8Conv1d, Int8Linear, int8_layers, quantize_int8
 from talkmesh.models.layers import KVCache, temporal_bias
 from talkmesh.models.release import load_model, save_model

@@ -9,7 +9,7 @@ import torch
 from test_stream import SR
 
 from talkmesh.models.base import FrameRequest, next_frames
-from talkmesh.models.codetalker_batch import frame_batch, ring_bias
+from talkmesh.models.codetalker.batch import frame_batch, ring_bias
 from talkmesh.models.layers import window_bias
 from talkmesh.models.release import load_model
 

@@ -106,7 +106,7 @@ def test_wrong_vertex_count_prediction(corpus, tmp_path, capsys):
 def tiny_release(path, causal: bool | None = None):
     import torch
 
-    from talkmesh.models.codetalker import CodeTalker
+    from talkmesh.models.codetalker.model import CodeTalker
     from talkmesh.models.release import save_model
     from talkmesh.training.codetalker import build_config
     from talkmesh.training.trainer import DatasetInfo

@@ -11,7 +11,7 @@ import torch
 
 from talkmesh.config import from_dict, to_dict
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.faceformer import (
+from talkmesh.models.faceformer.model import (
     FaceFormer,
     FaceFormerConfig,
     biwi_config,

@@ -14,8 +14,8 @@ import torch
 
 from talkmesh.animation import Animation, AnimationBlocks
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker import CodeTalker
-from talkmesh.models.codetalker_generate import AheadWindow
+from talkmesh.models.codetalker.generate import AheadWindow
+from talkmesh.models.codetalker.model import CodeTalker
 from talkmesh.models.release import save_model
 from talkmesh.models.speech import SpeechEncoderConfig, WhisperEncoder
 from talkmesh.models.speech_chunks import FrameFeatures

@@ -10,7 +10,7 @@ import torch
 from talkmesh.config import from_dict, to_dict
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.mel import MelAudioEncoder, MelConfig
-from talkmesh.models.meshtalk import (
+from talkmesh.models.meshtalk.model import (
     MeshTalk,
     MeshTalkConfig,
     MeshTalkForward,
@@ -18,7 +18,7 @@ from talkmesh.models.meshtalk import (
     meshtalk_config,
     meshtalk_loss,
 )
-from talkmesh.models.meshtalk_prior import AutoregressivePrior, PriorConfig, prior_config
+from talkmesh.models.meshtalk.prior import AutoregressivePrior, PriorConfig, prior_config
 
 V, H, C = 30, 4, 8
 FPS = 30.0
@@ -418,7 +418,7 @@ def test_prior_learns_with_teacher_forcing():
 
 
 def tiny_release(prior: bool = True):
-    from talkmesh.models.meshtalk import MeshTalkModel, MeshTalkModelConfig
+    from talkmesh.models.meshtalk.model import MeshTalkModel, MeshTalkModelConfig
 
     torch.manual_seed(0)
     cfg = MeshTalkModelConfig(
@@ -463,7 +463,7 @@ def test_release_errors():
         tiny_release().generate(audio, templates, style_weights=torch.ones(1, 2))
     with pytest.raises(TalkmeshError, match=f"V={V}"):
         tiny_release().generate(audio, templates[:, :-1])
-    from talkmesh.models.meshtalk import MeshTalkModelConfig
+    from talkmesh.models.meshtalk.model import MeshTalkModelConfig
 
     with pytest.raises(TalkmeshError, match="must match"):
         MeshTalkModelConfig(tiny_config(), PriorConfig(num_heads=H + 1, num_classes=C))
@@ -506,7 +506,7 @@ def test_expression_only_inputs_ignore_the_audio():
 
 
 def test_talkmesh_speech_encoder_and_a_prior_on_the_expression_spaces_audio(tmp_path):
-    from talkmesh.models.meshtalk import MeshTalkModel, MeshTalkModelConfig
+    from talkmesh.models.meshtalk.model import MeshTalkModel, MeshTalkModelConfig
     from talkmesh.models.release import load_model, save_model
     from talkmesh.models.speech import SpeechEncoderConfig
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import inspect
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -30,6 +32,24 @@ def build(family: str) -> MotionModel:
 
 def test_the_four_papers_are_registered():
     assert set(FAMILIES) == {"codetalker", "faceformer", "voca", "meshtalk"}
+
+
+def test_a_family_is_imported_when_asked_for(tmp_path):
+    """The registry names each family's folder; loading a release imports that folder alone."""
+    path = save_model(build("voca"), tmp_path / "voca.safetensors")
+    code = (
+        "import sys\n"
+        "from talkmesh.models.release import load_model\n"
+        "from talkmesh.models.registry import FAMILIES\n"
+        "assert 'codetalker' in FAMILIES and len(FAMILIES) == 4\n"
+        "assert not [m for m in sys.modules if m.startswith('talkmesh.models.voca')]\n"
+        f"load_model({str(path)!r})\n"
+        "loaded = {m.split('.')[2] for m in sys.modules if m.count('.') >= 2\n"
+        "          and m.startswith('talkmesh.models.') and m.split('.')[2] in FAMILIES}\n"
+        "assert loaded == {'voca'}, loaded\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
 
 
 @pytest.mark.parametrize("family", ALL)

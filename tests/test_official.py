@@ -283,3 +283,19 @@ def test_cli_import_errors_are_one_line(tmp_path, capsys, files, family, dataset
     assert rc == 2 and not out.exists()
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert err.startswith("talkmesh: error: ") and re.search(message, err), err
+
+
+def test_the_importers_are_found_in_the_family_folders(tmp_path):
+    """``import_checkpoint`` calls ``<family folder>/official.py``; a registered family without
+    one (VOCA released no weights we import) is named as unknown, with the ones that have it."""
+    from talkmesh.models.registry import official_families
+
+    assert official_families() == ("codetalker", "faceformer", "meshtalk")
+    with pytest.raises(TalkmeshError, match="unknown family 'voca': use one of codetalker, "):
+        import_checkpoint([FIXTURES / "faceformer_vocaset.pth"], "voca", "vocaset")
+    with pytest.raises(TalkmeshError, match="MeshTalk's own mesh: faceformer uses vocaset or biwi"):
+        import_checkpoint([FIXTURES / "faceformer_vocaset.pth"], "faceformer", "meshtalk")
+    with pytest.raises(TalkmeshError, match="one file"):
+        import_checkpoint([FIXTURES / "faceformer_vocaset.pth"] * 2, "faceformer", "vocaset")
+    model = import_checkpoint([FIXTURES / "faceformer_vocaset.pth"], "faceformer", "VOCASET")
+    assert type(model).__module__ == "talkmesh.models.faceformer.model"

@@ -30,8 +30,8 @@ def model_config(task: str, model: dict, info: DatasetInfo) -> dict:
         from talkmesh.training.faceformer import build_config
 
         return to_dict(build_config(model, info))
-    from talkmesh.models.meshtalk import MeshTalkConfig, SamplingConfig, meshtalk_config
-    from talkmesh.models.meshtalk_prior import PriorConfig, prior_config
+    from talkmesh.models.meshtalk.model import MeshTalkConfig, SamplingConfig, meshtalk_config
+    from talkmesh.models.meshtalk.prior import PriorConfig, prior_config
     from talkmesh.training.meshtalk import _config
 
     if task == "meshtalk":
@@ -99,7 +99,7 @@ def test_meshtalk_weight_decay_reaches_the_decoder_only():
     import torch
 
     from talkmesh.errors import TalkmeshError
-    from talkmesh.models.meshtalk import MeshTalkModel
+    from talkmesh.models.meshtalk.model import MeshTalkModel
     from talkmesh.training.trainer import decay_groups
 
     net = MeshTalkModel(MeshTalkModel.tiny_config())

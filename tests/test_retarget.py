@@ -10,8 +10,8 @@ import torch
 from talkmesh.cli import main
 from talkmesh.face.assets import load_head
 from talkmesh.models.mel import MelConfig
-from talkmesh.models.meshtalk import MeshTalkConfig, MeshTalkModel, MeshTalkModelConfig
-from talkmesh.models.meshtalk_prior import PriorConfig
+from talkmesh.models.meshtalk.model import MeshTalkConfig, MeshTalkModel, MeshTalkModelConfig
+from talkmesh.models.meshtalk.prior import PriorConfig
 from talkmesh.models.release import save_model
 
 SR = 16_000

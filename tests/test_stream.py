@@ -166,7 +166,7 @@ def test_stream_errors(tmp_path, tiny_stream_model):
 def test_streams_pushed_together_get_the_frames_they_get_alone(
     tmp_path, monkeypatch, offsets, tiny_stream_model
 ):
-    from talkmesh.models.codetalker_batch import FrameBatch
+    from talkmesh.models.codetalker.batch import FrameBatch
 
     path, head = tiny_stream_model(), tiny_head()
     rng = np.random.default_rng(3)

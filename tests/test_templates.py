@@ -234,7 +234,7 @@ def test_animate_an_imported_biwi_model_at_its_own_rate_unless_fps(tmp_path, cap
 def test_real_vertex_counts_render_and_export(tmp_path):
     """FLAME's 5023 and BIWI's 23370 vertices through animate, the .glb exporter and the video
     renderer (a tiny talkmesh model of each topology; the imported fixtures have 24)."""
-    from talkmesh.models.faceformer import FaceFormer
+    from talkmesh.models.faceformer.model import FaceFormer
     from talkmesh.models.release import save_model
     from talkmesh.output import write_animation
     from talkmesh.pipeline import animate

@@ -15,7 +15,7 @@ from talkmesh.datasets.reader import DatasetSpec
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.release import load_model, save_model
 from talkmesh.models.speech import SpeechEncoderConfig
-from talkmesh.models.voca import VOCA, VOCAConfig, principal_directions, voca_loss
+from talkmesh.models.voca.model import VOCA, VOCAConfig, principal_directions, voca_loss
 
 SR = 16_000
 FPS = 30

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from talkmesh.cli.common import Subparsers, add_quiet, check_outputs
 from talkmesh.errors import TalkmeshError
+from talkmesh.models.registry import official_families
 from talkmesh.output import write_animation
 
 
@@ -48,7 +49,7 @@ def add_import_checkpoint(sub: Subparsers) -> None:
         help="the released file(s), e.g. vocaset.pth (MeshTalk: its pretrained_models folder, "
         "optionally with the assets' mask .txt files)",
     )
-    ic.add_argument("--family", required=True, choices=("codetalker", "faceformer", "meshtalk"))
+    ic.add_argument("--family", required=True, choices=official_families())
     ic.add_argument(
         "--dataset",
         required=True,

@@ -1,9 +1,10 @@
 """The one interface every learned model family implements, so that ``animate``, ``predict``,
 ``evaluate``, ``benchmark``, streaming and the server treat all families alike.
 
-A family is an ``nn.Module`` subclass of :class:`MotionModel` in one file of this package, listed
-in :data:`talkmesh.models.registry.FAMILIES`; releases (:mod:`talkmesh.models.release`) rebuild it
-from its ``cfg`` alone: ``cls(cfg)``, then ``load_state_dict(strict=True)``.
+A family is an ``nn.Module`` subclass of :class:`MotionModel` in its own folder of this package
+(``talkmesh/models/<family>/``), named by one line of
+:data:`talkmesh.models.registry.FAMILY_MODELS`; releases (:mod:`talkmesh.models.release`) rebuild
+it from its ``cfg`` alone: ``cls(cfg)``, then ``load_state_dict(strict=True)``.
 
 Axis letters: B batch, S audio samples (16 kHz), T motion frames, V vertices, K training speakers.
 """

@@ -1,5 +1,5 @@
 """Reading the papers' released checkpoints safely and filling talkmesh models from them: the
-helpers that :mod:`talkmesh.models.official` and :mod:`talkmesh.models.official_meshtalk` share.
+helpers that :mod:`talkmesh.models.official` and :mod:`talkmesh.models.meshtalk.official` share.
 
 A checkpoint is untrusted input: it is read with ``torch.load(weights_only=True)`` only, so it can
 never run code; what does not fit is named in a one-line error.

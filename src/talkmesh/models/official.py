@@ -3,6 +3,11 @@
     model = import_checkpoint(["vocaset.pth"], family="faceformer", dataset="vocaset")
     save_model(model, "faceformer_vocaset.safetensors")
 
+This module holds what the importers share (the datasets' facts, the wav2vec 2.0 encoder's
+config, the positional-encoding check) and the dispatcher; each family's mapping of the official
+tensors lives in its folder, ``talkmesh/models/<family>/official.py``, as
+``import_official(paths, dataset)`` with the ``DATASETS`` it accepts.
+
 The files are read as the official trainers write them (FaceFormer: ``torch.save(model.state_dict())``)
 with ``torch.load(weights_only=True)`` only, so a checkpoint can never run code; tensors saved
 from a GPU load on the CPU; a ``module.`` prefix (DataParallel) and torch 1.x weight-norm names
@@ -16,6 +21,7 @@ generation computes what the official ``predict`` computes.
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 import torch
@@ -23,11 +29,11 @@ from torch import Tensor, nn
 
 from talkmesh.constants import BIWI_TRAIN_SUBJECTS, VOCASET_TRAIN_SUBJECTS
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.checkpoint_io import _fill, _leftover, _take, load_checkpoint
+from talkmesh.models.checkpoint_io import load_checkpoint
+from talkmesh.models.registry import family_package, official_families
 
-__all__ = ["import_checkpoint", "load_checkpoint", "wav2vec2_config"]
+__all__ = ["check_ppe", "import_checkpoint", "load_checkpoint", "wav2vec2_config"]
 
-FAMILIES = ("codetalker", "faceformer", "meshtalk")
 DATASETS = ("vocaset", "biwi", "meshtalk")  # meshtalk: the released MeshTalk's own face mesh
 
 # the official training subjects, in one-hot order (the columns of the style matrix)
@@ -76,271 +82,9 @@ def wav2vec2_config(state: dict[str, Tensor], prefix: str, path: Path) -> dict:
     return cfg.to_dict()
 
 
-def import_faceformer(path: Path, dataset: str) -> nn.Module:
-    """FaceFormer's released ``vocaset.pth`` / ``biwi.pth`` -> a :class:`FaceFormer`."""
-    from talkmesh.models.faceformer import FaceFormer, FaceFormerConfig
-    from talkmesh.models.speech import SpeechEncoderConfig
-
-    state = load_checkpoint(path)
-    feature_map = state.get("audio_feature_map.weight")
-    vertice_map = state.get("vertice_map.weight")
-    styles = state.get("obj_vector.weight")
-    if feature_map is None or vertice_map is None or styles is None:
-        raise TalkmeshError(
-            f"{path}: not a FaceFormer checkpoint (no audio_feature_map, "
-            "vertice_map or obj_vector tensors): check --family"
-        )
-    d, vertex_dims = vertice_map.shape
-    names = SUBJECTS[dataset]
-    if styles.shape != (d, len(names)):
-        raise TalkmeshError(
-            f"{path}: obj_vector is {tuple(styles.shape)}, a {dataset} model has "
-            f"{len(names)} training subjects ({d}, {len(names)}): is --dataset right?"
-        )
-    layers = 0
-    while f"transformer_decoder.layers.{layers}.linear1.weight" in state:
-        layers += 1
-    fps, k = FPS[dataset], TOKENS_PER_FRAME[dataset]
-    period = int(fps)
-    cfg = FaceFormerConfig(
-        num_vertices=vertex_dims // 3,
-        styles=names,
-        motion_fps=fps,
-        d_model=d,
-        heads=4,  # the official code fixes nhead=4
-        ff=state["transformer_decoder.layers.0.linear1.weight"].shape[0] if layers else 2 * d,
-        layers=layers,
-        period=period,
-        audio_tokens_per_frame=k,
-        speech=SpeechEncoderConfig(
-            kind="wav2vec2",
-            frame_rate=fps * k,
-            hf_config=wav2vec2_config(state, "audio_encoder.", path),
-            resample="cnn",
-            normalize=True,
-        ),
-        attention_window=MAX_FRAMES,
-        postnorm=True,
-        interleaved_ppe=True,
-        frame0_motion_bias=False,
-    )
-    model = FaceFormer(cfg)
-    _check_ppe(_take(state, "PPE.pe", path), period, d, dataset, path)
-    mapped = {"scale": torch.ones(())}
-    for key in list(state):
-        if key.startswith("audio_encoder."):
-            mapped["speech.model." + key[len("audio_encoder.") :]] = state.pop(key)
-        elif key.startswith("transformer_decoder.layers."):
-            mapped["blocks." + key[len("transformer_decoder.layers.") :]] = state.pop(key)
-    for ours, theirs in (
-        ("audio_map", "audio_feature_map"),
-        ("motion_map", "vertice_map"),
-        ("out", "vertice_map_r"),
-    ):
-        for p in ("weight", "bias"):
-            mapped[f"{ours}.{p}"] = _take(state, f"{theirs}.{p}", path)
-    mapped["style.weight"] = _take(state, "obj_vector.weight", path).t().contiguous()
-    _leftover(state, path)
-    return _fill(model, mapped, path)
-
-
-def _blocks_map(state: dict, theirs: str, ours: str, layers: int, heads: int, path: Path) -> dict:
-    """The official stage-1 ``Transformer`` (pre-norm residual blocks, bias-free qkv, scores
-    scaled by 1/sqrt(width)) -> talkmesh ``Block`` tensors; the width scaling becomes a factor on
-    the query rows, since talkmesh scales by 1/sqrt(head width)."""
-    out = {}
-    for i in range(layers):
-        attn, mlp = f"{theirs}.net.{2 * i}.fn", f"{theirs}.net.{2 * i + 1}.fn"
-        qkv = _take(state, f"{attn}.fn.to_qkv.weight", path).clone()
-        width = qkv.shape[1]
-        qkv[: qkv.shape[0] // 3] *= ((width // heads) / width) ** 0.5
-        out[f"{ours}.{i}.attn.qkv.weight"] = qkv
-        out[f"{ours}.{i}.attn.qkv.bias"] = torch.zeros(qkv.shape[0])
-        for o, t in (
-            ("norm1", f"{attn}.norm"),
-            ("attn.out", f"{attn}.fn.to_out"),
-            ("norm2", f"{mlp}.norm"),
-            ("mlp.0", f"{mlp}.fn.l1"),
-            ("mlp.2", f"{mlp}.fn.l2"),
-        ):
-            for p in ("weight", "bias"):
-                out[f"{ours}.{i}.{o}.{p}"] = _take(state, f"{t}.{p}", path)
-    return out
-
-
-def _linear(
-    state: dict, theirs: str, ours: str, path: Path, extra_bias: Tensor | None = None
-) -> dict:
-    w = _take(state, f"{theirs}.weight", path)
-    b = state.pop(f"{theirs}.bias", None)
-    b = torch.zeros(w.shape[0]) if b is None else b
-    return {f"{ours}.weight": w, f"{ours}.bias": b if extra_bias is None else b + extra_bias}
-
-
-def _identity(ours: str, n: int) -> dict:
-    return {f"{ours}.weight": torch.eye(n), f"{ours}.bias": torch.zeros(n)}
-
-
-def _split_codetalker(paths: list[Path]) -> tuple[dict, dict, Path, Path]:
-    """Two files -> (stage-1 tensors, stage-2 tensors, their paths), whatever the order."""
-    both = (
-        "CodeTalker needs both released files, the stage-1 VQ-VAE (e.g. vocaset_stage1.pth.tar) "
-        "and stage 2 (vocaset_stage2.pth.tar)"
-    )
-    if len(paths) not in (1, 2):
-        raise TalkmeshError(f"{both}; got {len(paths)} files")
-    stage1 = stage2 = None
-    for path in paths:
-        state = load_checkpoint(path)
-        if "quantize.embedding.weight" in state:
-            stage1 = (state, path)
-        elif "feat_map.weight" in state:
-            # a stage-2 file that kept its autoencoder: only stage 2's own tensors are read
-            stage2 = ({k: v for k, v in state.items() if not k.startswith("autoencoder.")}, path)
-        else:
-            raise TalkmeshError(f"{path}: neither a CodeTalker stage-1 nor a stage-2 checkpoint")
-    if stage1 is None or stage2 is None:
-        missing = "stage-1 (*_stage1.pth.tar)" if stage1 is None else "stage-2 (*_stage2.pth.tar)"
-        raise TalkmeshError(f"{both}: the {missing} file is missing")
-    return stage1[0], stage2[0], stage1[1], stage2[1]
-
-
-def _codetalker_vq_config(s1: dict, inp: Tensor, dataset: str, path: Path):
-    """The stage-1 VQConfig read off the official tensors' shapes."""
-    from talkmesh.models.codetalker_vq import VQConfig
-
-    hidden, vertex_dims = inp.shape
-    N, C = s1["quantize.embedding.weight"].shape
-    post = s1.get("encoder.encoder_linear_embedding_post.net.weight")
-    if (post is not None) != (dataset == "biwi"):
-        raise TalkmeshError(
-            f"{path}: a {'BIWI' if post is not None else 'VOCASET'} stage-1 "
-            f"model, not {dataset}: is --dataset right?"
-        )
-    H = (post.shape[0] if post is not None else hidden) // C
-    layers1 = 0
-    while f"encoder.encoder_transformer.net.{2 * layers1}.fn.norm.weight" in s1:
-        layers1 += 1
-    heads1 = 8  # the released configs' num_attention_heads (shapes do not tell it)
-    return VQConfig(
-        num_vertices=vertex_dims // 3,
-        hidden=hidden,
-        layers=layers1,
-        heads=heads1,
-        ff=s1["encoder.encoder_transformer.net.1.fn.fn.l1.weight"].shape[0] if layers1 else hidden,
-        components=H,
-        code_dim=C,
-        codebook_size=N,
-        instance_norm=True,
-        gelu_tanh=True,
-        final_norm=False,
-        frame_positions=False,
-    )
-
-
-def import_codetalker(paths: list[Path], dataset: str) -> nn.Module:
-    """CodeTalker's released stage-1 + stage-2 files -> a :class:`CodeTalker`."""
-    from talkmesh.models.codetalker import CodeTalker, CodeTalkerConfig, Stage2Config
-    from talkmesh.models.speech import SpeechEncoderConfig
-
-    s1, s2, p1, p2 = _split_codetalker(paths)
-    inp = _take(s1, "encoder.vertice_mapping.0.weight", p1)
-    vq = _codetalker_vq_config(s1, inp, dataset, p1)
-    names = SUBJECTS[dataset]
-    style = s2.get("learnable_style_emb.weight")
-    if style is None or style.shape[0] != len(names):
-        raise TalkmeshError(
-            f"{p2}: a {dataset} stage 2 has {len(names)} training subjects "
-            "(learnable_style_emb): is --dataset right?"
-        )
-    d = style.shape[1]
-    layers2 = 0
-    while f"transformer_decoder.layers.{layers2}.linear1.weight" in s2:
-        layers2 += 1
-    fps, k = FPS[dataset], TOKENS_PER_FRAME[dataset]
-    stage2 = Stage2Config(
-        d_model=d,
-        heads=4,
-        layers=layers2,
-        period=int(fps),
-        audio_tokens_per_frame=k,
-        ff=s2["transformer_decoder.layers.0.linear1.weight"].shape[0] if layers2 else 2 * d,
-        styles=names,
-        attention_window=MAX_FRAMES,
-        postnorm=True,
-        interleaved_ppe=True,
-        speech=SpeechEncoderConfig(
-            kind="wav2vec2",
-            frame_rate=fps * k,
-            resample="cnn",
-            normalize=True,
-            hf_config=wav2vec2_config(s2, "audio_encoder.", p2),
-        ),
-    )
-    model = CodeTalker(CodeTalkerConfig(vq=vq, stage2=stage2, motion_fps=fps))
-    mapped = _vq_map(s1, vq, inp, p1)
-    _check_ppe(_take(s2, "PPE.pe", p2), int(fps), d, dataset, p2)
-    for key in list(s2):
-        if key.startswith("audio_encoder."):
-            mapped["speech.model." + key[len("audio_encoder.") :]] = s2.pop(key)
-        elif key.startswith("transformer_decoder.layers."):
-            mapped["blocks." + key[len("transformer_decoder.layers.") :]] = s2.pop(key)
-    mapped.update(_linear(s2, "audio_feature_map", "audio_map", p2))
-    mapped.update(_linear(s2, "vertice_map", "motion_map", p2))
-    mapped.update(_linear(s2, "feat_map", "feat_map", p2))  # bias-free officially
-    mapped["style.weight"] = _take(s2, "learnable_style_emb.weight", p2)
-    _leftover(s1, p1)
-    _leftover(s2, p2)
-    return _fill(model, mapped, p2)
-
-
-def _vq_map(s1: dict, vq, inp: Tensor, path: Path) -> dict:
-    """Stage-1 tensors -> ``vqvae.*``; the official positional encoding adds one vector (that of
-    position 0) to every frame: it becomes part of the embedding's bias."""
-    out = {
-        "vqvae.encoder.inp.weight": inp,
-        "vqvae.encoder.inp.bias": _take(s1, "encoder.vertice_mapping.0.bias", path),
-    }
-    HC = vq.components * vq.code_dim
-    for side in ("encoder", "decoder"):
-        pe = _take(s1, f"{side}.{side}_pos_embedding.pe", path)
-        if pe.ndim != 3 or pe.shape[1:] != (1, vq.hidden):
-            raise TalkmeshError(f"{path}: {side}_pos_embedding.pe has shape {tuple(pe.shape)}")
-        conv = f"{side}.squasher.0.0" if side == "encoder" else f"{side}.expander.0.0"
-        out.update(_linear(s1, conv, f"vqvae.{side}.conv.conv", path))
-        out.update(
-            _linear(
-                s1,
-                f"{side}.{side}_linear_embedding.net",
-                f"vqvae.{side}.mid",
-                path,
-                extra_bias=pe[0, 0],
-            )
-        )
-        out.update(
-            _blocks_map(
-                s1, f"{side}.{side}_transformer", f"vqvae.{side}.blocks", vq.layers, vq.heads, path
-            )
-        )
-        out[f"vqvae.{side}.scale"] = torch.ones(vq.num_vertices * 3)
-    if "encoder.encoder_linear_embedding_post.net.weight" in s1:  # BIWI: hidden <-> H x C maps
-        out.update(
-            _linear(s1, "encoder.encoder_linear_embedding_post.net", "vqvae.encoder.out", path)
-        )
-        out.update(
-            _linear(s1, "decoder.decoder_linear_embedding_pre.net", "vqvae.decoder.inp", path)
-        )
-    else:  # VOCASET: hidden = H x C, no maps
-        out.update(_identity("vqvae.encoder.out", HC))
-        out.update(_identity("vqvae.decoder.inp", HC))
-    out.update(_linear(s1, "decoder.vertice_map_reverse", "vqvae.decoder.out", path))
-    out["vqvae.quantizer.codebook"] = _take(s1, "quantize.embedding.weight", path)
-    out["vqvae.quantizer.usage"] = torch.zeros(vq.codebook_size)
-    out["vqvae.quantizer.initialised"] = torch.tensor(True)
-    return out
-
-
-def _check_ppe(pe: Tensor, period: int, d: int, dataset: str, path: Path) -> None:
+def check_ppe(pe: Tensor, period: int, d: int, dataset: str, path: Path) -> None:
+    """The official periodic positional encoding ``pe`` (1, rows, D) must be the one talkmesh
+    computes for ``period`` (it is not a weight: a different one means another dataset)."""
     from talkmesh.models.postnorm import interleaved_encoding
 
     rows = period * (MAX_FRAMES // period + 1)
@@ -355,24 +99,16 @@ def _check_ppe(pe: Tensor, period: int, d: int, dataset: str, path: Path) -> Non
 
 def import_checkpoint(files: list[str | Path], family: str, dataset: str) -> nn.Module:
     """The released file(s) of ``family`` trained on ``dataset`` -> a talkmesh model (eval mode)."""
-    if family not in FAMILIES:
-        raise TalkmeshError(f"unknown family '{family}': use one of {', '.join(FAMILIES)}")
+    families = official_families()
+    if family not in families:
+        raise TalkmeshError(f"unknown family '{family}': use one of {', '.join(families)}")
     dataset = dataset.lower()
     if dataset not in DATASETS:
         raise TalkmeshError(f"unknown dataset '{dataset}': use vocaset, biwi or meshtalk")
-    paths = [Path(f) for f in files]
-    if family == "meshtalk":
-        from talkmesh.models.official_meshtalk import import_meshtalk
-
-        return import_meshtalk(paths, FPS[dataset], VERTICES.get(dataset))
-    if dataset == "meshtalk":
+    importer = importlib.import_module(family_package(family) + ".official")
+    if dataset not in importer.DATASETS:
+        what = "MeshTalk's own mesh" if dataset == "meshtalk" else "not what its weights fit"
         raise TalkmeshError(
-            f"--dataset meshtalk is MeshTalk's own mesh: {family} uses vocaset or biwi"
+            f"--dataset {dataset} is {what}: {family} uses {' or '.join(importer.DATASETS)}"
         )
-    if family == "faceformer":
-        if len(paths) != 1:
-            raise TalkmeshError(
-                f"a FaceFormer release is one file (vocaset.pth or biwi.pth), got {len(paths)}"
-            )
-        return import_faceformer(paths[0], dataset)
-    return import_codetalker(paths, dataset)
+    return importer.import_official([Path(f) for f in files], dataset)

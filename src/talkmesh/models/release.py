@@ -4,8 +4,9 @@ version in the metadata), loaded with ``strict=True`` and no pickle.
     model = talkmesh.load_model("runs/ct2/model.safetensors")   # or a bundled name
 
 Every learned family implements :class:`talkmesh.models.base.MotionModel` and is listed in
-:data:`talkmesh.models.registry.FAMILIES`; a release stores the family's name and its ``cfg``, so
-``load_model`` rebuilds it as ``cls(cfg)`` from the file alone.
+:data:`talkmesh.models.registry.FAMILIES`; a release stores the family's name and its ``cfg``
+(never a module or class path, so files outlive moves of the code), so ``load_model`` rebuilds it
+as ``cls(cfg)`` from the file alone.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Speech features of long audio a chunk of motion frames at a time, so that memory does not grow
-with the length of the audio (:meth:`talkmesh.models.codetalker.CodeTalker.generate_chunks`).
+with the length of the audio (:meth:`talkmesh.models.codetalker.model.CodeTalker.generate_chunks`).
 
 :class:`FrameFeatures` hands out the (1, t, D) features of consecutive motion frames. With the
 Whisper encoder it encodes one 30 s window at a time, as the whole-audio forward does (its

@@ -17,7 +17,7 @@ import torch
 
 from talkmesh.config import from_dict, merge, to_dict
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker import (
+from talkmesh.models.codetalker.model import (
     CodeTalker,
     CodeTalkerConfig,
     paper_biwi_config,

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from talkmesh.config import from_dict, merge, to_dict
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.faceformer import (
+from talkmesh.models.faceformer.model import (
     FaceFormer,
     FaceFormerConfig,
     biwi_config,

@@ -16,14 +16,14 @@ import torch
 
 from talkmesh.config import from_dict, to_dict
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.meshtalk import (
+from talkmesh.models.meshtalk.model import (
     MeshTalkConfig,
     MeshTalkModel,
     MeshTalkModelConfig,
     SamplingConfig,
     meshtalk_config,
 )
-from talkmesh.models.meshtalk_prior import PriorConfig, prior_config
+from talkmesh.models.meshtalk.prior import PriorConfig, prior_config
 from talkmesh.models.release import load_model, save_model
 from talkmesh.training.trainer import DatasetInfo, StepOutput, Task, TorchBatch
 

@@ -17,8 +17,8 @@ import torch
 from talkmesh.config import from_dict, merge, to_dict
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.release import save_model
-from talkmesh.models.voca import VOCA as VOCAModel
-from talkmesh.models.voca import VOCAConfig, paper_vocaset_config, small_config
+from talkmesh.models.voca.model import VOCA as VOCAModel
+from talkmesh.models.voca.model import VOCAConfig, paper_vocaset_config, small_config
 from talkmesh.training.codetalker import prepare_speech_statistics
 from talkmesh.training.trainer import DatasetInfo, StepOutput, Task, TorchBatch
 

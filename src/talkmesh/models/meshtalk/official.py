@@ -1,5 +1,5 @@
 """Import MeshTalk's released model (facebookresearch/meshtalk, ``pretrained_models.zip``) into a
-:class:`talkmesh.models.meshtalk.MeshTalkModel` (``talkmesh import-checkpoint --family meshtalk``).
+:class:`talkmesh.models.meshtalk.model.MeshTalkModel` (``talkmesh import-checkpoint --family meshtalk``).
 
 The release is three files written by the official ``Net.save`` (``torch.save(state_dict())``):
 ``encoder.pkl`` (MultimodalEncoder: mel audio encoder, expression encoder, fusion MLP),
@@ -79,8 +79,8 @@ def _files(paths: list[Path]) -> tuple[dict[str, dict[str, Tensor]], dict[str, n
 
 def _configs(parts: dict, fps: float, smoothing: int, path: Path):
     from talkmesh.models.mel import MelConfig
-    from talkmesh.models.meshtalk import MeshTalkConfig, MeshTalkModelConfig, SamplingConfig
-    from talkmesh.models.meshtalk_prior import PriorConfig
+    from talkmesh.models.meshtalk.model import MeshTalkConfig, MeshTalkModelConfig, SamplingConfig
+    from talkmesh.models.meshtalk.prior import PriorConfig
 
     enc, ctx, unet = parts["encoder.pkl"], parts["context_model.pkl"], parts["vertex_unet.pkl"]
     try:
@@ -221,7 +221,7 @@ def _context_map(ctx: dict, H: int, C: int, path: Path) -> dict:
     """context_model.pkl -> ``prior.*``; the head masks are checked, the embedding's and
     classifier's audio maps (built, never read by the official code) dropped."""
     from talkmesh.models.checkpoint_io import _take
-    from talkmesh.models.meshtalk_context import head_mask
+    from talkmesh.models.meshtalk.context import head_mask
 
     m = {}
     stages = [("embedding", "prior.embedding", C, HIDDEN)]
@@ -249,7 +249,7 @@ def import_meshtalk(paths: list[Path], fps: float, num_vertices: int | None = No
     """MeshTalk's released files (+ optional asset masks) -> a :class:`MeshTalkModel`;
     ``num_vertices``: the vertex count ``--dataset`` promises (None: MeshTalk's own mesh)."""
     from talkmesh.models.checkpoint_io import _fill, _leftover
-    from talkmesh.models.meshtalk import MeshTalkModel
+    from talkmesh.models.meshtalk.model import MeshTalkModel
 
     parts, masks, first = _files(paths)
     smooth = [name for name in SMOOTHING if name in masks]
@@ -294,3 +294,13 @@ def import_meshtalk(paths: list[Path], fps: float, num_vertices: int | None = No
     for name, state in parts.items():
         _leftover(state, Path(name))
     return _fill(net, mapped, first)
+
+
+DATASETS = ("meshtalk", "vocaset", "biwi")  # meshtalk: the release's own face mesh
+
+
+def import_official(paths: list[Path], dataset: str):
+    """:func:`import_meshtalk` at ``dataset``'s frame rate, checking its vertex count."""
+    from talkmesh.models.official import FPS, VERTICES
+
+    return import_meshtalk(paths, FPS[dataset], VERTICES.get(dataset))

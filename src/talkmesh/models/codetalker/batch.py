@@ -8,7 +8,7 @@ slots of the streams in it, so streams at frame 3 and at frame 3000 share one ma
 layer: a ring always holds ``window`` rows, the rows a stream has not filled yet are masked, and
 each row's ALiBi bias comes from its distance to the stream's current frame
 (:func:`ring_bias`). Attention does not depend on the order of its keys, so a stream computes
-the frames it would compute alone (:class:`talkmesh.models.codetalker_generate.FrameGenerator`'s
+the frames it would compute alone (:class:`talkmesh.models.codetalker.generate.FrameGenerator`'s
 ``step``, and offline ``generate``) up to float rounding.
 
 Axis letters: B streams in a step, N slots, H face components, W window, V vertices.
@@ -155,7 +155,7 @@ class FrameBatch:
             out = model.decode_features(x, cross, ring_bias(self.s2_bias, t), rings)
             vq = model.cfg.vq
             codes = model.vqvae.quantizer(out.view(B, 1, vq.components, vq.code_dim)).codes
-            # the causal VQ decoder's step (codetalker_vq.DecoderStep), its conv padded on the
+            # the causal VQ decoder's step (vq.DecoderStep), its conv padded on the
             # left with the stream's first frame
             x = dec.inp(model.vqvae.quantizer.lookup(codes).flatten(2))  # (B, 1, hidden)
             past = torch.where((t == 0)[:, None, None], x, S["conv"][slots])

@@ -1,4 +1,4 @@
-"""CodeTalker's generation engine (:meth:`talkmesh.models.codetalker.CodeTalker.generate`).
+"""CodeTalker's generation engine (:meth:`talkmesh.models.codetalker.model.CodeTalker.generate`).
 
 :class:`FrameGenerator` runs stage 2 and the VQ decoder over the next frames with key/value
 caches, one frame (:meth:`FrameGenerator.step`) or a pass of guessed frames
@@ -18,8 +18,8 @@ import torch
 from torch import Tensor, nn
 
 from talkmesh.models.base import FrameRequest, FrameStream
-from talkmesh.models.codetalker_batch import frame_batch
-from talkmesh.models.codetalker_vq import DecoderStep, Quantized
+from talkmesh.models.codetalker.batch import frame_batch
+from talkmesh.models.codetalker.vq import DecoderStep, Quantized
 from talkmesh.models.layers import KVCache, folded_linear, sinusoid, window_bias
 from talkmesh.models.speech import MelFeatureStream
 
@@ -339,7 +339,7 @@ class CodeTalkerStream(FrameStream):
     """A streaming CodeTalker (causal VQ decoder, mel speech encoder) one frame per step: the
     frame's speech feature from the stream's audio (:class:`MelFeatureStream`), then the model's
     step with key/value caches, exactly what ``generate`` computes. The streams of one model
-    share its :class:`talkmesh.models.codetalker_batch.FrameBatch`, where each holds a slot, and
+    share its :class:`talkmesh.models.codetalker.batch.FrameBatch`, where each holds a slot, and
     compute their frames together (:meth:`frames_together`)."""
 
     def __init__(self, model: nn.Module, style: Tensor, features: MelFeatureStream) -> None:

@@ -6,7 +6,7 @@ Read top to bottom:
    official code, H=16, C=128) and ``small`` (a synthetic corpus on 2 CPU cores).
 2. Audio: the log-mel encoder (:class:`talkmesh.models.mel.MelAudioEncoder`, the paper's) or
    :class:`talkmesh.models.speech.SpeechFeatures` (any talkmesh speech encoder, same call).
-3-5. The layers (:mod:`talkmesh.models.meshtalk_layers`): :class:`ExpressionEncoder` (per-frame
+3-5. The layers (:mod:`talkmesh.models.meshtalk.layers`): :class:`ExpressionEncoder` (per-frame
    MLP + LSTM), :class:`FusionQuantizer` (MLP to H heads of C logits, hard straight-through
    Gumbel-softmax, Eq. 1-2), :class:`TemplateDecoder` (U-Net over the template, Eq. 3: any neutral
    mesh of the topology can be animated).
@@ -14,7 +14,7 @@ Read top to bottom:
    Eq. 6 with the soft mouth and upper-face maps, eyelid Eq. 7).
 7. :class:`MeshTalk`: ``forward`` (teacher-forced graph with the two cross-modal decodes), ``encode``,
    ``decode``, ``retarget`` (Sec. 4.3), ``dub`` (Sec. 4.4), ``loss``, ``set_statistics``.
-8. The autoregressive prior lives in :mod:`talkmesh.models.meshtalk_prior` (Eq. 8-9).
+8. The autoregressive prior lives in :mod:`talkmesh.models.meshtalk.prior` (Eq. 8-9).
 9. :class:`MeshTalkModel` (+ :class:`MeshTalkModelConfig`, :class:`SamplingConfig`): the release,
    expression space + prior behind the model interface of :mod:`talkmesh.models.base`
    (``generate(audio, template, seed=)``: prior codes decoded on the template).
@@ -36,15 +36,15 @@ from talkmesh.constants import MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.base import MotionModel
 from talkmesh.models.mel import MelAudioEncoder, MelConfig
-from talkmesh.models.meshtalk_context import build_prior
-from talkmesh.models.meshtalk_layers import (
+from talkmesh.models.meshtalk.context import build_prior
+from talkmesh.models.meshtalk.layers import (
     ExpressionEncoder,
     FusionQuantizer,
     Quantized,
     TemplateDecoder,
     gumbel_one_hot,
 )
-from talkmesh.models.meshtalk_prior import PRESETS, PriorConfig
+from talkmesh.models.meshtalk.prior import PRESETS, PriorConfig
 from talkmesh.models.speech import SpeechEncoderConfig, SpeechFeatures, release_config
 
 

@@ -12,15 +12,15 @@ on one frame and cannot stream); generation caches keys/values (``generate(mode=
 a faithful ``mode="naive"`` that re-runs everything over the whole prefix at each step, like the
 paper's loop.
 
-Releases imported from the official files (``talkmesh import-checkpoint``, models/official.py)
+Releases imported from the official files (``talkmesh import-checkpoint``, codetalker/official.py)
 switch the official behaviour back on through config options (``vq.instance_norm``,
 ``vq.gelu_tanh``, ``vq.final_norm``, ``vq.frame_positions``, ``stage2.postnorm``,
 ``stage2.interleaved_ppe``, the speech encoder's ``resample``/``normalize``); their generation
 equals the official ``predict`` (docs/guide/official.md).
 
 Here: the configs, stage 2 and :class:`CodeTalker` (training graph and ``generate``). Stage 1 is in
-:mod:`talkmesh.models.codetalker_vq`, the cached generation engine in
-:mod:`talkmesh.models.codetalker_generate`, the shared transformer layers in
+:mod:`talkmesh.models.codetalker.vq`, the cached generation engine in
+:mod:`talkmesh.models.codetalker.generate`, the shared transformer layers in
 :mod:`talkmesh.models.layers`, int8 generation in :mod:`talkmesh.models.int8`.
 """
 
@@ -37,14 +37,14 @@ from torch import Tensor, nn
 from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.base import CHUNK_FRAMES, FrameStream, MotionModel, frames_for_audio
-from talkmesh.models.codetalker_generate import (
+from talkmesh.models.codetalker.generate import (
     AheadWindow,
     CodeTalkerStream,
     fast_passes,
     generate_exact,
     generate_fast,
 )
-from talkmesh.models.codetalker_vq import MotionVQVAE, Quantized, VQConfig
+from talkmesh.models.codetalker.vq import MotionVQVAE, Quantized, VQConfig
 from talkmesh.models.int8 import quantize_int8
 from talkmesh.models.layers import Block, KVCache, padding_bias, periodic_encoding, temporal_bias
 from talkmesh.models.postnorm import PostNormDecoderLayer, interleaved_encoding
@@ -501,7 +501,7 @@ class CodeTalker(MotionModel):
     ) -> Iterator[Tensor]:
         """Fast generation a chunk at a time (arguments as :meth:`generate`, one sample): speech
         features computed window by window (:class:`~talkmesh.models.speech_chunks.FrameFeatures`)
-        and the frames of :func:`~talkmesh.models.codetalker_generate.fast_passes` handed out as
+        and the frames of :func:`~talkmesh.models.codetalker.generate.fast_passes` handed out as
         they become final, so memory does not grow with the audio. The passes are those of
         :meth:`generate` (the audio terms are loaded ahead of them): the same vertices up to
         float rounding. Models without a causal VQ decoder (their vertices come from a

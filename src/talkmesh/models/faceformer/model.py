@@ -46,7 +46,7 @@ Differences from the paper and the official code, and why:
 * Padding masks hold for any batch size, and an unseen speaker takes style weights over the
   training speakers (e.g. their mean) instead of one training speaker's one-hot.
 
-Models imported from the released weights (``talkmesh import-checkpoint``, models/official.py)
+Models imported from the released weights (``talkmesh import-checkpoint``, faceformer/official.py)
 switch on ``postnorm``, ``interleaved_ppe``, ``frame0_motion_bias=False`` and the speech
 encoder's ``resample="cnn"`` and ``normalize``: then generation equals the official ``predict``
 (docs/guide/official.md has the table of official vs default and why).

@@ -4,7 +4,7 @@
 audio, Eq. 8; ``forward`` (teacher-forced logits), ``sample`` (incremental: per-layer ring buffers of
 past activations, constant cost per frame), ``sample_uncached`` (reference that recomputes the whole
 history), ``perplexity`` (Eq. 9). Its config :class:`PriorConfig` and the presets of
-:func:`prior_config` match :func:`talkmesh.models.meshtalk.meshtalk_config`'s.
+:func:`prior_config` match :func:`talkmesh.models.meshtalk.model.meshtalk_config`'s.
 
 Axis letters: B batch, S audio samples, T motion frames, H heads, C classes, D width.
 """
@@ -45,7 +45,7 @@ class PriorConfig:
     # "expression": the trained expression space's audio features (as the official code does)
     audio_source: str = "own"
     # "talkmesh" (AutoregressivePrior) or "official" (the released ContextModel's wiring:
-    # talkmesh.models.meshtalk_context.OfficialContextPrior; on in imported models)
+    # talkmesh.models.meshtalk.context.OfficialContextPrior; on in imported models)
     layout: str = "talkmesh"
 
     def __post_init__(self) -> None:

@@ -1,5 +1,5 @@
 """MeshTalk's expression-space layers (Richard et al., ICCV 2021, Sec. 3.1, Fig. 2), used by
-:class:`talkmesh.models.meshtalk.MeshTalk`:
+:class:`talkmesh.models.meshtalk.model.MeshTalk`:
 
 1. :class:`ExpressionEncoder`: per-frame MLP + LSTM over the mesh sequence.
 2. :class:`FusionQuantizer` and :func:`gumbel_one_hot`: MLP to H heads of C logits, hard

@@ -1,6 +1,6 @@
 """MeshTalk's autoregressive prior in the official layout (facebookresearch/meshtalk's
 ``ContextModel``), for models imported from the released weights (``PriorConfig.layout:
-official``); talkmesh's own layout is :class:`talkmesh.models.meshtalk_prior.AutoregressivePrior`.
+official``); talkmesh's own layout is :class:`talkmesh.models.meshtalk.prior.AutoregressivePrior`.
 
 The official prior differs from talkmesh's in its wiring, not in what it models (Eq. 8):
 
@@ -12,7 +12,7 @@ The official prior differs from talkmesh's in its wiring, not in what it models 
 - the classifier is a head-masked map too (heads < h), not one classifier per head.
 
 Both classes have the same surface (``forward``, ``loss``, ``perplexity``, ``sample``,
-``sample_uncached``), so :class:`talkmesh.models.meshtalk.MeshTalkModel` uses either.
+``sample_uncached``), so :class:`talkmesh.models.meshtalk.model.MeshTalkModel` uses either.
 
 Axis letters: B batch, T motion frames, H heads, C classes, D width, Da audio width.
 """
@@ -25,7 +25,7 @@ from torch import Tensor, nn
 
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.mel import LEAKY_SLOPE
-from talkmesh.models.meshtalk_prior import (
+from talkmesh.models.meshtalk.prior import (
     AutoregressivePrior,
     PriorConfig,
     PriorLoss,
