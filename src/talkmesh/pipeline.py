@@ -115,21 +115,17 @@ def animate(
         int8: CodeTalker models: run these layers in int8 on the CPU (``speech``: the speech
             encoder, ``decoders``: the per-frame decoder layers, ``all``: both); faster, not
             exact (its effect on accuracy: docs/results/codetalker.md).
-        pause_gate: learned models: close the mouth in the pauses that the phone recogniser
-            finds (:mod:`talkmesh.face.pauses`); real recordings' noisy pauses otherwise keep it
-            open (docs/results/real-speech.md).
+        pause_gate: learned models: close the mouth in pauses (voice activity, any language;
+            :mod:`talkmesh.face.pauses`), where noisy real recordings keep it open otherwise.
         lip_closure: learned models: shut the lips fully where the model nearly closes them
             (:mod:`talkmesh.face.corrections`; off by default: it costs synthetic LVE).
-        procedural_mix: learned models: share of the procedural animator's mouth (driven by the
-            recognised phones) mixed into the model's except at its lip closures, in [0, 1];
-            0 turns it off.
-        loudness_gain: learned models: how much further the loudest speech opens the model's
-            mouth (its displacement from the closed mouth x ``1 + gain x`` loudness), except at
-            its lip closures, in [0, 2]; 0 turns it off.
+        procedural_mix: learned models: share of the procedural animator's mouth (recognised
+            phones) mixed into the model's except at its lip closures, in [0, 1]; 0: off.
+        loudness_gain: learned models: the loudest speech opens the mouth ``1 + gain`` times as
+            far (not at its lip closures), in [0, 2]; 0: off.
         bilabial_closure: learned models: shut the lips fully where the model nearly closes them
             by a /p b m/ that the phone recogniser finds.
-        pause_source: learned models: where the pause gate finds pauses, ``vad`` (voice
-            activity, any language) or ``recognizer`` (the English phone recogniser).
+        pause_source: learned models: the pause gate's pauses, ``vad`` or ``recognizer``.
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).

@@ -71,11 +71,6 @@ def make_multilingual_corpus(
     overwrite: bool = False,
 ) -> CorpusInfo:
     """Write the multilingual corpus to ``out``; returns a summary."""
-    from talkmesh.audio.languages import get_language
-    from talkmesh.audio.voices import mbrola_voice
-    from talkmesh.face.assets import list_identities
-    from talkmesh.face.lipsync import SpeakingStyle
-
     root = Path(out)
     _check_request(root, 1, utterances_per_voice, overwrite)
     plan = [row for row in plan_subjects(languages) if installed(row[2])]
@@ -84,10 +79,43 @@ def make_multilingual_corpus(
             "no MBROLA voice of the chosen languages is installed: "
             "`sudo apt-get install mbrola-de2 mbrola-fr2 ...` (see docs/results/multilingual.md)"
         )
+    jobs, subjects, texts, splits = _jobs(root, plan, utterances_per_voice, seed)
+    for sub in ("wav", "vertices_npy", "arkit", "regions", "phones"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    total_s = synth._run_jobs(jobs, len(jobs) * utterances_per_voice, workers, progress)
+    num_vertices = synth._write_shared(root, subjects)
+    manifest = {
+        "format": synth.FORMAT,
+        "version": FORMAT_VERSION,
+        "seed": seed,
+        "fps": synth.DISK_FPS,
+        "motion_fps": synth.MOTION_FPS,
+        "num_vertices": num_vertices,
+        "faces_file": synth.FACES_FILE,
+        "train_subjects": list(splits["train"]),
+        "splits": splits,
+        "subjects": subjects,
+        "sentences": texts,
+        "teacher": True,
+    }
+    _atomic_write(
+        root / "manifest.json", (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode()
+    )
+    size = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
+    return CorpusInfo(root, len(jobs), len(jobs) * utterances_per_voice, total_s, size / 1e6)
+
+
+def _jobs(root: Path, plan: list, count: int, seed: int) -> tuple[list, dict, dict, dict]:
+    """One synthesis job per planned voice; the manifest's subjects, texts and splits."""
+    from talkmesh.audio.languages import get_language
+    from talkmesh.audio.voices import mbrola_voice
+    from talkmesh.face.assets import list_identities
+    from talkmesh.face.lipsync import SpeakingStyle
+
     rng = np.random.default_rng(seed)
     identities = list_identities()
     jobs, subjects, texts, splits = [], {}, {}, {"train": {}, "val": {}, "test": {}}
-    ids = [f"utt{k + 1:02d}" for k in range(utterances_per_voice)]
+    ids = [f"utt{k + 1:02d}" for k in range(count)]
     for s, (split, code, db) in enumerate(plan):
         lang = get_language(code)
         identity = identities[s % len(identities)]
@@ -95,7 +123,7 @@ def make_multilingual_corpus(
         pitch, speed = int(rng.integers(35, 66)), int(rng.integers(135, 186))
         voice = mbrola_voice(db, code, pitch, speed)
         style = SpeakingStyle.random(rng)
-        mine = utterances(lang.sentences, utterances_per_voice, rng)
+        mine = utterances(lang.sentences, count, rng)
         subjects[subject] = {
             "identity": identity,
             "voice": voice.name,
@@ -120,29 +148,7 @@ def make_multilingual_corpus(
                 "phones_dir": str(root / "phones"),
             }
         )
-    for sub in ("wav", "vertices_npy", "arkit", "regions", "phones"):
-        (root / sub).mkdir(parents=True, exist_ok=True)
-    total_s = synth._run_jobs(jobs, len(jobs) * utterances_per_voice, workers, progress)
-    num_vertices = synth._write_shared(root, subjects)
-    manifest = {
-        "format": synth.FORMAT,
-        "version": FORMAT_VERSION,
-        "seed": seed,
-        "fps": synth.DISK_FPS,
-        "motion_fps": synth.MOTION_FPS,
-        "num_vertices": num_vertices,
-        "faces_file": synth.FACES_FILE,
-        "train_subjects": list(splits["train"]),
-        "splits": splits,
-        "subjects": subjects,
-        "sentences": texts,
-        "teacher": True,
-    }
-    _atomic_write(
-        root / "manifest.json", (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode()
-    )
-    size = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
-    return CorpusInfo(root, len(jobs), len(jobs) * utterances_per_voice, total_s, size / 1e6)
+    return jobs, subjects, texts, splits
 
 
 def read_phones(root: Path, name: str):
