@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import re
+import stat
 import subprocess
 import tempfile
 import warnings
@@ -136,6 +137,11 @@ def _check_file(path: str | Path) -> Path:
         raise TalkmeshError(f"audio file not found: {path}: check the path")
     if path.is_dir():
         raise TalkmeshError(f"{path} is a folder, not an audio file: pass a wav, flac or mp3 file")
+    if not path.is_file():  # reading a FIFO would wait for a writer; a device never ends
+        kind = "a named pipe (FIFO)" if stat.S_ISFIFO(path.stat().st_mode) else "a device"
+        raise TalkmeshError(
+            f"{path} is {kind}, not an audio file: save the audio to a file and pass that"
+        )
     if path.stat().st_size == 0:
         raise TalkmeshError(f"audio file {path} is empty (0 bytes): re-export or re-record it")
     return path

@@ -11,6 +11,12 @@ import numpy as np
 
 from talkmesh.errors import TalkmeshError
 
+MAX_DEPTH = 32  # VOCASET's deepest (index: subject -> sentence -> frame -> id) is 3
+# Containers and values visited, a shared one each time it is met: a file of a few hundred bytes
+# can nest the same list in itself 60 times over (2**60 items to visit); VOCASET's largest
+# (the frame index) has under a million.
+MAX_ITEMS = 5_000_000
+
 
 class _SafeUnpickler(pickle.Unpickler):
     """Only what dicts of numpy arrays need: no code can run while loading a template file."""
@@ -49,17 +55,52 @@ def safe_load_pickle(path: str | Path) -> object:
         ) from None
     except (EOFError, ValueError, TypeError, AttributeError, ImportError, IndexError) as e:
         raise TalkmeshError(f"{path}: corrupt pickle ({type(e).__name__})") from None
+    except (RecursionError, MemoryError) as e:
+        raise TalkmeshError(
+            f"{path}: refused: the pickle is too large ({type(e).__name__})"
+        ) from None
     _check_plain(obj, path)
     return obj
 
 
+PLAIN = (str, bytes, int, float, bool, np.ndarray, np.generic, type(None))
+
+
 def _check_plain(obj: object, path: Path) -> None:
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            _check_plain(k, path)
-            _check_plain(v, path)
-    elif isinstance(obj, (list, tuple)):
-        for v in obj:
-            _check_plain(v, path)
-    elif not isinstance(obj, (str, bytes, int, float, bool, np.ndarray, np.generic, type(None))):
-        raise TalkmeshError(f"{path}: unexpected {type(obj).__name__} in a template pickle")
+    """Refuse anything but plain data, nesting deeper than MAX_DEPTH and more than MAX_ITEMS
+    items (shared containers counted each time they are met, as a reader would walk them):
+    iterative, so neither depth nor sharing can exhaust the stack or the time."""
+    check_bounded(obj, path, leaves=PLAIN, what="in a template pickle")
+
+
+def check_bounded(
+    obj: object,
+    path: Path,
+    *,
+    leaves: tuple[type, ...] | None = None,
+    what: str = "",
+    max_depth: int = MAX_DEPTH,
+    max_items: int = MAX_ITEMS,
+) -> None:
+    """Refuse ``obj`` (read from ``path``) when its dicts, lists and tuples nest deeper than
+    ``max_depth`` or hold more than ``max_items`` items in all, a shared container counted each
+    time it is met (as a reader walking it would meet it), or when it holds anything but
+    ``leaves`` (None: anything). One-line TalkmeshErrors; iterative, so that neither depth nor
+    sharing can exhaust the stack or the time."""
+    stack: list[tuple[object, int]] = [(obj, 0)]
+    seen = 0
+    while stack:
+        item, depth = stack.pop()
+        if depth > max_depth:
+            raise TalkmeshError(f"{path}: refused: containers nested over {max_depth} levels")
+        if isinstance(item, (dict, list, tuple)):
+            seen += len(item)
+            if seen > max_items:
+                raise TalkmeshError(
+                    f"{path}: refused: it expands to over {max_items:,} items (containers "
+                    "nested in each other)"
+                )
+            items = (x for kv in item.items() for x in kv) if isinstance(item, dict) else item
+            stack.extend((x, depth + 1) for x in items)
+        elif leaves is not None and not isinstance(item, leaves):
+            raise TalkmeshError(f"{path}: unexpected {type(item).__name__} {what}".rstrip())

@@ -616,6 +616,8 @@ def serve(
         import uvicorn
     except ImportError:
         raise MissingDependencyError("uvicorn", "serve", "talkmesh serve") from None
+    if not 0 <= port <= 65535:
+        raise TalkmeshError(f"--port {port}: give 1 to 65535 (0: any free port)")
     if torch_threads is not None:
         if torch_threads < 1:
             raise TalkmeshError(f"--torch-threads must be at least 1, got {torch_threads}")

@@ -1,0 +1,233 @@
+"""Hostile and careless inputs on every entry point (docs/security.md): each is one line
+``talkmesh: error:`` naming what is wrong, never ``internal error``, and leaves no output.
+
+The cases are those an outside battery found answered with "internal error", a hang, a raw
+warning or a misleading message: symbolic link loops, glb files whose JSON has the wrong types
+or nests 100000 deep, a mesh with every vertex at the origin, templates.pkl holding text, object
+arrays or shared lists nested 60 times, checkpoints with a text step or a list for weights,
+animation files nested deep or holding NaN, out-of-range options.
+"""
+
+from __future__ import annotations
+
+import copy
+import pickle
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+from avatars import make_avatar
+
+from talkmesh import cli
+from talkmesh.errors import TalkmeshError
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPE = ROOT / "tests" / "recipes" / "meshtalk_expression.yaml"
+
+
+def run(capsys, *argv: str) -> tuple[int, str]:
+    code = cli.main([str(a) for a in argv])
+    return code, capsys.readouterr().err
+
+
+def assert_refused(code: int, err: str, *words: str) -> str:
+    """One ``talkmesh: error:`` line (a batch adds its summary line), exit 1 or 2, no bug."""
+    assert code in (1, 2), err
+    assert "internal error" not in err and "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert lines and lines[0].startswith("talkmesh: error:"), err
+    assert all(line.startswith("talkmesh:") for line in lines), err
+    assert len(lines) == 1 or (len(lines) == 2 and "files failed" in lines[1]), err
+    for w in words:
+        assert w in lines[0], err
+    return lines[0]
+
+
+@pytest.fixture
+def wav(tmp_path) -> Path:
+    t = np.arange(16000) / 16000
+    path = tmp_path / "s.wav"
+    sf.write(path, (0.3 * np.sin(2 * np.pi * 220 * t)).astype(np.float32), 16000)
+    return path
+
+
+@pytest.fixture(autouse=True)
+def _in_tmp(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+
+
+def loop(tmp: Path, name: str) -> Path:
+    """``name`` -> ``name.2`` -> ``name``: a symbolic link loop."""
+    a, b = tmp / name, tmp / (name + ".2")
+    a.symlink_to(b.name)
+    b.symlink_to(a.name)
+    return a
+
+
+# --------------------------------------------------------------------------- 6: symlink loops
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["animate", "{loop.wav}", "--model", "procedural", "-o", "o.npz"],
+        ["animate", "{wav}", "--model", "procedural", "-o", "{loop.npz}"],
+        ["export", "{loop.npz}", "-o", "e.glb"],
+        ["animate", "{wav}", "--model", "procedural", "--avatar", "{loop.glb}", "-o", "a.glb"],
+        ["rig", "{loop.obj}", "-o", "r.glb"],
+    ],
+)
+def test_symlink_loops_are_one_line(capsys, tmp_path, wav, argv):
+    args = [
+        str(loop(tmp_path, a[1:-1])) if a.startswith("{loop") else str(wav) if a == "{wav}" else a
+        for a in argv
+    ]
+    assert_refused(*run(capsys, *args))
+    assert not [p for p in tmp_path.iterdir() if p.suffix in (".npz", ".glb") and p.is_file()]
+
+
+# --------------------------------------------------------------------------- 6: glb JSON
+
+
+def _glb_json(text: bytes) -> bytes:
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text
+    return struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body
+
+
+BAD_GLTF = {
+    "meshes is a number": lambda g: g.update(meshes=5),
+    "a mesh is a number": lambda g: g.update(meshes=[1, 2]),
+    "nodes is text": lambda g: g.update(nodes="x"),
+    "extras is a list": lambda g: g["meshes"][0].update(extras=[1]),
+    "primitives is an object": lambda g: g["meshes"][0].update(primitives={"a": 1}),
+    "a primitive is a number": lambda g: g["meshes"][0].update(primitives=[3]),
+    "targets is text": lambda g: g["meshes"][0]["primitives"][0].update(targets="abc"),
+    "weights is text": lambda g: g["meshes"][0].update(weights="abc"),
+    "weights of another length": lambda g: g["meshes"][0].update(weights=[1, 2]),
+    "buffers is a number": lambda g: g.update(buffers=3),
+    "a buffer is text": lambda g: g.update(buffers=["x"]),
+    "animations is an object": lambda g: g.update(animations={"a": 1}),
+    "an animation is a list": lambda g: g.update(animations=[[1]]),
+}
+
+
+@pytest.fixture(scope="module")
+def avatar_json(tmp_path_factory) -> tuple[dict, bytes]:
+    from talkmesh.output.avatar import read_glb
+
+    return read_glb(make_avatar(tmp_path_factory.mktemp("avatar") / "av.glb"))
+
+
+@pytest.mark.parametrize("case", list(BAD_GLTF))
+def test_avatar_with_json_of_the_wrong_types_is_one_line(capsys, tmp_path, wav, avatar_json, case):
+    from talkmesh.output.avatar import glb_bytes
+
+    gltf = copy.deepcopy(avatar_json[0])
+    BAD_GLTF[case](gltf)
+    bad = tmp_path / "bad.glb"
+    bad.write_bytes(glb_bytes(gltf, avatar_json[1]))
+    args = ["animate", wav, "--model", "procedural", "--avatar", bad, "-o", "out.glb"]
+    assert_refused(*run(capsys, *args), "bad.glb")
+    assert not (tmp_path / "out.glb").exists()
+    code, err = run(capsys, "export", bad, "-o", "e.npz")  # the glb read as an animation
+    assert code == 0 or assert_refused(code, err, "bad.glb")
+
+
+def test_glb_nested_100000_deep_is_one_line_everywhere(capsys, tmp_path, wav):
+    from talkmesh.serve.server import create_app
+
+    deep = tmp_path / "deep.glb"
+    deep.write_bytes(
+        _glb_json(b'{"asset":{"version":"2.0"},"x":' + b"[" * 100_000 + b"]" * 100_000 + b"}")
+    )
+    args = ["animate", wav, "--model", "procedural", "--avatar", deep, "-o", "out.glb"]
+    assert_refused(*run(capsys, *args), "deep.glb", "nested")
+    assert_refused(*run(capsys, "export", deep, "-o", "e.npz"), "deep.glb")
+    with pytest.raises(TalkmeshError, match="deep.glb: its JSON chunk is nested too deeply"):
+        create_app(avatar=deep, static_dir=None)  # serve --avatar: before it listens
+
+
+# --------------------------------------------------------------------------- 6: meshes, pickles
+
+
+def _obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    lines = [f"v {x} {y} {z}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_mesh_with_every_vertex_at_the_origin_is_one_line(capsys, tmp_path, wav):
+    rng = np.random.default_rng(0)
+    mesh = _obj(tmp_path / "origin.obj", np.zeros((500, 3)), rng.integers(0, 500, (900, 3)))
+    assert_refused(*run(capsys, "rig", mesh, "-o", "r.glb"), "origin.obj", "not a head")
+    args = ["animate", wav, "--model", "procedural", "--head", mesh, "-o", "h.npz"]
+    assert_refused(*run(capsys, *args), "origin.obj")
+    assert not (tmp_path / "r.glb").exists() and not (tmp_path / "h.npz").exists()
+
+
+@pytest.mark.parametrize(
+    "content, words",
+    [
+        ({"alice": "a string"}, "str"),
+        ({"alice": np.array([[1, 2, 3]], dtype=object)}, "object"),
+        ({"alice": [["x", 1, 2]]}, "not an array of numbers"),
+        ("just text", "expected a dict"),
+    ],
+)
+def test_templates_pickle_of_text_or_objects_is_one_line(capsys, tmp_path, wav, content, words):
+    pkl = tmp_path / "templates.pkl"
+    pkl.write_bytes(pickle.dumps(content, protocol=2))
+    args = ["animate", wav, "--model", "procedural", "--template", pkl, "-o", "t.npz"]
+    assert_refused(*run(capsys, *args), "templates.pkl", words)
+
+
+def test_animation_json_nested_deep_is_one_line(capsys, tmp_path):
+    deep = tmp_path / "deep.json"
+    deep.write_text('{"fps": 30, "names": ' + "[" * 100_000 + "]" * 100_000 + ', "frames": []}')
+    assert_refused(*run(capsys, "export", deep, "-o", "e.npz"), "deep.json")
+    assert_refused(*run(capsys, "render", deep, "-o", "e.mp4"), "deep.json")
+
+
+# --------------------------------------------------------------------------- 6: options
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["animate", "{wav}", "--seed", "-1", "-o", "o.npz"], ["--seed -1", "0 to"]),
+        (["animate", "{wav}", "--fps", "0.001", "-o", "o.npz"], ["--fps 0.001", "1 to 240"]),
+        (["animate", "{wav}", "--fps", "nan", "-o", "o.npz"], ["--fps nan"]),
+        (["animate", "{wav}", "--style", "A:nan", "-o", "o.npz"], ["A:nan", "0 to"]),
+        (["animate", "{wav}", "--style", "A:-1", "-o", "o.npz"], ["A:-1"]),
+        (["serve", "--port", "70000"], ["--port 70000", "65535"]),
+    ],
+)
+def test_out_of_range_options_are_one_line(capsys, tmp_path, wav, argv, words):
+    args = [str(wav) if a == "{wav}" else a for a in argv]
+    assert_refused(*run(capsys, *args), *words)
+    assert not (tmp_path / "o.npz").exists()
+
+
+# --------------------------------------------------------------------------- 6: checkpoints
+
+
+@pytest.mark.parametrize(
+    "content, words",
+    [
+        ({"global_step": "abc", "epoch": 1}, "global_step is str"),
+        ({"global_step": [1], "epoch": 1}, "global_step is list"),
+        ({"global_step": 1, "epoch": 1, "state_dict": [1, 2]}, "state_dict is a list"),
+    ],
+)
+def test_checkpoints_with_wrong_types_are_one_line(capsys, tmp_path, content, words):
+    torch = pytest.importorskip("torch")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    torch.save(content, run_dir / "last.ckpt")
+    code, err = run(capsys, "train", RECIPE, f"train.out_dir={run_dir}", "--resume", "-q")
+    assert_refused(code, err, "last.ckpt", words)
+    assert sorted(p.name for p in run_dir.iterdir()) == ["last.ckpt"]
