@@ -11,8 +11,11 @@ animation files nested deep or holding NaN, out-of-range options.
 from __future__ import annotations
 
 import copy
+import errno
+import os
 import pickle
 import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -231,3 +234,118 @@ def test_checkpoints_with_wrong_types_are_one_line(capsys, tmp_path, content, wo
     code, err = run(capsys, "train", RECIPE, f"train.out_dir={run_dir}", "--resume", "-q")
     assert_refused(code, err, "last.ckpt", words)
     assert sorted(p.name for p in run_dir.iterdir()) == ["last.ckpt"]
+
+
+# --------------------------------------------------------------------------- 8: messages
+
+
+class Planted:
+    """Unpickling this would create ``marker``."""
+
+    def __init__(self, marker: Path):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+@pytest.mark.parametrize("kind", ["plain pickle", "zip", "legacy torch"])
+def test_checkpoint_refusals_say_what_the_file_is_and_that_nothing_ran(tmp_path, kind):
+    torch = pytest.importorskip("torch")
+    from talkmesh.models.checkpoint_io import load_checkpoint
+    from talkmesh.training.checkpoints import read_checkpoint
+
+    marker, path = tmp_path / "marker", tmp_path / "last.ckpt"
+    content = {"epoch": 1, "global_step": 2, "payload": Planted(marker)}
+    if kind == "plain pickle":
+        path.write_bytes(pickle.dumps(content, protocol=4))
+    else:
+        torch.save(content, path, _use_new_zipfile_serialization=kind == "zip")
+    for read in (read_checkpoint, load_checkpoint):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with pytest.raises(TalkmeshError) as e:
+                read(path)
+        message = str(e.value)
+        assert not caught, [str(w.message) for w in caught]  # torch's pickle-protocol warning
+        assert message.startswith(f"{path}: refused: ") and "\n" not in message, message
+        assert message.endswith("nothing from it ran"), message
+        assert "truncated" not in message and "weights_only" not in message, message
+        if kind == "plain pickle":
+            assert "a plain Python pickle" in message, message
+        else:
+            assert "tries to load io.open" in message, message
+    assert not marker.exists()
+
+
+def test_library_warnings_are_one_line(capsys, tmp_path, wav):
+    code, _ = run(capsys, "animate", wav, "--model", "procedural", "-o", "o.npz", "-q")
+    assert code == 0
+    warnings.warn("something numpy said", RuntimeWarning, stacklevel=1)
+    err = capsys.readouterr().err
+    assert err == "talkmesh: warning: something numpy said (RuntimeWarning)\n", err
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+def test_fifo_and_devices_are_not_called_empty(capsys, tmp_path, kind):
+    if kind == "fifo":
+        source = tmp_path / "pipe.wav"
+        os.mkfifo(source)
+    else:
+        source = Path("/dev/zero")
+    line = assert_refused(*run(capsys, "animate", source, "--model", "procedural", "-o", "o.npz"))
+    assert ("named pipe" if kind == "fifo" else "a device") in line and "empty" not in line
+
+
+@pytest.mark.parametrize("overwrite", [[], ["--overwrite"]])
+def test_an_output_that_is_a_folder_says_so(capsys, tmp_path, wav, overwrite):
+    (tmp_path / "out.npz").mkdir()
+    args = ["animate", wav, "--model", "procedural", "-o", "out.npz", *overwrite]
+    line = assert_refused(*run(capsys, *args), "out.npz is a folder")
+    assert "--overwrite" not in line
+
+
+def test_disk_full_on_npz_names_the_output(capsys, tmp_path, wav, monkeypatch):
+    from talkmesh.output import npy
+
+    def full(*_args, **_kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(npy.NpzWriter, "_put_blocks", full)
+    monkeypatch.setattr(npy.NpzWriter, "_put", full)
+    line = assert_refused(*run(capsys, "animate", wav, "--model", "procedural", "-o", "o.npz"))
+    assert "o.npz: cannot write it (No space left on device)" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.wav"]
+
+
+def test_summary_into_an_unwritable_folder_is_refused_before_any_file(capsys, tmp_path, wav):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for stem in "ab":
+        (folder / f"{stem}.wav").write_bytes(wav.read_bytes())
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file where the summary's folder would be")
+    args = ["animate", folder, "--model", "procedural", "-o", "out/", "--summary"]
+    code, err = run(capsys, *args, blocked / "summary.csv")
+    assert_refused(code, err, "--summary")
+    assert not (tmp_path / "out").exists()
+
+
+def test_avatar_with_an_external_buffer_is_refused_before_the_model_runs(tmp_path, avatar_json):
+    from talkmesh.output.avatar import bind_avatar
+
+    gltf = copy.deepcopy(avatar_json[0])
+    gltf["buffers"][0]["uri"] = "data.bin"
+    with pytest.raises(TalkmeshError, match="av.glb: the avatar keeps its binary data in an ext"):
+        bind_avatar(gltf, "av.glb")  # what `animate --avatar` checks before loading a model
+
+
+def test_avatar_summary_counts_meshes_of_one_name(avatar_json):
+    from talkmesh.output.avatar import bind_avatar
+
+    gltf = copy.deepcopy(avatar_json[0])
+    head = next(m for m in gltf["meshes"] if m["name"] == "Head")
+    gltf["meshes"] = [head] * 3000
+    gltf["nodes"] = [{"mesh": k} for k in range(3000)]
+    summary = bind_avatar(gltf).summary()
+    assert "3000 meshes: Head x 3000;" in summary and summary.count("Head") == 1, summary
