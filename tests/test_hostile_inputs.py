@@ -349,3 +349,73 @@ def test_avatar_summary_counts_meshes_of_one_name(avatar_json):
     gltf["nodes"] = [{"mesh": k} for k in range(3000)]
     summary = bind_avatar(gltf).summary()
     assert "3000 meshes: Head x 3000;" in summary and summary.count("Head") == 1, summary
+
+
+# --------------------------------------------------------------------------- 4: finiteness
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+@pytest.mark.parametrize("suffix", [".obj", ".npy", ".pkl"])
+def test_template_with_non_finite_vertices_is_refused_up_front(capsys, tmp_path, wav, bad, suffix):
+    from talkmesh.datasets.reader import write_templates
+    from talkmesh.face.assets import load_head
+
+    head = load_head()
+    vertices = head.template.astype(np.float64)
+    vertices[7, 1] = bad
+    path = tmp_path / f"face{suffix}"
+    if suffix == ".obj":
+        _obj(path, vertices, head.faces)
+    elif suffix == ".npy":
+        np.save(path, vertices)
+    else:
+        write_templates(path, {"alice": vertices})
+    args = ["animate", wav, "--model", "procedural", "--template", path, "-o", "t.npz"]
+    assert_refused(*run(capsys, *args), "face", "NaN or infinite")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name, "s.wav"]
+
+
+def test_avatar_whose_header_understates_its_length_is_refused(capsys, tmp_path, wav):
+    avatar = make_avatar(tmp_path / "av.glb")
+    data = avatar.read_bytes()
+    avatar.write_bytes(data[:8] + struct.pack("<I", len(data) // 3) + data[12:])
+    args = ["animate", wav, "--model", "procedural", "--avatar", avatar, "-o", "out.glb"]
+    assert_refused(*run(capsys, *args), "av.glb", f"the header says {len(data) // 3} bytes")
+    assert not (tmp_path / "out.glb").exists()
+
+
+@pytest.mark.parametrize("fps", [np.nan, np.inf, 0.0, -30.0])
+def test_export_of_an_npz_with_a_bad_frame_rate_is_refused(capsys, tmp_path, fps):
+    import talkmesh
+    from talkmesh.output.formats import save_animation
+
+    anim = talkmesh.animate(np.zeros(8000, np.float32), model="procedural")
+    good = tmp_path / "good.npz"
+    save_animation(anim, good)
+    with np.load(good) as z:
+        members = {k: z[k] for k in z.files}
+    members["fps"] = np.float64(fps)
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **members)
+    for out in ("e.glb", "e.json", "e.npz"):
+        assert_refused(*run(capsys, "export", bad, "-o", out), "bad.npz", "frame rate")
+        assert not (tmp_path / out).exists()
+
+
+def test_frames_of_nan_never_reach_a_final_name(tmp_path):
+    from talkmesh.output.streaming import save_blocks
+    from talkmesh.pipeline import animate_blocks
+
+    anim = animate_blocks(np.zeros(16000, np.float32), model="procedural", block=10)
+
+    def poisoned(blocks):
+        for k, block in enumerate(blocks):
+            if k == 1:
+                block.vertices[3] = np.nan
+            yield block
+
+    anim.blocks = poisoned(anim.blocks)
+    paths = [tmp_path / "a.npz", tmp_path / "a.npy"]
+    with pytest.raises(TalkmeshError, match="frames 10 to 20 hold NaN"):
+        save_blocks(anim, paths, overwrite=False)
+    assert list(tmp_path.iterdir()) == []
