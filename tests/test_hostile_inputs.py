@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import errno
+import io
 import os
 import pickle
 import struct
@@ -419,3 +420,62 @@ def test_frames_of_nan_never_reach_a_final_name(tmp_path):
     with pytest.raises(TalkmeshError, match="frames 10 to 20 hold NaN"):
         save_blocks(anim, paths, overwrite=False)
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- 5: FLAC
+
+
+def unknown_length(flac: bytes) -> bytes:
+    """``flac`` with STREAMINFO's total samples 0, as ffmpeg writes FLAC to a pipe
+    (``ffmpeg -i x.wav -f flac - > y.flac``): the length is known only by decoding."""
+    assert flac[:4] == b"fLaC"
+    data = bytearray(flac)
+    fields = int.from_bytes(data[18:26], "big")  # rate, channels, bits, then 36 bits of samples
+    data[18:26] = (fields & ~((1 << 36) - 1)).to_bytes(8, "big")
+    return bytes(data)
+
+
+def tone_flac(seconds: float) -> bytes:
+    t = np.arange(int(16000 * seconds)) / 16000
+    buf = io.BytesIO()
+    sf.write(buf, (0.3 * np.sin(2 * np.pi * 220 * t)).astype(np.float32), 16000, format="FLAC")
+    return buf.getvalue()
+
+
+def test_flac_without_a_stated_length_is_read(tmp_path):
+    from talkmesh.audio.loading import audio_duration, load_audio
+    from talkmesh.audio.waveform import open_audio
+
+    path = tmp_path / "pipe.flac"
+    path.write_bytes(unknown_length(tone_flac(2.0)))
+    assert sf.info(str(path)).frames > 2**62  # what libsndfile makes of "total samples 0"
+    assert len(load_audio(path)) == 32000 and len(open_audio(path)) == 32000
+    assert 1.5 < audio_duration(path) <= 2.0  # counted by decoding (the last block is lost)
+    assert 1.0 < audio_duration(path, limit=1.0) < 1.3  # and only until past the limit
+
+
+def test_flac_without_a_stated_length_animates(capsys, tmp_path):
+    path = tmp_path / "pipe.flac"
+    path.write_bytes(unknown_length(tone_flac(2.0)))
+    code, err = run(capsys, "animate", path, "--model", "procedural", "-o", "o.npz")
+    assert code == 0, err
+    with np.load(tmp_path / "o.npz") as z:
+        assert len(z["offsets"]) == 60
+
+
+def test_truncated_and_corrupt_flac_animate_through_ffmpeg_in_a_batch(capsys, tmp_path):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    whole = tone_flac(3.0)
+    (folder / "cut.flac").write_bytes(whole[: len(whole) // 2])
+    broken = bytearray(whole)
+    broken[len(whole) // 2 : len(whole) // 2 + 300] = b"\x55" * 300
+    (folder / "broken.flac").write_bytes(bytes(broken))
+    code, err = run(capsys, "animate", folder, "--model", "procedural", "-o", "out/", "-q")
+    assert "internal error" not in err and "LibsndfileError" not in err, err
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "broken.mp4",
+        "cut.mp4",
+        "summary.csv",
+    ]

@@ -438,7 +438,8 @@ class Service:
                 )
             audio = upload.rename(upload.with_suffix(suffix))
             try:  # priced from the header: nothing is decoded yet
-                seconds = await anyio.to_thread.run_sync(audio_duration, audio)
+                limit = self.limits.max_seconds  # counted up to it when the header is silent
+                seconds = await anyio.to_thread.run_sync(audio_duration, audio, limit)
             except TalkmeshError as e:
                 return _error(400, str(e).replace(str(audio), "the audio"))
             if seconds > self.limits.max_seconds:
