@@ -17,6 +17,7 @@ import os
 import pickle
 import struct
 import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -479,3 +480,107 @@ def test_truncated_and_corrupt_flac_animate_through_ffmpeg_in_a_batch(capsys, tm
         "cut.mp4",
         "summary.csv",
     ]
+
+
+# --------------------------------------------------------------------------- 3: expansion
+
+
+def shared_lists(levels: int) -> list:
+    """A list nesting the same list twice, ``levels`` deep: a few hundred bytes pickled,
+    2**levels items to whoever walks it."""
+    nested: list = []
+    for _ in range(levels):
+        nested = [nested, nested]
+    return nested
+
+
+def deep_list_pickle(depth: int) -> bytes:
+    """A protocol-2 pickle of {'alice': [[[...]]]} nested ``depth`` deep (built by opcodes:
+    pickle.dumps itself would overflow the stack)."""
+    return b"\x80\x02}X\x05\x00\x00\x00alice" + b"]" * depth + b"a" * (depth - 1) + b"s."
+
+
+@pytest.mark.parametrize(
+    "content, words",
+    [
+        (pickle.dumps({"alice": shared_lists(60)}, protocol=2), "nested over"),
+        (pickle.dumps({"alice": shared_lists(30)}, protocol=2), "expands to over"),
+        (deep_list_pickle(100_000), "nested over"),
+    ],
+    ids=["shared 60 deep", "shared 30 deep", "100000 deep"],
+)
+def test_templates_pickle_that_expands_without_bound_is_one_line(
+    capsys, tmp_path, wav, content, words
+):
+    from talkmesh.datasets.reader import load_templates
+
+    pkl = tmp_path / "templates.pkl"
+    pkl.write_bytes(content)
+    assert len(content) < 300_000
+    with pytest.raises(TalkmeshError, match=words):  # prepare-vocaset and datasets read it so
+        load_templates(pkl)
+    args = ["animate", wav, "--model", "procedural", "--template", pkl, "-o", "t.npz"]
+    assert_refused(*run(capsys, *args), "templates.pkl", "refused")
+
+
+def test_checkpoint_whose_recipe_expands_without_bound_is_refused(capsys, tmp_path):
+    torch = pytest.importorskip("torch")
+    from talkmesh.training.checkpoints import read_checkpoint
+
+    shared: dict = {}
+    for _ in range(34):
+        shared = {"a": shared, "b": shared}
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    path = run_dir / "last.ckpt"
+    torch.save({"global_step": 1, "epoch": 0, "talkmesh_recipe": shared}, path)
+    assert path.stat().st_size < 100_000
+    with pytest.raises(TalkmeshError, match="last.ckpt: refused: containers nested over"):
+        read_checkpoint(path)
+    code, err = run(capsys, "train", RECIPE, f"train.out_dir={run_dir}", "--resume", "-q")
+    assert_refused(code, err, "last.ckpt", "refused")
+
+
+def test_npz_whose_members_expand_a_hundredfold_is_refused_before_reading(
+    capsys, tmp_path, monkeypatch
+):
+    from talkmesh.output import files
+
+    monkeypatch.setattr(files, "EXPANSION_FREE", 1 << 20)  # the same rule, at a test's size
+    bomb = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, arr in (("faces", np.zeros((1, 3), np.int32)), ("fps", np.float64(30))):
+            with z.open(f"{name}.npy", "w") as f:
+                np.lib.format.write_array(f, np.asarray(arr))
+        with z.open("vertices.npy", "w", force_zip64=True) as f:
+            shape = (2000, 1000, 3)  # 24 MB of zeros in 24 kB
+            np.lib.format.write_array_header_1_0(
+                f, {"descr": "<f4", "fortran_order": False, "shape": shape}
+            )
+            zeros = bytes(1 << 20)
+            for _ in range(2000 * 1000 * 3 * 4 >> 20):
+                f.write(zeros)
+    line = assert_refused(*run(capsys, "export", bomb, "-o", "e.glb"), "bomb.npz", "expand")
+    assert "times" in line and not (tmp_path / "e.glb").exists()
+
+
+def test_release_whose_config_is_nested_deep_is_one_line(tmp_path):
+    pytest.importorskip("safetensors")
+    import torch
+    from safetensors.torch import save_file
+
+    from talkmesh.models.release import load_model
+
+    path = tmp_path / "deep.safetensors"
+    meta = {
+        "format": "talkmesh-model",
+        "format_version": "1",
+        "family": "codetalker",
+        "config": "[" * 100_000 + "]" * 100_000,
+    }
+    save_file({"w": torch.zeros(1)}, str(path), metadata=meta)
+    with pytest.raises(TalkmeshError, match="deep.safetensors: a malformed talkmesh model"):
+        load_model(path)
+    save_file({"w": torch.zeros(1)}, str(path), metadata={**meta, "format_version": "x"})
+    with pytest.raises(TalkmeshError, match="deep.safetensors: a malformed talkmesh model"):
+        load_model(path)

@@ -83,24 +83,38 @@ def check_bounded(
     max_items: int = MAX_ITEMS,
 ) -> None:
     """Refuse ``obj`` (read from ``path``) when its dicts, lists and tuples nest deeper than
-    ``max_depth`` or hold more than ``max_items`` items in all, a shared container counted each
-    time it is met (as a reader walking it would meet it), or when it holds anything but
-    ``leaves`` (None: anything). One-line TalkmeshErrors; iterative, so that neither depth nor
+    ``max_depth``, contain themselves, or hold more than ``max_items`` items in all, a shared
+    container counted each time it is met (as a reader walking it would meet it: a list holding
+    the same list twice, 60 levels deep, is 2**60 items), or when it holds anything but
+    ``leaves`` (None: anything). One-line TalkmeshErrors. Each container is visited once (its
+    expanded size is summed from its children's) and without recursion, so neither depth nor
     sharing can exhaust the stack or the time."""
-    stack: list[tuple[object, int]] = [(obj, 0)]
-    seen = 0
+    expanded: dict[int, int] = {}  # id of a finished container -> the items it expands to
+    ancestors: set[int] = set()  # the containers being walked: the path from obj down
+    stack: list[tuple[object, bool]] = [(obj, False)]
     while stack:
-        item, depth = stack.pop()
-        if depth > max_depth:
-            raise TalkmeshError(f"{path}: refused: containers nested over {max_depth} levels")
-        if isinstance(item, (dict, list, tuple)):
-            seen += len(item)
-            if seen > max_items:
+        item, finished = stack.pop()
+        if not isinstance(item, (dict, list, tuple)):
+            if leaves is not None and not isinstance(item, leaves):
+                raise TalkmeshError(f"{path}: unexpected {type(item).__name__} {what}".rstrip())
+            continue
+        key = id(item)
+        children = [x for kv in item.items() for x in kv] if isinstance(item, dict) else item
+        if finished:
+            ancestors.discard(key)
+            expanded[key] = len(children) + sum(expanded.get(id(c), 0) for c in children)
+            if expanded[key] > max_items:
                 raise TalkmeshError(
                     f"{path}: refused: it expands to over {max_items:,} items (containers "
                     "nested in each other)"
                 )
-            items = (x for kv in item.items() for x in kv) if isinstance(item, dict) else item
-            stack.extend((x, depth + 1) for x in items)
-        elif leaves is not None and not isinstance(item, leaves):
-            raise TalkmeshError(f"{path}: unexpected {type(item).__name__} {what}".rstrip())
+            continue
+        if key in expanded:
+            continue
+        if key in ancestors:
+            raise TalkmeshError(f"{path}: refused: a container holds itself")
+        if len(ancestors) >= max_depth:
+            raise TalkmeshError(f"{path}: refused: containers nested over {max_depth} levels")
+        ancestors.add(key)
+        stack.append((item, True))
+        stack.extend((c, False) for c in children)
