@@ -108,6 +108,17 @@ def test_long_audio_is_refused_from_its_header(tmp_path):
         assert post(s, CLIP.read_bytes()).status_code == 200  # short audio still goes through
 
 
+def test_flac_without_a_stated_length_is_priced_by_decoding(tmp_path):
+    from test_hostile_inputs import unknown_length
+
+    with server(tmp_path, "--max-seconds", "60") as s:
+        response = post(s, unknown_length(silent_flac(120)))  # as ffmpeg writes to a pipe
+        assert response.status_code == 413
+        message = response.json()["message"]
+        assert message.startswith("the audio is longer than this server's limit of 60 s"), message
+        assert post(s, unknown_length(silent_flac(2))).status_code == 200
+
+
 def test_a_full_queue_answers_503_with_retry_after(tmp_path):
     with server(tmp_path, "--jobs", "1", "--max-queue", "0", "--max-seconds", "600") as s:
         first: list[httpx.Response] = []

@@ -47,8 +47,8 @@ class Animation:
             raise TalkmeshError(f"animation faces must be (F, 3) triangles, got {self.faces.shape}")
         if self.faces.size and (self.faces.min() < 0 or self.faces.max() >= self.num_vertices):
             raise TalkmeshError("animation faces index vertices that do not exist")
-        if self.fps <= 0:
-            raise TalkmeshError(f"fps must be positive, got {self.fps}")
+        if not 0 < self.fps < float("inf"):  # NaN fails too: it would be written into every file
+            raise TalkmeshError(f"fps must be positive and finite, got {self.fps}")
         if self.audio is not None:
             self.audio = np.asarray(self.audio, dtype=np.float32).reshape(-1)
         if self.weights is not None:

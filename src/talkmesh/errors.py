@@ -6,6 +6,7 @@ that line and exits non-zero; it never shows a traceback for these.
 """
 
 import errno
+from pathlib import Path
 
 
 class TalkmeshError(Exception):
@@ -41,22 +42,47 @@ def os_error_message(e: OSError, path: object = None, action: str = "write") -> 
     return f"{where}: cannot {action} it ({reason}): {hint}" if where else f"{reason}: {hint}"
 
 
-def show_warnings() -> None:
+def resolved(path: Path) -> Path:
+    """``path.resolve()``, with a symbolic link loop (which pathlib reports as a RuntimeError or
+    an OSError) as a one-line :class:`TalkmeshError` naming the path."""
+    try:
+        return path.resolve()
+    except (RuntimeError, OSError) as e:
+        if isinstance(e, OSError) and e.errno != errno.ELOOP:
+            raise
+        raise TalkmeshError(
+            f"{path}: a symbolic link loop (the link leads back to itself): fix or remove the link"
+        ) from None
+
+
+def warning_line(message: object, category: type[Warning]) -> str:
+    """A warning as the CLI prints it: ``talkmesh: warning: <message>``, one line; a warning
+    from a library names its category (``... (UserWarning)``)."""
+    lines = str(message).strip().splitlines()
+    text = lines[0] if lines else category.__name__
+    if issubclass(category, TalkmeshWarning):
+        return f"talkmesh: warning: {text}"
+    return f"talkmesh: warning: {text} ({category.__name__})"
+
+
+def show_warnings(every: bool = False) -> None:
     """Print :class:`TalkmeshWarning` s as one ``talkmesh: warning:`` line each, whatever the
-    Python warning filters say (they are part of the answer, not noise)."""
+    Python warning filters say (they are part of the answer, not noise); with ``every``, other
+    libraries' warnings too (one line, without Python's file name and source line)."""
     import sys
     import warnings
 
     warnings.filterwarnings("always", category=TalkmeshWarning)
     previous = warnings.showwarning
     if getattr(previous, "talkmesh", False):
-        return
+        previous = previous.previous
 
     def show(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, TalkmeshWarning):
-            print(f"talkmesh: warning: {message}", file=sys.stderr, flush=True)
+        if every or issubclass(category, TalkmeshWarning):
+            print(warning_line(message, category), file=sys.stderr, flush=True)
         else:
             previous(message, category, filename, lineno, file, line)
 
     show.talkmesh = True
+    show.previous = previous
     warnings.showwarning = show

@@ -36,7 +36,9 @@ if TYPE_CHECKING:
     from talkmesh.models.base import MotionModel
 
 DEFAULT_FPS = MOTION_FPS
-MAX_FPS = 240.0
+MIN_FPS, MAX_FPS = 1.0, 240.0  # fewer frames a second is no animation; more, no display shows
+MAX_SEED = 2**32 - 1  # numpy's seeds
+MAX_STYLE_WEIGHT = 1e6  # --style weights are normalised to add up to 1: any finite share will do
 INT8_MODES = INT8_LAYERS  # animate(int8=...): CodeTalker layers run in int8
 MODELS = ("procedural",)
 BLOCK = 256  # frames made at once: 15 MB of float32 vertices on the bundled head (V=4766)
@@ -151,13 +153,20 @@ def animate(
     ).collect()
 
 
+def check_fps_seed(fps: float | None, seed: int = 0) -> None:
+    """One-line errors for a frame rate outside [MIN_FPS, MAX_FPS] or a seed numpy refuses."""
+    if fps is not None and not (MIN_FPS <= fps <= MAX_FPS):  # NaN fails too
+        raise TalkmeshError(f"--fps {fps:g}: give {MIN_FPS:g} to {MAX_FPS:g} frames per second")
+    if not 0 <= seed <= MAX_SEED:
+        raise TalkmeshError(f"--seed {seed}: give a whole number from 0 to {MAX_SEED}")
+
+
 def _checked_wave(
     audio: str | Path | np.ndarray, fps: float | None, block: int
 ) -> np.ndarray | Waveform:
     """The (S,) waveform of ``audio`` once ``fps`` and ``block`` are checked (one-line errors):
     a file libsndfile reads is a :class:`Waveform`, read from the file a slice at a time."""
-    if fps is not None and not (0 < fps <= MAX_FPS):
-        raise TalkmeshError(f"--fps must be in (0, {MAX_FPS:g}], got {fps:g}")
+    check_fps_seed(fps)
     if block < 1:
         raise TalkmeshError(f"block must be at least 1 frame, got {block}")
     wave = open_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
@@ -194,6 +203,7 @@ def animate_blocks(
     libsndfile reads is read a slice at a time (the block's ``audio`` is then a
     :class:`~talkmesh.audio.waveform.Waveform`), so not even the waveform is held whole."""
     wave = _checked_wave(audio, fps, block)
+    check_fps_seed(fps, seed)
     head = head or load_head()
     if model is None:  # a transcript or phones ask for the phone-driven animator
         model = "procedural" if text is not None or phones is not None else default_model()
@@ -338,6 +348,11 @@ def parse_style(text: str | None) -> dict[str, float] | None:
             out[name] = float(weight) if weight else 1.0
         except ValueError:
             raise TalkmeshError(f"--style {text}: '{item}' must look like NAME:WEIGHT") from None
+        if not 0 <= out[name] <= MAX_STYLE_WEIGHT:  # NaN fails too
+            raise TalkmeshError(
+                f"--style {text}: the weight of '{name}' must be 0 to {MAX_STYLE_WEIGHT:g} "
+                "(the weights are shares: A:0.7,B:0.3)"
+            )
     return out
 
 

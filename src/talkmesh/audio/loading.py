@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import re
+import stat
 import subprocess
 import tempfile
 import warnings
@@ -31,6 +32,9 @@ INT16_SCALE = 32_768.0  # s16 PCM -> [-1, 1)
 BYTES_PER_SAMPLE = 2  # s16le from ffmpeg
 PIPE_CHUNK_BYTES = 1 << 20  # read from ffmpeg's stdout at a time
 RIFF_SCAN_BYTES = 1 << 16  # of a WAV's start searched for its data chunk's header
+# libsndfile's frame count (SF_COUNT_MAX) of a stream whose header does not state its length:
+# ffmpeg writes FLAC to a pipe with "total samples 0"; the length is then counted by decoding
+UNKNOWN_FRAMES = 2**62
 
 # Decoded by libsndfile; anything else is handed to ffmpeg.
 SOUNDFILE_EXTENSIONS = frozenset(
@@ -68,8 +72,11 @@ def load_audio(
     if path.suffix.lower() in SOUNDFILE_EXTENSIONS:
         try:
             audio = _load_soundfile(path, sr, max_seconds)
+            if audio is None:  # FLAC written to a pipe: ffmpeg counts as it decodes
+                audio = _load_ffmpeg_fallback(path, sr, "no length in its header", max_seconds)
         except sf.LibsndfileError as e:
-            # libsndfile cannot read some codecs inside WAV (e.g. GSM, MP3-in-RIFF): try ffmpeg.
+            # libsndfile cannot read some codecs inside WAV (e.g. GSM, MP3-in-RIFF), nor
+            # truncated or corrupt files to their end: try ffmpeg.
             audio = _load_ffmpeg_fallback(path, sr, _one_line(str(e)), max_seconds)
     else:
         audio = _load_ffmpeg(path, sr, max_seconds=max_seconds)
@@ -100,16 +107,41 @@ def warn_if_cut(path: Path, present_s: float, stated_s: float, sr: int, stacklev
         )
 
 
-def audio_duration(path: str | Path) -> float:
-    """Duration of an audio file in seconds, from its header (nothing is decoded)."""
+def audio_duration(path: str | Path, limit: float | None = None) -> float:
+    """Duration of an audio file in seconds, from its header (nothing is decoded); a file whose
+    header does not state it (FLAC written to a pipe) is decoded to count its samples, up to
+    ``limit`` seconds (default MAX_DURATION_S): a longer one returns as soon as it passes it."""
     path = _check_file(path)
     if path.suffix.lower() in SOUNDFILE_EXTENSIONS:
         try:
             info = sf.info(str(path))
-            return info.frames / info.samplerate
+            if info.frames < UNKNOWN_FRAMES:
+                return info.frames / info.samplerate
+            limit = MAX_DURATION_S if limit is None else limit
+            return count_frames(path, limit) / info.samplerate
         except sf.LibsndfileError:
             pass  # maybe a codec only ffmpeg knows: probe with it below
     return _ffmpeg_duration(path)
+
+
+def count_frames(path: Path, limit_s: float) -> int:
+    """The frames of a file whose header does not state them, counted by decoding it a block
+    at a time (nothing is kept), stopping once past ``limit_s`` seconds. libsndfile fails on
+    the last, partial block of such a stream: the count is then short of it (under 0.3 s at
+    16 kHz), which is enough to price the file before ffmpeg decodes it whole."""
+    size = 4096
+    n = 0
+    with sf.SoundFile(str(path)) as f:
+        limit = int(limit_s * f.samplerate) + 1
+        while n <= limit:
+            try:
+                got = len(f.read(size, dtype="float32", always_2d=True))
+            except sf.LibsndfileError:
+                break
+            n += got
+            if got < size:
+                break
+    return n
 
 
 def save_wav(path: str | Path, audio: np.ndarray, sr: int = SAMPLE_RATE) -> None:
@@ -136,6 +168,11 @@ def _check_file(path: str | Path) -> Path:
         raise TalkmeshError(f"audio file not found: {path}: check the path")
     if path.is_dir():
         raise TalkmeshError(f"{path} is a folder, not an audio file: pass a wav, flac or mp3 file")
+    if not path.is_file():  # reading a FIFO would wait for a writer; a device never ends
+        kind = "a named pipe (FIFO)" if stat.S_ISFIFO(path.stat().st_mode) else "a device"
+        raise TalkmeshError(
+            f"{path} is {kind}, not an audio file: save the audio to a file and pass that"
+        )
     if path.stat().st_size == 0:
         raise TalkmeshError(f"audio file {path} is empty (0 bytes): re-export or re-record it")
     return path
@@ -179,8 +216,11 @@ def _unreadable(path: Path, reason: str) -> TalkmeshError:
 # --- soundfile path -------------------------------------------------------------------------
 
 
-def _load_soundfile(path: Path, sr: int, max_seconds: float | None = None) -> np.ndarray:
+def _load_soundfile(path: Path, sr: int, max_seconds: float | None = None) -> np.ndarray | None:
+    """The waveform through libsndfile, None for a stream without a stated length."""
     with sf.SoundFile(str(path)) as f:
+        if f.frames >= UNKNOWN_FRAMES:  # libsndfile fails on its last block: ffmpeg reads it
+            return None
         if f.frames <= 0:
             raise TalkmeshError(f"{path} contains no audio samples: re-export or re-record it")
         _check_duration(path, f.frames / f.samplerate, max_seconds)

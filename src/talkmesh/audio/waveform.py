@@ -24,6 +24,7 @@ from talkmesh.audio.loading import (
     BLOCK_S,
     MAX_DURATION_S,
     SOUNDFILE_EXTENSIONS,
+    UNKNOWN_FRAMES,
     _check_duration,
     _check_file,
     _riff_stated_seconds,
@@ -121,11 +122,17 @@ def open_audio(
         wave = Waveform(path, sr)
     except sf.LibsndfileError:  # a codec only ffmpeg reads: load_audio falls back to it
         return load_audio(path, sr, max_seconds=max_seconds)
+    if wave.frames >= UNKNOWN_FRAMES:  # no length in the header (FLAC from a pipe): no seeking
+        return load_audio(path, sr, max_seconds=max_seconds)
     if wave.frames <= 0:
         raise TalkmeshError(f"{path} contains no audio samples: re-export or re-record it")
     limit = MAX_DURATION_S if max_seconds is None else max_seconds
     _check_duration(path, wave.frames / wave.orig_sr, limit)
-    bad = sum(int(np.count_nonzero(~np.isfinite(b))) for b in wave.blocks(int(BLOCK_S * sr)))
+    try:
+        blocks = wave.blocks(int(BLOCK_S * sr))
+        bad = sum(int(np.count_nonzero(~np.isfinite(b))) for b in blocks)
+    except sf.LibsndfileError:  # truncated or corrupt: ffmpeg reads what is there
+        return load_audio(path, sr, max_seconds=max_seconds)
     refuse_nonfinite(path, bad)
     stated = _riff_stated_seconds(path) or wave.frames / wave.orig_sr
     warn_if_cut(path, len(wave) / sr, stated, sr, stacklevel=2)

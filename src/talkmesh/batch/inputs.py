@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from talkmesh.audio.loading import SOUNDFILE_EXTENSIONS
-from talkmesh.errors import TalkmeshError, os_error_message
+from talkmesh.errors import TalkmeshError, os_error_message, resolved
 
 # Found in folders: what libsndfile decodes and the usual compressed formats ffmpeg reads.
 AUDIO_SUFFIXES = SOUNDFILE_EXTENSIONS | {".mp3", ".m4a", ".aac", ".opus", ".wma", ".mka"}
@@ -49,7 +49,7 @@ def find_inputs(sources: list[Path]) -> list[Input]:
     seen: set[Path] = set()
     unique = []
     for item in found:
-        key = item.audio.resolve()
+        key = resolved(item.audio)
         if key not in seen:
             seen.add(key)
             unique.append(item)

@@ -32,7 +32,7 @@ from talkmesh.cli.models import (
     add_train,
 )
 from talkmesh.cli.serve import add_info, add_serve
-from talkmesh.errors import TalkmeshError, TalkmeshWarning, os_error_message, show_warnings
+from talkmesh.errors import TalkmeshError, os_error_message, show_warnings, warning_line
 from talkmesh.version import __version__
 
 COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
@@ -71,16 +71,15 @@ _plain_format_warning = warnings.formatwarning
 
 
 def _format_warning(message, category, filename, lineno, line=None) -> str:
-    if issubclass(category, TalkmeshWarning):
-        return f"talkmesh: warning: {message}\n"
-    return _plain_format_warning(message, category, filename, lineno, line)
+    return warning_line(message, category) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
-    warnings.formatwarning = _format_warning
     parser = build_parser()
     args = parser.parse_args(argv)
-    show_warnings()
+    # one line per warning (--debug: Python's own, with the file and line that raised it)
+    warnings.formatwarning = _plain_format_warning if args.debug else _format_warning
+    show_warnings(every=not args.debug)
     try:
         return int(args.func(args) or 0)
     except TalkmeshError as e:

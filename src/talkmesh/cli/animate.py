@@ -14,6 +14,7 @@ from talkmesh.cli.common import (
     add_output_options,
     add_quiet,
     check_outputs,
+    check_writable,
     load_input,
     parse_outputs,
 )
@@ -168,7 +169,10 @@ def cmd_animate(args: argparse.Namespace) -> int:
     from talkmesh.heap import fix_mmap_threshold
 
     fix_mmap_threshold()  # flat memory on long audio (talkmesh.heap)
+    from talkmesh.pipeline import check_fps_seed, parse_style
 
+    check_fps_seed(args.fps, args.seed)  # refused before any file is looked at
+    style_mix = parse_style(args.style)
     sources = [Path(a) for a in args.audio]
     library = any(is_batch_source(p) for p in sources)
     found = find_inputs(sources)
@@ -183,6 +187,8 @@ def cmd_animate(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise TalkmeshError(f"--workers {args.workers}: give 1 or more")
     summary = Path(args.summary) if args.summary else (summary_path(outputs) if library else None)
+    if summary is not None:
+        check_writable(summary, "--summary")  # before any file is animated
     if args.cluster:
         from talkmesh.batch.cluster import check_reachable
 
@@ -193,9 +199,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
         binding = bind_avatar(read_glb(avatar)[0], str(avatar))  # fails before the model runs
         if not args.quiet:
             print(f"avatar {avatar}: {binding.summary()}")
-    from talkmesh.pipeline import parse_style
-
-    _face(args, parse_style(args.style), outputs, avatar)  # what cannot work fails before any run
+    _face(args, style_mix, outputs, avatar)  # what cannot work fails before any run
     written = {str(a): paths for a, paths in zip(inputs, outputs)}
     bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
 

@@ -6,7 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
-from talkmesh.errors import TalkmeshError
+from talkmesh.errors import TalkmeshError, resolved
 from talkmesh.output import VIDEO_SIZE, VIDEO_SUFFIXES
 
 Subparsers = argparse._SubParsersAction  # what ``add_subparsers()`` returns
@@ -121,7 +121,7 @@ def check_outputs(
     if avatar:
         known |= set(AVATAR_SUFFIXES)
     check_folders(outputs)
-    resolved_inputs = {p.resolve() for p in inputs}
+    resolved_inputs = {resolved(p) for p in inputs}
     seen: set[Path] = set()
     for paths in outputs:
         for p in paths:
@@ -136,12 +136,16 @@ def check_outputs(
                     f"{p}: unknown output format '{suffix or '(none)'}': "
                     f"use one of {', '.join(sorted(known))}"
                 )
-            r = p.resolve()
+            r = resolved(p)
             if r in resolved_inputs:
                 raise TalkmeshError(f"{p}: refusing to write over an input file")
             if r in seen:
                 raise TalkmeshError(f"{p}: two inputs would write the same output file")
             seen.add(r)
+            if p.is_dir():
+                raise TalkmeshError(
+                    f"{p} is a folder: give a file name (-o {p / ('talk' + suffix)}) or another -o"
+                )
             if p.exists() and not overwrite:
                 raise TalkmeshError(f"{p} already exists: choose another -o or pass --overwrite")
 
@@ -150,3 +154,23 @@ def load_input(path: str, fps: float | None):
     from talkmesh.output.formats import load_animation
 
     return load_animation(Path(path), fps=fps)
+
+
+def check_writable(path: Path, what: str) -> None:
+    """Refuse ``path`` (``what``: the option that names it) when no file can be written there:
+    its folder is made if missing and a probe file is written and removed, so a read-only or
+    full folder is found before any work rather than after it."""
+    import tempfile
+
+    from talkmesh.errors import os_error_message
+
+    if path.is_dir():
+        raise TalkmeshError(f"{what} {path} is a folder: give a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".talkmesh-probe-"):
+            pass
+    except OSError as e:
+        raise TalkmeshError(
+            f"{what} {os_error_message(e, path.parent, action='write in')}"
+        ) from None

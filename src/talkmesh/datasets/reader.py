@@ -165,12 +165,30 @@ def load_templates(path: str | Path) -> dict[str, np.ndarray]:
     out = {}
     for key, value in obj.items():
         name = key.decode("latin1") if isinstance(key, bytes) else str(key)
-        arr = np.asarray(value, dtype=np.float32)
+        if isinstance(value, (str, bytes)) or (
+            isinstance(value, np.ndarray) and value.dtype.kind not in "biuf"
+        ):
+            what = value.dtype if isinstance(value, np.ndarray) else type(value).__name__
+            raise TalkmeshError(
+                f"{path}: template of {name} is {what}, not numbers: expected (V, 3) vertices"
+            )
+        try:
+            arr = np.asarray(value, dtype=np.float32)
+        except (TypeError, ValueError, OverflowError) as e:
+            raise TalkmeshError(
+                f"{path}: template of {name} is not an array of numbers ({type(e).__name__}): "
+                "expected (V, 3) vertices"
+            ) from None
         if arr.ndim == 1 and arr.size % 3 == 0:
             arr = arr.reshape(-1, 3)
         if arr.ndim != 2 or arr.shape[1] != 3:
             raise TalkmeshError(
                 f"{path}: template of {name} has shape {arr.shape}, expected (V, 3)"
+            )
+        if not np.isfinite(arr).all():
+            raise TalkmeshError(
+                f"{path}: template of {name} has {int((~np.isfinite(arr)).any(axis=1).sum())} "
+                "vertices with NaN or infinite coordinates"
             )
         out[name] = arr
     return out

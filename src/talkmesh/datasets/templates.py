@@ -133,12 +133,13 @@ def load_face_template(spec: str | Path, subject: str | None = None) -> Head:
         vertices, faces = read_mesh(path)
     else:
         vertices = read_mesh_vertices(path)  # .npy and the other formats it reads
+    if not np.isfinite(vertices).all():  # else every frame and weight would be NaN
+        bad = int((~np.isfinite(np.asarray(vertices).reshape(len(vertices), -1))).any(1).sum())
+        raise TalkmeshError(f"{path}: {bad} vertices have NaN or infinite coordinates")
     bundled = load_head()
     if len(vertices) == bundled.num_vertices:
         return bundled.with_template(vertices, name)
     if faces is None:
         faces = faces_beside(path, len(vertices))
-    if not np.isfinite(vertices).all():
-        raise TalkmeshError(f"{path}: the mesh has NaN or infinite coordinates")
     vertices = _biwi_frame(np.asarray(vertices, np.float64), faces)
     return plain_head(vertices, faces, name)

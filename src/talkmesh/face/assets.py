@@ -90,6 +90,8 @@ class Head:
                 f"template has {template.shape[0]} vertices but the head has {self.num_vertices}: "
                 "use a mesh with the bundled head's topology (export one with `talkmesh export`)"
             )
+        if not np.isfinite(template).all():
+            raise TalkmeshError(f"{name}: the template has NaN or infinite coordinates")
         return Head(
             name, template, self.faces, self.blendshapes, self.blendshape_names, self.regions
         )

@@ -373,6 +373,12 @@ def _check_input(vertices: np.ndarray, faces: np.ndarray) -> None:
         raise TalkmeshError("the mesh's vertices contain NaN or infinite values")
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise TalkmeshError("the mesh's triangles refer to vertices it does not have")
+    extent = np.sort(np.ptp(vertices, axis=0))
+    if not extent[-1] > 0 or extent[1] <= 1e-6 * extent[-1]:  # a point or a line: no surface
+        raise TalkmeshError(
+            f"the mesh has no extent (its vertices span {extent[-1]:.3g} x {extent[1]:.3g} x "
+            f"{extent[0]:.3g}): not a head"
+        )
 
 
 def _components(faces: np.ndarray, n: int) -> np.ndarray:

@@ -7,13 +7,12 @@ never run code; what does not fit is named in a one-line error.
 
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 
-import torch
 from torch import Tensor, nn
 
 from talkmesh.errors import TalkmeshError
+from talkmesh.safe_load import load_weights_only
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Tensor]:
@@ -25,20 +24,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Tensor]:
     path = Path(path)
     if not path.is_file():
         raise TalkmeshError(f"{path}: no such checkpoint file")
-    try:
-        obj = torch.load(str(path), map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:  # torch's safe unpickler met something else
-        text = str(e).split("WeightsUnpickler error:")[-1].strip()
-        why = text.splitlines()[0][:120] if text else type(e).__name__
-        raise TalkmeshError(
-            f"{path}: refused: not a plain PyTorch weight file ({why}); talkmesh never "
-            "unpickles anything but tensors"
-        ) from None
-    except Exception as e:  # corrupt or not a torch file at all
-        raise TalkmeshError(
-            f"{path}: not a readable PyTorch checkpoint, truncated or another kind of file "
-            f"({type(e).__name__})"
-        ) from None
+    obj = load_weights_only(path, kind="weight file")
     if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
         obj = obj["state_dict"]
     if not isinstance(obj, dict) or not all(

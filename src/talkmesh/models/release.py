@@ -22,6 +22,7 @@ from talkmesh.models.base import MotionModel
 from talkmesh.models.registry import FAMILIES
 
 FORMAT_VERSION = 1
+MAX_CONFIG_CHARS = 1_000_000  # a config is a few kB of JSON; more is not one talkmesh wrote
 MODELS_DIR = Path(__file__).resolve().parents[1] / "data" / "models"
 
 
@@ -89,7 +90,10 @@ def load_model(
         ) from None
     if meta.get("format") != "talkmesh-model":
         raise TalkmeshError(f"{path}: not a talkmesh model release")
-    if int(meta.get("format_version", 0)) > FORMAT_VERSION:
+    version, config = meta.get("format_version", "0"), meta.get("config", "")
+    if not version.isdigit() or len(config) > MAX_CONFIG_CHARS:
+        raise TalkmeshError(f"{path}: a malformed talkmesh model release (its metadata)")
+    if int(version) > FORMAT_VERSION:
         raise TalkmeshError(
             f"{path}: written by a newer talkmesh (format {meta['format_version']}): upgrade"
         )
@@ -100,7 +104,15 @@ def load_model(
     if family is not None and meta["family"] != family:
         raise TalkmeshError(f"{path}: a {meta['family']} model, not {family}")
     cls = FAMILIES[meta["family"]]
-    model = cls(from_dict(cls.config_class, json.loads(meta["config"])))
+    try:
+        stored = json.loads(config)
+    except (ValueError, RecursionError) as e:  # RecursionError: JSON nested thousands deep
+        raise TalkmeshError(
+            f"{path}: a malformed talkmesh model release (its config: {type(e).__name__})"
+        ) from None
+    if not isinstance(stored, dict):
+        raise TalkmeshError(f"{path}: a malformed talkmesh model release (its config)")
+    model = cls(from_dict(cls.config_class, stored))
     model.load_state_dict(
         {k: v.to(dtype) if v.is_floating_point() else v for k, v in state.items()}, strict=True
     )

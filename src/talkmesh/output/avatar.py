@@ -95,14 +95,25 @@ class AvatarBinding:
 
     def summary(self) -> str:
         """One line for the user: what moves and which ARKit channels the avatar lacks."""
-        names = ", ".join(m.name for m in self.meshes)
-        line = f"drives {len(self.channels)} of {NUM_ARKIT} ARKit channels on {names}"
+        line = f"drives {len(self.channels)} of {NUM_ARKIT} ARKit channels on {_mesh_names(self)}"
         if self.visemes:
             line += f" and {len(self.visemes)} Oculus visemes (no ARKit mouth shapes)"
         if self.missing:
             shown = ", ".join(self.missing[:6]) + (", ..." if len(self.missing) > 6 else "")
             line += f"; lacks {len(self.missing)}: {shown}"
         return line
+
+
+def _mesh_names(binding: AvatarBinding, shown: int = 4) -> str:
+    """The driven meshes' names, each once with its count (``Head, Teeth x 3``), the first
+    ``shown`` of them: an avatar of 3000 meshes named alike is one short line."""
+    counts: dict[str, int] = {}
+    for m in binding.meshes:
+        counts[m.name] = counts.get(m.name, 0) + 1
+    names = [f"{n} x {k}" if k > 1 else n for n, k in counts.items()]
+    more = f" and {len(names) - shown} more names" if len(names) > shown else ""
+    meshes = f"{len(binding.meshes)} meshes: " if len(binding.meshes) > 1 else ""
+    return meshes + ", ".join(names[:shown]) + more
 
 
 def read_glb(path: str | Path) -> tuple[dict, bytes]:
@@ -117,9 +128,10 @@ def read_glb(path: str | Path) -> tuple[dict, bytes]:
     _, version, length = struct.unpack_from("<III", data)
     if version != 2:
         raise TalkmeshError(f"{path}: glTF version {version} is not supported (only 2)")
-    if length > len(data):
+    if length != len(data):  # shorter: truncated; longer: data past the stated end is lost
         raise TalkmeshError(
-            f"{path}: truncated (the header says {length} bytes, the file has {len(data)})"
+            f"{path}: {'truncated' if length > len(data) else 'inconsistent'} (the header says "
+            f"{length} bytes, the file has {len(data)}): export the avatar again"
         )
     gltf, binary, offset = None, b"", 12
     while offset + 8 <= length:
@@ -132,6 +144,8 @@ def read_glb(path: str | Path) -> tuple[dict, bytes]:
                 gltf = json.loads(chunk.decode("utf-8"))
             except (UnicodeDecodeError, ValueError) as e:
                 raise TalkmeshError(f"{path}: its JSON chunk is not valid JSON ({e})") from None
+            except RecursionError:
+                raise TalkmeshError(f"{path}: its JSON chunk is nested too deeply") from None
         elif kind == GLB_BIN and offset > 12 and not binary:
             binary = chunk
         offset += 8 + size
@@ -152,6 +166,14 @@ def glb_bytes(gltf: dict, binary: bytes) -> bytes:
     return struct.pack("<III", GLB_MAGIC, 2, 12 + len(body)) + body
 
 
+def _list(obj: dict, key: str) -> list:
+    """``obj[key]`` as a list ([] when absent); a ValueError when it is not a list."""
+    value = obj.get(key) or []
+    if not isinstance(value, list):
+        raise ValueError(f"'{key}' should be a list, not {type(value).__name__}")
+    return value
+
+
 def _target_names(mesh: dict) -> list[str]:
     names = (mesh.get("extras") or {}).get("targetNames")
     if not isinstance(names, list):
@@ -161,18 +183,52 @@ def _target_names(mesh: dict) -> list[str]:
 
 
 def bind_avatar(gltf: dict, source: str = "the avatar") -> AvatarBinding:
-    """Which meshes, nodes and morph targets of ``gltf`` follow ARKit weights (or visemes)."""
+    """Which meshes, nodes and morph targets of ``gltf`` follow ARKit weights (or visemes).
+
+    Raises:
+        TalkmeshError: one line naming ``source``: no ARKit or viseme targets, JSON of the wrong
+            types (a mesh that is a number, ``weights`` that are text, ...), or binary data kept
+            in an external file (refused here, before any model runs).
+    """
+    try:
+        binding = _bind(gltf, source)
+        buffers = gltf.get("buffers") or []
+        external = any("uri" in b for b in buffers)
+    except (AttributeError, TypeError, ValueError, KeyError, IndexError) as e:
+        raise TalkmeshError(
+            f"{source}: its glTF JSON does not follow the glTF 2.0 schema ({type(e).__name__}: "
+            f"{str(e)[:80]}): export it again"
+        ) from None
+    if external:
+        raise TalkmeshError(
+            f"{source}: the avatar keeps its binary data in an external file: pack it into one "
+            "self-contained .glb first"
+        )
+    return binding
+
+
+def _bind(gltf: dict, source: str) -> AvatarBinding:
+    for key in ("meshes", "nodes", "buffers", "bufferViews", "accessors", "animations"):
+        if not all(isinstance(item, dict) for item in _list(gltf, key)):
+            raise ValueError(f"an item of '{key}' is not an object")
     candidates: list[tuple[int, str, tuple[int, ...], int, np.ndarray, np.ndarray, np.ndarray]] = []
-    for m, mesh in enumerate(gltf.get("meshes") or []):
-        primitives = mesh.get("primitives") or []
-        num_targets = len(primitives[0].get("targets") or []) if primitives else 0
+    nodes_of: dict[int, list[int]] = {}
+    for i, n in enumerate(_list(gltf, "nodes")):
+        mesh = n.get("mesh")
+        if isinstance(mesh, int):
+            nodes_of.setdefault(mesh, []).append(i)
+    for m, mesh in enumerate(_list(gltf, "meshes")):
+        primitives = _list(mesh, "primitives")
+        num_targets = len(_list(primitives[0], "targets")) if primitives else 0
         names = _target_names(mesh)
         if not num_targets or len(names) != num_targets:
             continue
-        nodes = tuple(i for i, n in enumerate(gltf.get("nodes") or []) if n.get("mesh") == m)
+        nodes = tuple(nodes_of.get(m, ()))
         if not nodes:
             continue
         rest = np.asarray(mesh.get("weights") or [0.0] * num_targets, np.float32)
+        if rest.shape != (num_targets,) or not np.isfinite(rest).all():
+            raise ValueError(f"mesh {m}'s weights are not {num_targets} numbers")
         arkit = np.array([arkit_channel(n) for n in names], np.int64)
         visemes = np.array([viseme_channel(n) for n in names], np.int64)
         visemes[~np.isin(visemes, _MAPPED_VISEMES)] = -1  # tongue-only visemes keep their rest

@@ -65,6 +65,8 @@ PARSE_ERRORS = (
     struct.error,
     zipfile.BadZipFile,
     csv.Error,
+    AttributeError,  # JSON of the wrong types (a list where an object belongs)
+    RecursionError,  # JSON nested deeper than Python recurses
 )
 
 
@@ -89,6 +91,27 @@ def check_magic(path: Path, magic: bytes, kind: str) -> None:
     with open(path, "rb") as f:
         if f.read(len(magic)) != magic:
             raise TalkmeshError(f"{path}: not a {kind}")
+
+
+# An .npz whose members expand past this many times its size (and past EXPANSION_FREE bytes) is
+# refused before any member is read: talkmesh's float16 motion deflates 2-4 times; a crafted
+# archive of zeros, a thousand times (3.9 MB -> 3.4 GB).
+MAX_EXPANSION = 100
+EXPANSION_FREE = 256 * 2**20
+
+
+def check_expansion(path: Path) -> None:
+    """Refuse a zip archive (.npz) whose members' declared sizes add up to more than
+    MAX_EXPANSION times the file (and more than EXPANSION_FREE bytes), before decompressing any,
+    and one whose members are bigger than they declare (checked by :mod:`zipfile` as it reads)."""
+    with zipfile.ZipFile(path) as z:
+        expanded = sum(info.file_size for info in z.infolist())
+    size = path.stat().st_size
+    if expanded > EXPANSION_FREE and expanded > MAX_EXPANSION * size:
+        raise TalkmeshError(
+            f"{path}: refused: its members would expand to {expanded / 1e9:.1f} GB from "
+            f"{size / 1e6:.1f} MB ({expanded / size:.0f} times): not an animation talkmesh wrote"
+        )
 
 
 def finite(values: np.ndarray, what: str) -> np.ndarray:

@@ -153,8 +153,8 @@ def load_animation(
             f"use one of {', '.join(IMPORTERS)}"
         )
     check_readable(path)
-    if fps is not None and not fps > 0:
-        raise TalkmeshError(f"fps must be positive, got {fps}")
+    if fps is not None and not 0 < fps < float("inf"):
+        raise TalkmeshError(f"--fps must be positive and finite, got {fps}")
     with reading(path):
         return importer(path, None if faces is None else np.asarray(faces), fps)
 

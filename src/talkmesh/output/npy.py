@@ -12,7 +12,7 @@ import numpy as np
 from talkmesh.animation import Animation, AnimationBlocks
 from talkmesh.constants import MOTION_FPS, SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
-from talkmesh.output.files import bundled_head, check_magic, finite
+from talkmesh.output.files import bundled_head, check_expansion, check_magic, finite
 
 NPY_DEFAULT_FPS = MOTION_FPS  # FaceFormer / CodeTalker write VOCASET predictions at 30 fps
 AUDIO_BLOCK = 30 * SAMPLE_RATE  # samples of a streamed waveform written at a time
@@ -67,6 +67,18 @@ def _export_npz(writer: NpzWriter, anim: Animation) -> None:
         writer.write(anim)
     finally:
         writer.close()
+
+
+def check_finite(block: Animation, first: int) -> None:
+    """Refuse a block of frames holding NaN or infinite values: never a file of NaN under a
+    final name (the writers write to a temporary, removed when this raises)."""
+    if not np.isfinite(block.vertices).all() or (
+        block.weights is not None and not np.isfinite(block.weights).all()
+    ):
+        raise TalkmeshError(
+            f"frames {first} to {first + block.num_frames} hold NaN or infinite values: nothing "
+            "is written (check the template and the model)"
+        )
 
 
 class NpzWriter:
@@ -145,6 +157,7 @@ class NpzWriter:
             shape = (self.num_frames, block.num_vertices, 3)
             header = {"descr": self.dtype.str, "fortran_order": False, "shape": shape}
             np.lib.format.write_array_header_2_0(self.member, header)
+        check_finite(block, self.done)
         if self.member is not None:
             motion = block.vertices if self.template is None else block.vertices - self.template
             self.member.write(np.ascontiguousarray(motion, self.dtype).tobytes())
@@ -183,9 +196,11 @@ class NpyWriter:
 
     def __init__(self, header: Animation | AnimationBlocks, num_frames: int, path: Path) -> None:
         self.file = open(path, "wb")
-        self.num_frames = num_frames
+        self.num_frames, self.done = num_frames, 0
 
     def write(self, block: Animation) -> None:
+        check_finite(block, self.done)
+        self.done += block.num_frames
         if self.file.tell() == 0:
             shape = (self.num_frames, block.num_vertices * 3)
             header = {"descr": "<f4", "fortran_order": False, "shape": shape}
@@ -200,6 +215,7 @@ def import_npz(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
     """An animation saved by :func:`export_npz` (format 2: offsets) or an older talkmesh
     (format 1: float32 vertices)."""
     check_magic(path, b"PK", ".npz archive")
+    check_expansion(path)
     with np.load(path, allow_pickle=False) as z:
         motion = next((k for k in ("offsets", "vertices") if k in z.files), "weights")
         needs = {"offsets": ["template"], "weights": ["template", "basis"], "vertices": []}
@@ -216,10 +232,13 @@ def import_npz(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
     if motion != "vertices":
         vertices += np.asarray(d["template"], np.float32)
     weights = d.get("weights")
+    stored_fps = float(d["fps"])
+    if fps is None and not 0 < stored_fps < float("inf"):  # NaN fails too
+        raise TalkmeshError(f"{path}: its frame rate is {stored_fps:g}: pass --fps")
     return Animation(
         vertices=finite(vertices, "vertices"),
         faces=d["faces"] if faces is None else faces,
-        fps=fps or float(d["fps"]),
+        fps=fps or stored_fps,
         audio=d.get("audio"),
         sample_rate=int(d.get("sample_rate", SAMPLE_RATE)),
         weights=None if weights is None else finite(weights, "weights"),

@@ -70,7 +70,8 @@ def save_blocks(
                 os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 would outlive the rename
             temps.append(Path(tmp))
             stack.callback(Path(tmp).unlink, missing_ok=True)
-            writers.append((p, BLOCK_WRITERS[_format(p)](anim, anim.num_frames, temps[-1])))
+            with writing(p):  # the header and the audio are written now: disk full names p
+                writers.append((p, BLOCK_WRITERS[_format(p)](anim, anim.num_frames, temps[-1])))
 
         def tee() -> Iterator[Animation]:
             for block in anim.blocks:

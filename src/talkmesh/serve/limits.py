@@ -145,9 +145,11 @@ def client_name(request) -> str:
 
 def too_long(seconds: float, limit: float) -> JSONResponse:
     """413: the audio is longer than the server's ``--max-seconds``."""
+    # a stream without a stated length is counted only until it passes the limit
+    length = "longer than" if seconds - limit < 1 else f"{seconds:.0f} s long, over"
     message = (
-        f"the audio is {seconds:.0f} s long, over this server's limit of {limit:g} s: send a "
-        "shorter file (split long recordings)"
+        f"the audio is {length} this server's limit of {limit:g} s: send a shorter file "
+        "(split long recordings)"
     )
     return JSONResponse({"type": "error", "message": message}, status_code=413)
 

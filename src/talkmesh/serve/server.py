@@ -438,7 +438,8 @@ class Service:
                 )
             audio = upload.rename(upload.with_suffix(suffix))
             try:  # priced from the header: nothing is decoded yet
-                seconds = await anyio.to_thread.run_sync(audio_duration, audio)
+                limit = self.limits.max_seconds  # counted up to it when the header is silent
+                seconds = await anyio.to_thread.run_sync(audio_duration, audio, limit)
             except TalkmeshError as e:
                 return _error(400, str(e).replace(str(audio), "the audio"))
             if seconds > self.limits.max_seconds:
@@ -616,6 +617,8 @@ def serve(
         import uvicorn
     except ImportError:
         raise MissingDependencyError("uvicorn", "serve", "talkmesh serve") from None
+    if not 0 <= port <= 65535:
+        raise TalkmeshError(f"--port {port}: give 1 to 65535 (0: any free port)")
     if torch_threads is not None:
         if torch_threads < 1:
             raise TalkmeshError(f"--torch-threads must be at least 1, got {torch_threads}")

@@ -11,14 +11,14 @@ from elsewhere); files that do not load (truncated by a kill, refused) are skipp
 
 from __future__ import annotations
 
-import pickle
-import re
 import sys
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from talkmesh.datasets.pickles import check_bounded
 from talkmesh.errors import TalkmeshError, TalkmeshWarning
+from talkmesh.safe_load import load_weights_only
 
 # Recipe keys that decide the model's tensors (and the optimiser's state): a resume with other
 # values cannot load the checkpoint.
@@ -41,40 +41,27 @@ def read_checkpoint(path: str | Path, *, mmap: bool = True) -> dict[str, Any]:
         TalkmeshError: one line naming ``path``: missing, truncated/corrupt, or holding objects
             other than tensors and plain data (a pickle that would run code is one of these).
     """
-    import torch
-
     path = Path(path)
     if not path.is_file():
         raise TalkmeshError(f"checkpoint not found: {path}")
-    try:
-        data = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
-    except pickle.UnpicklingError as e:
-        reason = str(e).splitlines()[0] if str(e) else type(e).__name__
-        if "Weights only load failed" in reason or "Unsupported" in str(e):
-            reason = _refused_global(str(e))
-        raise TalkmeshError(
-            f"{path}: refused: this checkpoint holds objects other than tensors and plain data "
-            f"({reason}); delete it (only checkpoints written by talkmesh train load)"
-        ) from None
-    except (RuntimeError, EOFError, OSError, ValueError, AttributeError, IndexError) as e:
-        raise TalkmeshError(
-            f"{path}: truncated or corrupt checkpoint ({type(e).__name__}): "
-            "delete it or resume from another one"
-        ) from None
+    data = load_weights_only(path, mmap=mmap)
     if not isinstance(data, dict):
         raise TalkmeshError(f"{path}: not a talkmesh training checkpoint ({type(data).__name__})")
+    check_bounded(data, path)  # a recipe of dicts shared 34 levels deep would never be compared
+    for key in ("global_step", "epoch"):
+        value = data.get(key, 0)
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise TalkmeshError(
+                f"{path}: not a talkmesh training checkpoint ({key} is {type(value).__name__} "
+                f"{str(value)[:20]!r}, not a whole number)"
+            )
+    for key in ("state_dict", "talkmesh_recipe"):
+        if key in data and not isinstance(data[key], dict):
+            raise TalkmeshError(
+                f"{path}: not a talkmesh training checkpoint (its {key} is a "
+                f"{type(data[key]).__name__}, not a mapping)"
+            )
     return data
-
-
-def _refused_global(message: str) -> str:
-    """What torch's safe unpickler refused, from its (multi-line) message."""
-    found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", message)
-    if found:
-        return f"it asks for {found.group(1)}"
-    for line in message.splitlines():
-        if "WeightsUnpickler error:" in line:
-            return line.split("WeightsUnpickler error:")[-1].strip().split(". ")[0][:120]
-    return "unsupported pickle content"
 
 
 def checkpoint_files(out: Path) -> list[Path]:
