@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -237,6 +238,113 @@ def test_export_and_render_bad_animation_files(tmp_path, capsys):
     assert not (tmp_path / "x.glb").exists() and not (tmp_path / "y.glb").exists()
 
 
+def test_export_head_writes_a_mesh_to_try_template_and_rig_on(tmp_path, capsys):
+    from talkmesh.face.assets import list_identities, read_mesh_vertices
+    from talkmesh.face.rig import load_mesh
+
+    out = tmp_path / "head.obj"
+    identity = list_identities()[-1]
+    assert main(["export-head", "-o", str(out), "--identity", identity]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    head = load_head(identity)
+    np.testing.assert_allclose(read_mesh_vertices(out), head.template, atol=1e-6)
+    vertices, faces = load_mesh(out)
+    np.testing.assert_array_equal(faces, head.faces)
+    assert main(["export-head", "-o", str(out)]) == 2  # never over an existing file
+    assert_one_line_error(capsys.readouterr().err, "head.obj", "--overwrite")
+    assert main(["export-head", "-o", str(tmp_path / "head.stl")]) == 2
+    assert_one_line_error(capsys.readouterr().err, "head.stl", ".obj")
+
+
+def test_obj_sequence_export_names_files_that_exist(tmp_path, capsys):
+    anim = tmp_path / "anim.npy"
+    np.save(anim, np.repeat(load_head().template.reshape(1, -1), 3, axis=0))
+    out = tmp_path / "talk.obj"
+    assert main(["export", str(anim), "-o", str(out)]) == 0
+    said = capsys.readouterr().out.split()
+    named = [Path(w) for w in said if w.endswith(".obj")]
+    assert named[0] == tmp_path / "talk_00000.obj" and named[-1].name == "talk_00002.obj"
+    assert all((tmp_path / p.name).is_file() for p in named)
+    assert main(["export", str(anim), "-o", str(out)]) == 2  # the frames are there now
+    err = capsys.readouterr().err
+    assert_one_line_error(err, "talk_00000.obj", "--overwrite")
+    assert "overwrite=True" not in err
+
+
+def test_output_without_an_extension_is_a_folder_for_one_input_and_several(speech, tmp_path):
+    result = tmp_path / "result"
+    args = ["--model", "procedural", "--size", "64", "-q"]
+    assert main(["animate", str(speech), "-o", str(result), *args]) == 0
+    assert sorted(p.name for p in result.iterdir()) == ["speech.mp4"]  # the default format
+    other = tmp_path / "other.wav"
+    other.write_bytes(speech.read_bytes())
+    out = tmp_path / "out"
+    assert main(["animate", str(speech), str(other), "-o", str(out), *args]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["other.mp4", "speech.mp4"]
+
+
+def test_an_existing_file_without_an_extension_is_no_folder(speech, tmp_path, capsys):
+    notes = tmp_path / "notes"
+    notes.write_text("precious")
+    assert main(["animate", str(speech), "-o", str(notes), "-q"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "notes", "unknown output format")
+    assert notes.read_text() == "precious"
+
+
+def test_export_and_render_write_every_output(tmp_path, capsys):
+    anim = tmp_path / "anim.npy"
+    head = load_head()
+    np.save(anim, np.repeat(head.template.reshape(1, -1), 3, axis=0))
+    e1, e2 = tmp_path / "e1.glb", tmp_path / "e2.npz"
+    assert main(["export", str(anim), "-o", str(e1), "-o", str(e2), "-q"]) == 0
+    assert e1.stat().st_size > 0 and e2.stat().st_size > 0
+    r1, r2 = tmp_path / "r1.mp4", tmp_path / "r2.mp4"
+    assert main(["render", str(e2), "-o", str(r1), "-o", str(r2), "--size", "64", "-q"]) == 0
+    assert r1.stat().st_size > 0 and r1.read_bytes() == r2.read_bytes()
+    assert main(["render", str(e2), "-o", str(tmp_path / "r.glb"), "-q"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "r.glb", "export")
+
+
+def test_commands_writing_one_file_refuse_a_second_output(tmp_path, capsys):
+    a, b = tmp_path / "a.glb", tmp_path / "b.glb"
+    with pytest.raises(SystemExit) as exit_:
+        main(["rig", str(tmp_path / "head.obj"), "-o", str(a), "-o", str(b)])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "given twice" in err and str(b) in err
+    assert not a.exists() and not b.exists()
+
+
+def test_every_output_option_takes_several_or_refuses_a_second():
+    """No command keeps only the last of two outputs: each takes them all or refuses."""
+    import argparse
+
+    from talkmesh.cli import build_parser
+    from talkmesh.cli.common import Once
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    writes = {"output", "out", "json", "summary"}
+    for name, parser in sub.choices.items():
+        for action in parser._actions:
+            if action.option_strings and action.dest in writes:
+                several = isinstance(action, argparse._AppendAction)
+                assert several or isinstance(action, Once), (name, action.option_strings)
+
+
+def test_docs_agree_on_the_demo_glb_target_count():
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    exports = (root / "docs" / "guide" / "exports.md").read_text()
+    total, residual = map(
+        int, re.search(r"demo\.glb`: (\d+) = 52 ARKit \+ (\d+) residual", readme).groups()
+    )
+    assert total == 52 + residual
+    said = re.search(
+        r"demo\.glb` \(the bundled CodeTalker\) has (\d+) targets:\s+52 ARKit \+ (\d+)", exports
+    )
+    assert said and (int(said[1]), int(said[2])) == (total, residual)
+
+
 def test_info_lists_assets_and_models(capsys):
     assert main(["info"]) == 0
     out = capsys.readouterr().out
@@ -326,6 +434,7 @@ COMMANDS = {
     ),
     "dub": ([], "--anim --audio --model --output --overwrite --quiet --source-template"),
     "rig": (["mesh"], "--landmark --landmarks --output --overwrite --quiet"),
+    "export-head": ([], "--identity --output --overwrite --quiet"),
     "serve": (
         [],
         "--avatar --batch-wait-ms --first-message-timeout --host --idle-timeout --jobs "

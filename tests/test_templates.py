@@ -139,6 +139,27 @@ def test_a_vertex_file_without_triangles_beside_it_is_refused(tmp_path):
         load_face_template(tmp_path / "frame_001.vl")
 
 
+def test_vertex_outputs_need_no_triangles(tmp_path, capsys):
+    """A vertex file alone (no mesh beside it) animates into .npy; a surface output asks for the
+    triangles."""
+    vertices = grid(6, 4)[0]
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    np.save(alone / "face.npy", vertices)
+    head = load_face_template(alone / "face.npy", triangles=False)
+    assert head.num_vertices == 24 and head.faces.shape == (0, 3)
+    model = imported(tmp_path, "faceformer", "vocaset")
+    argv = ["animate", str(FIXTURES / "speech.wav"), "--model", str(model)]
+    argv += ["--template", str(alone / "face.npy"), "--style", f"{VOCASET_SUBJECTS[0]}:1", "-q"]
+    assert main([*argv, "-o", str(tmp_path / "out.npy")]) == 0
+    out = np.load(tmp_path / "out.npy")
+    assert out.shape[1] == 24 * 3 and np.isfinite(out).all()
+    capsys.readouterr()
+    assert main([*argv, "-o", str(tmp_path / "out.glb")]) == 2
+    assert "no triangles" in capsys.readouterr().err
+    assert not (tmp_path / "out.glb").exists()
+
+
 def imported(tmp_path: Path, family: str, dataset: str) -> Path:
     files = {
         "faceformer": [f"faceformer_{dataset}.pth"],

@@ -56,6 +56,7 @@ class AnimateSettings:
     size: int = VIDEO_SIZE
     camera: str = "front"
     overwrite: bool = False
+    triangles: bool = True  # False: every output is vertices only (.npy), a template needs no faces
 
 
 class Job(NamedTuple):
@@ -366,4 +367,4 @@ def face_for(settings):
 
     mix = settings.style_mix
     alone = next(iter(mix)) if mix and len(mix) == 1 else None
-    return load_face_template(settings.template, subject=alone)
+    return load_face_template(settings.template, subject=alone, triangles=settings.triangles)

@@ -13,7 +13,8 @@ topology (VOCASET's FLAME, 5023 vertices; BIWI, 23370) with the triangles from t
 * ``.ply`` / ``.obj`` (``FLAME_sample.ply``, ``BIWI.ply``, BIWI's ``rigid_scans/<SUBJECT>.obj``):
   vertices and triangles in file order.
 * ``.vl`` (one BIWI frame, as BIWI ships them) and ``.npy`` ((V, 3) or (V*3,)): vertices only;
-  the triangles come from the mesh beside it.
+  the triangles come from the mesh beside it, needed only by outputs that draw or store a surface
+  (a video, ``.glb``, ``.obj``, ``.npz``): ``.npy`` outputs take the vertices alone.
 
 BIWI meshes in the scanner's frame (a ``.vl`` frame or a rigid scan, whose total area is not 1)
 are normalised as ``talkmesh prepare-biwi`` normalises the dataset (rotated by pi about x,
@@ -111,9 +112,13 @@ def _biwi_frame(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return normalize_frames(vertices[None], faces)[0]
 
 
-def load_face_template(spec: str | Path, subject: str | None = None) -> Head:
+def load_face_template(
+    spec: str | Path, subject: str | None = None, *, triangles: bool = True
+) -> Head:
     """``--template`` (see the module doc) -> the face to animate; ``subject`` picks one of a
-    templates.pkl's subjects when the spec names none (e.g. the one ``--style`` names)."""
+    templates.pkl's subjects when the spec names none (e.g. the one ``--style`` names).
+    ``triangles=False``: the outputs draw no surface (``.npy`` vertices), so a vertex file with no
+    mesh beside it is taken with no triangles instead of refused."""
     path, named = split_spec(spec)
     if not path.is_file():
         raise TalkmeshError(f"{path}: no such template file")
@@ -137,8 +142,14 @@ def load_face_template(spec: str | Path, subject: str | None = None) -> Head:
     if len(vertices) == bundled.num_vertices:
         return bundled.with_template(vertices, name)
     if faces is None:
-        faces = faces_beside(path, len(vertices))
+        try:
+            faces = faces_beside(path, len(vertices))
+        except TalkmeshError:
+            if triangles:
+                raise
+            faces = np.zeros((0, 3), np.int32)  # vertices only: nothing drawn needs them
     if not np.isfinite(vertices).all():
         raise TalkmeshError(f"{path}: the mesh has NaN or infinite coordinates")
-    vertices = _biwi_frame(np.asarray(vertices, np.float64), faces)
-    return plain_head(vertices, faces, name)
+    if len(faces):
+        vertices = _biwi_frame(np.asarray(vertices, np.float64), faces)
+    return plain_head(vertices, faces, name, triangles=triangles)
