@@ -456,3 +456,19 @@ def test_each_worker_ticks_its_sessions_in_a_lane_of_its_own():
         assert all(w.lane.runner.done() for w in works)
 
     asyncio.run(run())
+
+
+def test_the_bundled_default_is_refused_naming_the_model_that_streams(capsys):
+    """`serve --model codetalker-synth` (animate's default, no causal decoder): one line naming
+    the bundled model that streams and the command that serves it."""
+    from talkmesh.cli import main
+    from talkmesh.pipeline import available_models
+
+    if "codetalker-synth" not in available_models():
+        pytest.skip("the bundled CodeTalker is not installed")
+    assert main(["serve", "--model", "codetalker-synth", "--port", "0", "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(
+        "talkmesh: error: --model codetalker-synth"
+    )
+    assert "cannot stream" in err and "`talkmesh serve --model procedural`" in err
