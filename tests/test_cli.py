@@ -327,6 +327,33 @@ def test_an_existing_file_without_an_extension_is_no_folder(speech, tmp_path, ca
     assert notes.read_text() == "precious"
 
 
+def test_the_video_keeps_the_original_sound(speech, tmp_path):
+    """The mp4 muxes the user's file (44.1 kHz, stereo), not the 16 kHz copy the model hears:
+    a 12 kHz tone survives."""
+    from imageio_ffmpeg import get_ffmpeg_exe
+
+    clip, sr = sf.read(speech, dtype="float32")
+    rate = 44100
+    t = np.arange(round(len(clip) / sr * rate)) / rate
+    tone = 0.1 * np.sin(2 * np.pi * 12000 * t)
+    wav = tmp_path / "wide.wav"
+    sf.write(wav, np.stack([tone, tone], 1).astype(np.float32), rate)
+    out = tmp_path / "wide.mp4"
+    assert main(["animate", str(wav), "-o", str(out), "--model", "procedural", "--size", "64"]) == 0
+    probe = subprocess.run([get_ffmpeg_exe(), "-hide_banner", "-i", str(out)], capture_output=True)
+    audio_line = next(ln for ln in probe.stderr.decode().splitlines() if "Audio:" in ln)
+    assert "44100 Hz" in audio_line and "stereo" in audio_line, audio_line
+    raw = subprocess.run(
+        [get_ffmpeg_exe(), "-v", "error", "-i", str(out), "-f", "f32le", "-ac", "1", "-"],
+        capture_output=True,
+        check=True,
+    ).stdout
+    decoded = np.frombuffer(raw, np.float32)
+    spectrum = np.abs(np.fft.rfft(decoded))
+    freqs = np.fft.rfftfreq(len(decoded), 1 / rate)
+    assert spectrum[freqs > 8000].max() > 0.5 * spectrum.max()  # the tone is there
+
+
 def test_export_and_render_write_every_output(tmp_path, capsys):
     anim = tmp_path / "anim.npy"
     head = load_head()

@@ -362,6 +362,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     anims = [load_input(a, args.fps) for a in args.anim]
     if args.audio:
         anims[0].audio, anims[0].sample_rate = load_audio(args.audio), SAMPLE_RATE
+        anims[0].audio_file = Path(args.audio)  # the video keeps its own rate and channels
     for out in outs:
         with writing(out):
             out.parent.mkdir(parents=True, exist_ok=True)

@@ -212,6 +212,7 @@ class Rig:
             sample_rate=anim.sample_rate,
             weight_names=list(anim.weight_names),
             template=self.vertices,
+            audio_file=anim.audio_file,
         )
 
     def facing(self, anim: Animation) -> Animation:
