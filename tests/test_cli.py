@@ -221,6 +221,51 @@ def test_own_template_with_the_bundled_topology_is_animated(speech, tmp_path):
     )  # animated around the user's face, not the bundled one
 
 
+@pytest.mark.parametrize(
+    "units, turn, said",
+    [
+        (1000.0, "z-up", "converted: millimetres -> metres, up +z -> +y"),
+        (100.0, None, "converted: centimetres -> metres"),
+        (1.0, "z-up", "converted: up +z -> +y"),
+    ],
+)
+def test_template_in_other_units_or_axes_is_converted_and_said(
+    speech, tmp_path, capsys, units, turn, said
+):
+    """A bundled-topology mesh in millimetres or Z-up (a Blender export) moves as the bundled
+    head does, in metres and +y up, and the terminal says what was converted."""
+    from talkmesh.output.formats import load_animation
+
+    head = load_head()
+    z_up = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], np.float32)  # +y -> +z
+    mine = (head.template @ (z_up.T if turn else np.eye(3, dtype=np.float32))) * units
+    npy = tmp_path / "mine.npy"
+    np.save(npy, mine)
+    out = tmp_path / "a.npz"
+    argv = ["animate", str(speech), "--template", str(npy), "--model", "procedural"]
+    assert main([*argv, "-o", str(out)]) == 0
+    assert f"template {npy}: {said}" in capsys.readouterr().out
+    anim = load_animation(out)
+    np.testing.assert_allclose(anim.template, head.template, atol=1e-5)
+    moved = np.abs(anim.vertices - anim.template).max()
+    assert 1e-3 < moved < 0.05  # metre-sized motion on a metre-sized face
+
+
+def test_template_in_metres_and_y_up_is_taken_as_it_is(speech, tmp_path, capsys):
+    head = load_head()
+    tilt = np.radians(8.0)  # a head turned a little is the user's pose, not another axis
+    turn = np.array(
+        [[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]], np.float32
+    )
+    npy = tmp_path / "mine.npy"
+    np.save(npy, head.template @ turn.T + np.float32([0.0, 1.6, 0.0]))
+    from talkmesh.datasets.templates import read_face_template
+
+    face, note = read_face_template(npy)
+    assert note == ""
+    np.testing.assert_allclose(face.template, np.load(npy), atol=1e-6)
+
+
 def test_existing_output_is_never_overwritten(speech, tmp_path):
     out = tmp_path / "keep.npy"
     out.write_bytes(b"precious")
@@ -469,7 +514,7 @@ COMMANDS = {
         ["audio"],
         "--avatar --bilabial-closure --camera --cluster --fps --head --identity --int8 "
         "--lip-closure --loudness-gain --model --no-bilabial-closure --no-blinks --no-pause-gate "
-        "--output --overwrite "
+        "--normalize-template --output --overwrite "
         "--procedural-mix --quiet --seed --size --style --summary --template --text --workers",
     ),
     "render": (["anim"], "--audio --camera --fps --labels --output --overwrite --quiet --size"),

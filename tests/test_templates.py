@@ -13,7 +13,7 @@ import pytest
 
 from talkmesh.cli import main
 from talkmesh.datasets.biwi import surface_area
-from talkmesh.datasets.templates import load_face_template
+from talkmesh.datasets.templates import load_face_template, read_face_template
 from talkmesh.errors import TalkmeshError
 from talkmesh.output.formats import load_animation
 
@@ -131,6 +131,25 @@ def test_biwi_release_files_are_normalised_as_prepare_biwi_does(tmp_path):
         np.testing.assert_allclose(
             head.template, prepared.template - prepared.template.mean(0), atol=1e-5
         )
+
+
+def test_a_biwi_mesh_is_normalised_only_when_known_raw_or_asked(tmp_path):
+    """BIWI's raw files (.vl, rigid_scans/*.obj) are normalised, and said so; another BIWI-
+    topology mesh whose area is not 1 (a frame of the user's own) is taken as it is, unless
+    asked."""
+    vertices, faces = grid(123, 190)
+    mine = write_mesh(tmp_path / "mine.ply", vertices * 3.0, faces)
+    face, note = read_face_template(mine)
+    assert note == ""
+    np.testing.assert_allclose(face.template, vertices * 3.0, atol=1e-5)
+    face, note = read_face_template(mine, normalize=True)
+    assert note.startswith("normalised as prepare-biwi does")
+    assert surface_area(face.template, face.faces) == pytest.approx(1.0, rel=1e-4)
+    root = biwi_layout(tmp_path / "biwi", 123, 190)
+    assert read_face_template(root / "rigid_scans" / "F2.obj").note.startswith("normalised")
+    assert read_face_template(f"{root}/templates.pkl:F2").note == ""  # already unit area
+    with pytest.raises(TalkmeshError, match="applies to BIWI's 23370-vertex meshes"):
+        read_face_template(write_mesh(tmp_path / "small.ply", *grid(6, 4)), normalize=True)
 
 
 def test_a_vertex_file_without_triangles_beside_it_is_refused(tmp_path):

@@ -57,6 +57,7 @@ class AnimateSettings:
     camera: str = "front"
     overwrite: bool = False
     triangles: bool = True  # False: every output is vertices only (.npy), a template needs no faces
+    normalize_template: bool = False  # normalise a BIWI-topology template as prepare-biwi does
 
 
 class Job(NamedTuple):
@@ -367,4 +368,9 @@ def face_for(settings):
 
     mix = settings.style_mix
     alone = next(iter(mix)) if mix and len(mix) == 1 else None
-    return load_face_template(settings.template, subject=alone, triangles=settings.triangles)
+    return load_face_template(
+        settings.template,
+        subject=alone,
+        triangles=settings.triangles,
+        normalize=settings.normalize_template,
+    )

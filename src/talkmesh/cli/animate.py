@@ -56,6 +56,12 @@ def add_animate(sub: Subparsers) -> None:
         "the mesh's own units and axes (as `talkmesh rig` finds them)",
     )
     a.add_argument(
+        "--normalize-template",
+        action="store_true",
+        help="rotate, centre and rescale a BIWI-topology --template as prepare-biwi does (done "
+        "without asking only for BIWI's raw files: a .vl frame, rigid_scans/SUBJECT.obj)",
+    )
+    a.add_argument(
         "--avatar",
         help="your rigged character (.glb .vrm with ARKit-named morph targets): .glb/.vrm "
         "outputs are copies of it with the speech as one animation clip",
@@ -221,7 +227,7 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
     """The face to animate: ``--template`` on any topology (a templates.pkl without :SUBJECT
     takes the subject --style names alone) or a bundled identity; a template of another topology
     than the bundled head's is refused with the bundled models and for ARKit outputs."""
-    from talkmesh.datasets.templates import load_face_template
+    from talkmesh.datasets.templates import read_face_template
     from talkmesh.face.assets import load_head
     from talkmesh.pipeline import available_models
 
@@ -240,7 +246,16 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
     if not args.template:
         return load_head(args.identity)
     alone = next(iter(style_mix)) if style_mix and len(style_mix) == 1 else None
-    head = load_face_template(args.template, subject=alone, triangles=needs_triangles(outputs))
+    if args.normalize_template and not args.template:
+        raise TalkmeshError("--normalize-template applies to a --template")
+    head, note = read_face_template(
+        args.template,
+        subject=alone,
+        triangles=needs_triangles(outputs),
+        normalize=args.normalize_template,
+    )
+    if note and not args.quiet:
+        print(f"template {args.template}: {note}")
     if head.rigged:
         return head
     if args.model is None or args.model in available_models():
@@ -299,6 +314,7 @@ def animate_settings(args: argparse.Namespace, *, triangles: bool = True):
         camera=args.camera,
         overwrite=args.overwrite,
         triangles=triangles,
+        normalize_template=args.normalize_template,
     )
 
 
