@@ -29,6 +29,9 @@ class Animation:
             (lets exporters write morph targets instead of per-frame vertices).
         audio_file: optional speech file ``audio`` was read from: videos mux its sound as it is
             (its own sample rate and channels), not the 16 kHz copy the model hears.
+        to_gltf: optional (4, 4) matrix taking the vertices' frame (a user's head in its own
+            units and axes, e.g. millimetres, Z-up) to glTF's metres and +y up: a .glb keeps the
+            vertices as they are and carries it as its root node, so viewers stand the head up.
     """
 
     vertices: np.ndarray
@@ -41,6 +44,7 @@ class Animation:
     template: np.ndarray | None = None
     basis: np.ndarray | None = None
     audio_file: Path | None = None
+    to_gltf: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float32)
@@ -100,6 +104,7 @@ class AnimationBlocks:
     template: np.ndarray | None = None
     basis: np.ndarray | None = None
     audio_file: Path | None = None
+    to_gltf: np.ndarray | None = None
 
     def collect(self) -> Animation:
         """All frames as one :class:`Animation` (filled in place: one copy of the vertices)."""
@@ -128,4 +133,5 @@ class AnimationBlocks:
             template=self.template,
             basis=self.basis,
             audio_file=self.audio_file,
+            to_gltf=self.to_gltf,
         )

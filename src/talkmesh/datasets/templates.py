@@ -134,16 +134,6 @@ def _biwi_frame(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return normalize_frames(vertices[None], faces)[0]
 
 
-def _axis_rotation(rotation: np.ndarray) -> np.ndarray | None:
-    """The axis swap (one of the 24 rotations taking axes to axes) within AXIS_SNAP_DEGREES of
-    ``rotation``, or None."""
-    from talkmesh.face.registration import _orientations
-
-    best = max(_orientations(), key=lambda o: float(np.trace(o.T @ rotation)))
-    cos = (float(np.trace(best.T @ rotation)) - 1.0) / 2.0
-    return best if cos >= np.cos(np.radians(AXIS_SNAP_DEGREES)) else None
-
-
 def _axis_name(vector: np.ndarray) -> str:
     k = int(np.argmax(np.abs(vector)))
     return ("+" if vector[k] > 0 else "-") + "xyz"[k]
@@ -159,14 +149,14 @@ def bundled_frame(vertices: np.ndarray, reference: np.ndarray) -> tuple[np.ndarr
     placed elsewhere, is the user's and stays so. Units and axes are converted about the origin,
     so the mesh keeps its place in its own frame.
     """
-    from talkmesh.face.registration import similarity
+    from talkmesh.face.registration import nearest_axis_rotation, similarity
 
     vertices = np.asarray(vertices, np.float64)
     scale, rotation, _ = similarity(vertices, np.asarray(reference, np.float64))
     if not np.isfinite(scale) or scale <= 0:
         return vertices.astype(np.float32), ""
     decade = int(np.clip(np.round(-np.log10(scale)), 0, 3))
-    swap = _axis_rotation(rotation)
+    swap = nearest_axis_rotation(rotation, AXIS_SNAP_DEGREES)
     changes = []
     if decade:
         changes.append(f"{UNITS[decade]} -> metres")

@@ -95,11 +95,16 @@ def export_glb(anim: Animation, path: Path) -> None:
         "output": buf.add(rig.weights.ravel(), "SCALAR"),
         "interpolation": "LINEAR",
     }
+    nodes: list[dict] = [{"name": "face", "mesh": 0}]
+    if anim.to_gltf is not None and not np.allclose(anim.to_gltf, np.eye(4)):
+        # the user's frame (units, up-axis) to glTF's, as the root: the vertices stay as given
+        matrix = np.asarray(anim.to_gltf, np.float64)
+        nodes.append({"name": "root", "children": [0], "matrix": matrix.T.ravel().tolist()})
     gltf = {
         "asset": {"version": "2.0", "generator": "talkmesh"},
         "scene": 0,
-        "scenes": [{"nodes": [0]}],
-        "nodes": [{"name": "face", "mesh": 0}],
+        "scenes": [{"nodes": [len(nodes) - 1]}],
+        "nodes": nodes,
         "meshes": [
             {
                 "name": "face",
