@@ -399,6 +399,18 @@ def test_the_video_keeps_the_original_sound(speech, tmp_path):
     assert spectrum[freqs > 8000].max() > 0.5 * spectrum.max()  # the tone is there
 
 
+def test_a_transcript_that_does_not_fit_is_one_warning_line(speech, tmp_path):
+    out = tmp_path / "a.npz"
+    too_long = " ".join(["and mister john dashwood had then leisure to consider how much"] * 4)
+    res = run_cli("animate", str(speech), "--text", too_long, "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    warned = [ln for ln in lines if "could not be aligned" in ln]
+    assert len(warned) == 1 and warned[0].startswith("talkmesh: warning: "), res.stderr
+    assert "UserWarning" not in res.stderr and "recognize_phones(" not in res.stderr
+    assert out.is_file()
+
+
 def test_export_and_render_write_every_output(tmp_path, capsys):
     anim = tmp_path / "anim.npy"
     head = load_head()
