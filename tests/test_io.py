@@ -234,8 +234,11 @@ Z_UP_MM = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1000]])
         residual_animation,
         lambda: vertex_animation(frames=1),
         lambda: replace(arkit_animation(), to_gltf=Z_UP_MM),
+        lambda: replace(
+            arkit_animation(), colors=np.full((arkit_animation().num_vertices, 3), 0.5)
+        ),
     ],
-    ids=["arkit", "pca", "residual", "one-frame", "root-node"],
+    ids=["arkit", "pca", "residual", "one-frame", "root-node", "vertex-colours"],
 )
 def test_glb_passes_khronos_validator(tmp_path, make):
     (out,) = save_animation(make(), tmp_path / "talk.glb")

@@ -32,6 +32,8 @@ class Animation:
         to_gltf: optional (4, 4) matrix taking the vertices' frame (a user's head in its own
             units and axes, e.g. millimetres, Z-up) to glTF's metres and +y up: a .glb keeps the
             vertices as they are and carries it as its root node, so viewers stand the head up.
+        colors: optional (V, 3) sRGB vertex colours in [0, 1] (the bundled head's skin, lips,
+            irises: :func:`talkmesh.face.look.head_colors`), written as a .glb's ``COLOR_0``.
     """
 
     vertices: np.ndarray
@@ -45,6 +47,7 @@ class Animation:
     basis: np.ndarray | None = None
     audio_file: Path | None = None
     to_gltf: np.ndarray | None = None
+    colors: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float32)
