@@ -170,9 +170,12 @@ def test_vertex_outputs_need_no_triangles(tmp_path, capsys):
     model = imported(tmp_path, "faceformer", "vocaset")
     argv = ["animate", str(FIXTURES / "speech.wav"), "--model", str(model)]
     argv += ["--template", str(alone / "face.npy"), "--style", f"{VOCASET_SUBJECTS[0]}:1", "-q"]
-    assert main([*argv, "-o", str(tmp_path / "out.npy")]) == 0
+    assert main([*argv, "-o", str(tmp_path / "out.npy"), "-o", str(tmp_path / "out.npz")]) == 0
     out = np.load(tmp_path / "out.npy")
     assert out.shape[1] == 24 * 3 and np.isfinite(out).all()
+    stored = load_animation(tmp_path / "out.npz")
+    assert stored.faces.shape == (0, 3)  # float16 offsets: within their rounding
+    np.testing.assert_allclose(stored.vertices, out.reshape(-1, 24, 3), atol=1e-3)
     capsys.readouterr()
     assert main([*argv, "-o", str(tmp_path / "out.glb")]) == 2
     assert "no triangles" in capsys.readouterr().err

@@ -56,7 +56,7 @@ class AnimateSettings:
     size: int = VIDEO_SIZE
     camera: str = "front"
     overwrite: bool = False
-    triangles: bool = True  # False: every output is vertices only (.npy), a template needs no faces
+    triangles: bool = True  # False: every output is .npy/.npz, a template needs no triangles
     normalize_template: bool = False  # normalise a BIWI-topology template as prepare-biwi does
 
 

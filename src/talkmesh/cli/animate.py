@@ -279,11 +279,11 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
     return head
 
 
-VERTEX_ONLY = (".npy",)  # outputs that hold vertex positions alone: no triangles needed
+VERTEX_ONLY = (".npy", ".npz")  # outputs that need no triangles (they store them when known)
 
 
 def needs_triangles(outputs: list[list[Path]]) -> bool:
-    """Whether any output draws or stores a surface (a video, .glb, .obj, .npz, ...)."""
+    """Whether any output draws or exports a surface (a video, .glb, .obj)."""
     return any(p.suffix.lower() not in VERTEX_ONLY for paths in outputs for p in paths)
 
 

@@ -13,8 +13,8 @@ topology (VOCASET's FLAME, 5023 vertices; BIWI, 23370) with the triangles from t
 * ``.ply`` / ``.obj`` (``FLAME_sample.ply``, ``BIWI.ply``, BIWI's ``rigid_scans/<SUBJECT>.obj``):
   vertices and triangles in file order.
 * ``.vl`` (one BIWI frame, as BIWI ships them) and ``.npy`` ((V, 3) or (V*3,)): vertices only;
-  the triangles come from the mesh beside it, needed only by outputs that draw or store a surface
-  (a video, ``.glb``, ``.obj``, ``.npz``): ``.npy`` outputs take the vertices alone.
+  the triangles come from the mesh beside it, needed only by outputs that draw or export a surface
+  (a video, ``.glb``, ``.obj``): ``.npy`` and ``.npz`` outputs take the vertices alone.
 
 What is changed, and said (:class:`FaceTemplate` ``.note``; ``talkmesh animate`` prints it):
 
@@ -182,7 +182,7 @@ def load_face_template(
 ) -> Head:
     """``--template`` (see the module doc) -> the face to animate; ``subject`` picks one of a
     templates.pkl's subjects when the spec names none (e.g. the one ``--style`` names).
-    ``triangles=False``: the outputs draw no surface (``.npy`` vertices), so a vertex file with no
+    ``triangles=False``: the outputs draw no surface (``.npy``, ``.npz``), so a vertex file with no
     mesh beside it is taken with no triangles instead of refused. ``normalize``: normalise a
     BIWI-topology mesh as prepare-biwi does even when its file does not say it is a raw scan.
     :func:`read_face_template` also says what was changed."""
