@@ -175,6 +175,10 @@ def cmd_animate(args: argparse.Namespace) -> int:
     library = any(is_batch_source(p) for p in sources)
     found = find_inputs(sources)
     inputs = [f.audio for f in found]
+    if len(inputs) == 1 and not library:  # one file: unreadable audio is refused before the model
+        from talkmesh.audio.loading import audio_duration
+
+        audio_duration(inputs[0])  # its header only (a batch reports such files row by row)
     avatar = Path(args.avatar) if args.avatar else None
     default = DEFAULT_OUTPUT if avatar is None else "{stem}" + avatar.suffix.lower()
     outputs = parse_outputs(args.output or [default], inputs, [f.stem for f in found], default)
