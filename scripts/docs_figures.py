@@ -2,6 +2,7 @@
 
 python scripts/docs_figures.py regions          # docs/images/regions.png
 python scripts/docs_figures.py lipsync [CLIP]   # docs/images/lipsync_<clip>.png and contact_<clip>.png
+python scripts/docs_figures.py multilingual NAME --corpus corpus/multilingual --model M   # one clip
 """
 
 from __future__ import annotations
@@ -119,6 +120,49 @@ def lipsync_figure(
     print(f"wrote {out_sheet}")
 
 
+def multilingual_figure(corpus: Path, name: str, model: str, out_plot: Path, out_sheet: Path):
+    """One clip of the multilingual corpus: the model's lip opening against the synthesiser's
+    exact phones, and a contact sheet."""
+    import json
+
+    from talkmesh.audio.loading import load_audio
+    from talkmesh.datasets.multilingual import read_phones
+    from talkmesh.output.render import contact_sheet
+    from talkmesh.pipeline import animate
+
+    manifest = json.loads((corpus / "manifest.json").read_text())
+    subject = manifest["subjects"][name.rsplit("_", 1)[0]]
+    head = load_head(subject["identity"])
+    wave = load_audio(corpus / "wav" / f"{name}.wav")
+    anim = animate(wave, head=head, model=model)
+    truth = np.load(corpus / "vertices_npy" / f"{name}.npy")[::2]
+    phones = read_phones(corpus, name)
+    t = np.arange(anim.num_frames) / anim.fps
+    fig, ax = plt.subplots(figsize=(12, 3.2), dpi=80)
+    ax.plot(t, lip_opening(anim.vertices, head.regions) * 1000, color="k", lw=1.2, label=model)
+    tt = np.arange(len(truth)) / 30.0
+    tv = lip_opening(truth.reshape(len(truth), -1, 3), head.regions) * 1000
+    ax.plot(tt, tv, color="tab:green", lw=0.8, ls="--", label="teacher (truth)")
+    for p in phones:
+        if p.label in ("P", "B", "M"):
+            ax.axvspan(p.start, p.end, color="tab:red", alpha=0.3, lw=0)
+        elif p.label == "SIL" and p.end - p.start >= 0.15:
+            ax.axvspan(p.start, p.end, color="0.8", alpha=0.5, lw=0)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("lip opening (mm)")
+    ax.set_title(
+        f"{subject['language']} ({subject['voice']}, a voice no model heard): "
+        f"{manifest['sentences'][name]}\nred = /p b m/, grey = pauses (synthesiser timings)",
+        fontsize=9,
+    )
+    ax.legend(fontsize=8, loc="upper right")
+    ax.set_xlim(0, t[-1])
+    fig.tight_layout()
+    save_small(fig, out_plot)
+    contact_sheet(anim, out_sheet, n=8, cols=4, size=160)
+    print(f"wrote {out_plot} and {out_sheet}")
+
+
 def motion_figure(corpus: Path, preds: list[str], out: Path) -> None:
     """Per-vertex mean and std of inter-frame motion on the synthetic test split (CodeTalker Fig. 4)."""
     from talkmesh.datasets.reader import open_dataset
@@ -193,7 +237,7 @@ def style_figure(model: str, clip: Path, a: str, b: str, out: Path) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("figure", choices=["regions", "lipsync", "motion", "style"])
+    p.add_argument("figure", choices=["regions", "lipsync", "motion", "style", "multilingual"])
     p.add_argument("--model", default="procedural", help="lipsync/style: the animator")
     p.add_argument("--styles", default="", help="style: two training speakers A,B")
     p.add_argument("--pred", action="append", default=[], help="motion: LABEL=PRED_DIR (repeat)")
@@ -206,6 +250,15 @@ def main() -> None:
     DOCS.mkdir(parents=True, exist_ok=True)
     if args.figure == "regions":
         regions_figure(DOCS / "regions.png")
+    elif args.figure == "multilingual":  # clip: a sequence name of the corpus
+        tag = Path(args.model).stem
+        multilingual_figure(
+            Path(args.corpus),
+            args.clip,
+            args.model,
+            DOCS / f"multilingual_{tag}_{args.clip}.png",
+            DOCS / f"contact_multilingual_{tag}_{args.clip}.png",
+        )
     elif args.figure == "motion":
         motion_figure(Path(args.corpus), args.pred, DOCS / "motion_stats.png")
     else:

@@ -57,6 +57,40 @@ def codebook_usage(stage1: Path, data: str) -> tuple[int, int, float]:
     return int((counts > 0).sum()), len(counts), perplexity
 
 
+def data_note(data: str, styles) -> str:
+    """What the model was trained on, from the corpus's manifest."""
+    manifest = json.loads((Path(data) / "manifest.json").read_text())
+    if not manifest.get("teacher"):
+        return (
+            "The default synthetic corpus (`talkmesh synth --out corpus/synth`: 12 synthetic voices "
+            "x 40 sentences on 12 CC0 identities, 60 fps motion from the procedural animator with "
+            "exact synthesiser phone timings, read at 30 fps). Trained on the 8 training subjects "
+            f"({', '.join(styles)}); validated on 2; tested on 2 unseen voices and faces."
+        )
+    subjects = manifest["subjects"]
+    train = manifest["splits"]["train"]
+    langs = sorted({subjects[s]["language"] for s in train})
+    test = manifest["splits"]["test"]
+    unseen = sorted({subjects[s]["language"] for s in test} - set(langs))
+    return (
+        "The multilingual corpus (`talkmesh synth --multilingual --out corpus/multilingual`: "
+        f"MBROLA voices through espeak-ng, {len(langs)} languages trained on ({', '.join(langs)}), "
+        "two sentences with a pause between them per utterance, 60 fps motion truth from the "
+        "procedural animator with the teacher's rules (lips met through /p b m/, rest in pauses, "
+        "open vowels by loudness; talkmesh.face.teacher) on exact phone timings, read at 30 fps). "
+        f"Trained on {len(train)} voices; tested on {len(test)} held-out voices, in the trained "
+        f"languages and in {len(unseen)} never trained on ({', '.join(unseen)})."
+    )
+
+
+def train_minutes(data: str) -> float:
+    import soundfile as sf
+
+    splits = json.loads((Path(data) / "manifest.json").read_text())["splits"]["train"]
+    wavs = [Path(data) / "wav" / f"{s}_{i}.wav" for s, ids in splits.items() for i in ids]
+    return sum(sf.info(str(w)).duration for w in wavs if w.is_file()) / 60
+
+
 def run_minutes(run: Path) -> float:
     start = (run / "recipe.json").stat().st_mtime
     return ((run / "model.safetensors").stat().st_mtime - start) / 60
@@ -139,10 +173,7 @@ def main() -> None:
         "",
         "## Data",
         "",
-        "The default synthetic corpus (`talkmesh synth --out corpus/synth`: 12 synthetic voices x 40 "
-        "sentences on 12 CC0 identities, 60 fps motion from the procedural animator with exact "
-        "synthesiser phone timings, read at 30 fps). Trained on the 8 training subjects "
-        f"({', '.join(cfg.stage2.styles)}); validated on 2; tested on 2 unseen voices and faces.",
+        data_note(args.data, cfg.stage2.styles),
         "",
         "## How it was trained",
         "",
@@ -174,8 +205,10 @@ def main() -> None:
         "",
         "## Limits",
         "",
-        "Trained on 17 minutes of synthetic speech from 8 voices and procedural motion: it learns "
-        "that animator's mapping, not real human faces. Blinks are audio-independent, so a "
+        f"Trained on {train_minutes(args.data):.0f} minutes of synthetic speech from "
+        f"{len(cfg.stage2.styles)} voices and procedural motion: it learns that animator's "
+        "mapping (with the teacher's rules where the corpus has them), not real human faces. "
+        "Blinks are audio-independent, so a "
         "speech-driven model cannot time them; `talkmesh animate` adds the procedural blinks and "
         "gaze (`--no-blinks` turns that off), shown as a separate row above.",
     ]

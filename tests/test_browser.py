@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -195,3 +196,48 @@ def test_viewer_streams_microphone_speech(server, speech_wav, tmp_path):
     (tmp_path / "viewer.png").write_bytes(shot)
     if os.environ.get("TALKMESH_DOCS") == "1" or not SCREENSHOT.exists():
         SCREENSHOT.write_bytes(shot)
+
+
+HEAD_LOOK = """() => {
+  const out = { colored: 0, meshes: 0 };
+  window.talkmesh.head.traverse((o) => {
+    if (!o.isMesh) return;
+    out.meshes += 1;
+    if (o.geometry.attributes.color && o.material.vertexColors) out.colored += 1;
+  });
+  return out;
+}"""
+
+
+def test_viewer_shows_download_progress_and_the_heads_irises(server, speech_wav):
+    """While head.glb downloads the page shows a progress bar (bytes of the total); the head
+    comes with the video renderer's vertex colours, irises and pupils included."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(
+            executable_path=str(CHROMIUM), headless=True, args=chromium_args(speech_wav)
+        )
+        try:
+            page = browser.new_page(viewport=VIEWPORT)
+            seen: list[str] = []
+            page.expose_function("noteProgress", lambda text: seen.append(text))
+            page.add_init_script(
+                """new MutationObserver(() => {
+                     const t = document.getElementById('progress-text');
+                     if (t) window.noteProgress(t.textContent);
+                   }).observe(document, { subtree: true, childList: true, characterData: true });"""
+            )
+            page.goto(server)
+            page.wait_for_function(
+                "window.talkmesh && window.talkmesh.head && window.talkmesh.state === 'idle'",
+                timeout=WAIT_MS,
+            )
+            state = page.evaluate("window.talkmesh")
+            assert state["loadSteps"] >= 2 and state["loading"] is None, state
+            assert page.is_hidden("#loading")
+            assert any(re.search(r"loading head\.glb: [\d.]+ of [\d.]+ MB", t) for t in seen), seen
+            look = page.evaluate(HEAD_LOOK)
+            assert look["meshes"] >= 1 and look["colored"] == look["meshes"], look
+        finally:
+            browser.close()

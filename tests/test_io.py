@@ -7,6 +7,7 @@ import re
 import shutil
 import struct
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -222,10 +223,22 @@ def test_glb_single_frame_keeps_fps(tmp_path):
     assert back.num_frames == 1 and back.fps == 25.0 and max_error(anim, back) < 1e-4
 
 
+Z_UP_MM = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1000]]) / 1000.0
+
+
 @pytest.mark.parametrize(
     "make",
-    [arkit_animation, vertex_animation, residual_animation, lambda: vertex_animation(frames=1)],
-    ids=["arkit", "pca", "residual", "one-frame"],
+    [
+        arkit_animation,
+        vertex_animation,
+        residual_animation,
+        lambda: vertex_animation(frames=1),
+        lambda: replace(arkit_animation(), to_gltf=Z_UP_MM),
+        lambda: replace(
+            arkit_animation(), colors=np.full((arkit_animation().num_vertices, 3), 0.5)
+        ),
+    ],
+    ids=["arkit", "pca", "residual", "one-frame", "root-node", "vertex-colours"],
 )
 def test_glb_passes_khronos_validator(tmp_path, make):
     (out,) = save_animation(make(), tmp_path / "talk.glb")

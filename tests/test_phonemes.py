@@ -16,7 +16,7 @@ from talkmesh.audio.phonemes import (
     transcript_words,
 )
 from talkmesh.audio.tts import synthesize_speech
-from talkmesh.errors import TalkmeshError
+from talkmesh.errors import TalkmeshError, TalkmeshWarning
 
 pytest.importorskip("pocketsphinx")
 
@@ -144,14 +144,14 @@ def test_digital_silence_inside_speech_is_sil(clip):
 
 
 def test_unknown_word_falls_back_to_recognition(clip):
-    with pytest.warns(UserWarning, match="not in the pronunciation dictionary.*zxqv"):
+    with pytest.warns(TalkmeshWarning, match="not in the pronunciation dictionary.*zxqv"):
         phones = recognize_phones(clip, text=TEXT + " zxqv")
     assert_covers(phones, len(clip) / SAMPLE_RATE)
 
 
 def test_mismatched_transcript_falls_back_to_recognition(clip):
     x = clip[: SAMPLE_RATE // 2]
-    with pytest.warns(UserWarning, match="could not be aligned"):
+    with pytest.warns(TalkmeshWarning, match="could not be aligned"):
         phones = recognize_phones(x, text=TEXT)
     assert_covers(phones, 0.5)
 
@@ -169,6 +169,31 @@ def test_transcript_words():
 
 def test_arpabet_phones():
     assert len(ARPABET_PHONES) == len(set(ARPABET_PHONES)) == 39
+
+
+FOUR_SENTENCES = (
+    "Can you hear me clearly now? The train leaves from platform four. Remember to buy some "
+    "bread and milk. Thank you very much for your help."
+)
+
+
+@pytest.mark.skipif(shutil.which("espeak-ng") is None, reason="espeak-ng is not installed")
+def test_four_espeak_sentences_align_to_their_exact_transcript(tmp_path):
+    """espeak-ng's British "remember" is not the dictionary's: PocketSphinx's default beam lost
+    the whole transcript; the wide-beam retry aligns it, and no warning is given."""
+    import subprocess
+    import warnings
+
+    wav = tmp_path / "four.wav"
+    subprocess.run(["espeak-ng", "-v", "en-gb", "-w", str(wav), FOUR_SENTENCES], check=True)
+    audio = load_audio(wav)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # "could not be aligned" would fail the test
+        phones = recognize_phones(audio, text=FOUR_SENTENCES)
+    assert_covers(phones, len(audio) / SAMPLE_RATE)
+    # m(e) (fro)m p(latfor)m (re)m(e)mb(er) b(uy) (so)m(e) b(read) m(ilk) m(uch) (hel)p
+    labels = [p.label for p in phones if p.label in {"P", "B", "M"}]
+    assert labels == ["M", "M", "P", "M", "M", "M", "B", "B", "M", "B", "M", "M", "P"]
 
 
 @pytest.mark.skipif(shutil.which("espeak-ng") is None, reason="espeak-ng is not installed")

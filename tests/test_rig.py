@@ -227,3 +227,38 @@ def test_cli_rig_then_animate_as_avatar(tmp_path, capsys, monkeypatch):
     (tmp_path / "bad.obj").write_text("not a mesh\n")
     assert main(["rig", str(tmp_path / "bad.obj"), "-o", str(tmp_path / "b.glb")]) == 2
     assert "bad.obj" in capsys.readouterr().err and not (tmp_path / "b.glb").exists()
+
+
+def test_cli_rig_of_a_z_up_mesh_stands_up_in_gltf(tmp_path, capsys):
+    """glTF is metres and +y up: the .glb of a Z-up millimetre head carries the turn and the unit
+    as its root node, and keeps the user's vertices as they were."""
+    import pygltflib
+
+    head = load_head()
+    r = trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])[:3, :3]  # +y -> +z
+    mine = 1000 * head.template @ r.T
+    trimesh.Trimesh(mine, head.faces, process=False).export(tmp_path / "z.obj")
+    assert main(["rig", str(tmp_path / "z.obj"), "-o", str(tmp_path / "z.glb")]) == 0
+    assert "units mm, up +z" in capsys.readouterr().out
+    gltf = pygltflib.GLTF2().load(str(tmp_path / "z.glb"))
+    (root,) = gltf.scenes[gltf.scene].nodes
+
+    def world(index: int, parent: np.ndarray) -> dict[int, np.ndarray]:
+        node = gltf.nodes[index]
+        local = np.array(node.matrix or np.eye(4).ravel().tolist(), float).reshape(4, 4).T
+        out = {index: parent @ local}
+        for child in node.children or []:
+            out.update(world(child, out[index]))
+        return out
+
+    mesh_node = next(i for i, n in enumerate(gltf.nodes) if n.mesh is not None)
+    matrix = world(root, np.eye(4))[mesh_node]
+    accessor = gltf.accessors[gltf.meshes[0].primitives[0].attributes.POSITION]
+    view = gltf.bufferViews[accessor.bufferView]
+    data = gltf.binary_blob()[view.byteOffset + (accessor.byteOffset or 0) :]
+    stored = np.frombuffer(data, np.float32, accessor.count * 3).reshape(-1, 3)
+    np.testing.assert_allclose(stored, mine, atol=1e-2)  # the user's vertices, recoverable
+    up = matrix[:3, :3] @ np.array([0.0, 0.0, 1.0])  # the user's up in the world
+    np.testing.assert_allclose(up, [0.0, 0.001, 0.0], atol=1e-9)  # +y, and metres
+    placed = stored @ matrix[:3, :3].T + matrix[:3, 3]
+    np.testing.assert_allclose(placed, head.template, atol=1e-5)

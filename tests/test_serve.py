@@ -456,3 +456,42 @@ def test_each_worker_ticks_its_sessions_in_a_lane_of_its_own():
         assert all(w.lane.runner.done() for w in works)
 
     asyncio.run(run())
+
+
+def test_the_bundled_default_is_refused_naming_the_model_that_streams(capsys):
+    """`serve --model codetalker-synth` (animate's default, no causal decoder): one line naming
+    the bundled model that streams and the command that serves it."""
+    from talkmesh.cli import main
+    from talkmesh.pipeline import available_models
+
+    if "codetalker-synth" not in available_models():
+        pytest.skip("the bundled CodeTalker is not installed")
+    assert main(["serve", "--model", "codetalker-synth", "--port", "0", "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(
+        "talkmesh: error: --model codetalker-synth"
+    )
+    assert "cannot stream" in err and "`talkmesh serve --model procedural`" in err
+
+
+def test_served_head_has_the_renderers_colours():
+    """head.glb carries the mp4 renderer's vertex colours: dark pupils and irises on the eyes."""
+    from talkmesh.face.look import PUPIL, head_colors
+    from talkmesh.output.avatar import read_glb
+    from talkmesh.output.gltf import _read_accessor
+    from talkmesh.serve.files import neutral_head_glb
+
+    data = neutral_head_glb()
+    path = Path(tempfile.mkdtemp()) / "head.glb"
+    path.write_bytes(data)
+    gltf, binary = read_glb(path)
+    primitive = gltf["meshes"][0]["primitives"][0]
+    colors = _read_accessor(gltf, binary, primitive["attributes"]["COLOR_0"])
+    head = load_head()
+    srgb = head_colors(head)
+    linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    np.testing.assert_allclose(colors, linear, atol=1e-6)
+    pupils = np.flatnonzero(np.abs(srgb - np.asarray(PUPIL)).max(1) < 1e-6)
+    assert len(pupils) > 0 and (head.regions.vertex_part[pupils] == 1).all()  # on the eyes
+    base = gltf["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"]
+    assert base == [1.0, 1.0, 1.0, 1.0]  # the vertex colours alone

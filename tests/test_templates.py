@@ -13,7 +13,7 @@ import pytest
 
 from talkmesh.cli import main
 from talkmesh.datasets.biwi import surface_area
-from talkmesh.datasets.templates import load_face_template
+from talkmesh.datasets.templates import load_face_template, read_face_template
 from talkmesh.errors import TalkmeshError
 from talkmesh.output.formats import load_animation
 
@@ -133,10 +133,53 @@ def test_biwi_release_files_are_normalised_as_prepare_biwi_does(tmp_path):
         )
 
 
+def test_a_biwi_mesh_is_normalised_only_when_known_raw_or_asked(tmp_path):
+    """BIWI's raw files (.vl, rigid_scans/*.obj) are normalised, and said so; another BIWI-
+    topology mesh whose area is not 1 (a frame of the user's own) is taken as it is, unless
+    asked."""
+    vertices, faces = grid(123, 190)
+    mine = write_mesh(tmp_path / "mine.ply", vertices * 3.0, faces)
+    face, note = read_face_template(mine)
+    assert note == ""
+    np.testing.assert_allclose(face.template, vertices * 3.0, atol=1e-5)
+    face, note = read_face_template(mine, normalize=True)
+    assert note.startswith("normalised as prepare-biwi does")
+    assert surface_area(face.template, face.faces) == pytest.approx(1.0, rel=1e-4)
+    root = biwi_layout(tmp_path / "biwi", 123, 190)
+    assert read_face_template(root / "rigid_scans" / "F2.obj").note.startswith("normalised")
+    assert read_face_template(f"{root}/templates.pkl:F2").note == ""  # already unit area
+    with pytest.raises(TalkmeshError, match="applies to BIWI's 23370-vertex meshes"):
+        read_face_template(write_mesh(tmp_path / "small.ply", *grid(6, 4)), normalize=True)
+
+
 def test_a_vertex_file_without_triangles_beside_it_is_refused(tmp_path):
     write_vl(tmp_path / "frame_001.vl", grid(6, 4)[0])
     with pytest.raises(TalkmeshError, match="no triangles: put the topology's mesh beside it"):
         load_face_template(tmp_path / "frame_001.vl")
+
+
+def test_vertex_outputs_need_no_triangles(tmp_path, capsys):
+    """A vertex file alone (no mesh beside it) animates into .npy; a surface output asks for the
+    triangles."""
+    vertices = grid(6, 4)[0]
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    np.save(alone / "face.npy", vertices)
+    head = load_face_template(alone / "face.npy", triangles=False)
+    assert head.num_vertices == 24 and head.faces.shape == (0, 3)
+    model = imported(tmp_path, "faceformer", "vocaset")
+    argv = ["animate", str(FIXTURES / "speech.wav"), "--model", str(model)]
+    argv += ["--template", str(alone / "face.npy"), "--style", f"{VOCASET_SUBJECTS[0]}:1", "-q"]
+    assert main([*argv, "-o", str(tmp_path / "out.npy"), "-o", str(tmp_path / "out.npz")]) == 0
+    out = np.load(tmp_path / "out.npy")
+    assert out.shape[1] == 24 * 3 and np.isfinite(out).all()
+    stored = load_animation(tmp_path / "out.npz")
+    assert stored.faces.shape == (0, 3)  # float16 offsets: within their rounding
+    np.testing.assert_allclose(stored.vertices, out.reshape(-1, 24, 3), atol=1e-3)
+    capsys.readouterr()
+    assert main([*argv, "-o", str(tmp_path / "out.glb")]) == 2
+    assert "no triangles" in capsys.readouterr().err
+    assert not (tmp_path / "out.glb").exists()
 
 
 def imported(tmp_path: Path, family: str, dataset: str) -> Path:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -26,6 +27,13 @@ class Animation:
         template: optional (V, 3) neutral face the motion is relative to.
         basis: optional (52, V, 3) blendshape offsets, so ``vertices ~ template + weights @ basis``
             (lets exporters write morph targets instead of per-frame vertices).
+        audio_file: optional speech file ``audio`` was read from: videos mux its sound as it is
+            (its own sample rate and channels), not the 16 kHz copy the model hears.
+        to_gltf: optional (4, 4) matrix taking the vertices' frame (a user's head in its own
+            units and axes, e.g. millimetres, Z-up) to glTF's metres and +y up: a .glb keeps the
+            vertices as they are and carries it as its root node, so viewers stand the head up.
+        colors: optional (V, 3) sRGB vertex colours in [0, 1] (the bundled head's skin, lips,
+            irises: :func:`talkmesh.face.look.head_colors`), written as a .glb's ``COLOR_0``.
     """
 
     vertices: np.ndarray
@@ -37,6 +45,9 @@ class Animation:
     weight_names: list[str] = field(default_factory=list)
     template: np.ndarray | None = None
     basis: np.ndarray | None = None
+    audio_file: Path | None = None
+    to_gltf: np.ndarray | None = None
+    colors: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float32)
@@ -95,6 +106,8 @@ class AnimationBlocks:
     weight_names: list[str] = field(default_factory=list)
     template: np.ndarray | None = None
     basis: np.ndarray | None = None
+    audio_file: Path | None = None
+    to_gltf: np.ndarray | None = None
 
     def collect(self) -> Animation:
         """All frames as one :class:`Animation` (filled in place: one copy of the vertices)."""
@@ -122,4 +135,6 @@ class AnimationBlocks:
             weight_names=list(self.weight_names) if weights is not None else [],
             template=self.template,
             basis=self.basis,
+            audio_file=self.audio_file,
+            to_gltf=self.to_gltf,
         )

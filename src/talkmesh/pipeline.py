@@ -204,6 +204,7 @@ def animate_blocks(
     :class:`~talkmesh.audio.waveform.Waveform`), so not even the waveform is held whole."""
     wave = _checked_wave(audio, fps, block)
     check_fps_seed(fps, seed)
+    source = Path(audio) if isinstance(audio, (str, Path)) else None  # videos mux its sound
     head = head or load_head()
     if model is None:  # a transcript or phones ask for the phone-driven animator
         model = "procedural" if text is not None or phones is not None else default_model()
@@ -212,9 +213,11 @@ def animate_blocks(
     if model == "procedural" and int8 is not None:
         raise TalkmeshError("--int8 applies to CodeTalker models, not the procedural animator")
     if model == "procedural":
-        return animate_procedural(
+        made = animate_procedural(
             wave, head, text=text, phones=phones, fps=fps, seed=seed, style=style, block=block
         )
+        made.audio_file = source
+        return made
     if text is not None or phones is not None:
         raise TalkmeshError(
             f"--text and phones drive the procedural animator, not {model_name(model)}: drop "
@@ -238,6 +241,7 @@ def animate_blocks(
             audio=wave,
             sample_rate=SAMPLE_RATE,
             template=head.template,
+            audio_file=source,
         )
     if corrections != NONE:  # the recogniser (English) and voice activity correct the mouth
         phones = recognize_phones(wave, SAMPLE_RATE) if corrections.needs_phones else []
@@ -255,6 +259,7 @@ def animate_blocks(
         weight_names=list(ARKIT_NAMES),
         template=head.template,
         basis=head.blendshapes,
+        audio_file=source,
     )
 
 

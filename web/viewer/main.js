@@ -41,6 +41,8 @@ const talkmesh = {
   endFrames: null,
   error: null,
   avatar: null,
+  loading: null, // while a model downloads: { label, loaded, total } in bytes (total 0: unknown)
+  loadSteps: 0, // progress events seen while downloading (tests check the page showed progress)
 };
 // The three.js head (for tests that read morphTargetInfluences); not enumerable, so that
 // serialising `window.talkmesh` (e.g. Playwright's page.evaluate) does not walk the scene graph.
@@ -292,12 +294,41 @@ function show(gltf, label) {
   else showMessage("");
 }
 
+// The download bar over the view while a model loads (head.glb is 3 MB: seconds on a slow link).
+function showProgress(label, loaded, total) {
+  talkmesh.loading = { label, loaded, total };
+  talkmesh.loadSteps += 1;
+  const mb = (n) => (n / 2 ** 20).toFixed(1);
+  const bar = $("progress");
+  if (total > 0) {
+    bar.max = total;
+    bar.value = loaded;
+  } else {
+    bar.removeAttribute("value"); // indeterminate: the server sent no length
+  }
+  const part = total > 0 ? `${mb(loaded)} of ${mb(total)} MB (${Math.round((100 * loaded) / total)}%)` : `${mb(loaded)} MB`;
+  $("progress-text").textContent = `loading ${label}: ${part}`;
+  $("loading").hidden = false;
+}
+
+function hideProgress() {
+  talkmesh.loading = null;
+  $("loading").hidden = true;
+}
+
 function load(url, label) {
+  showProgress(label, 0, 0);
   new GLTFLoader().load(
     url,
-    (gltf) => show(gltf, label),
-    undefined,
-    (err) => showError(`could not load ${label}: ${err.message || err}`),
+    (gltf) => {
+      hideProgress();
+      show(gltf, label);
+    },
+    (e) => showProgress(label, e.loaded, e.lengthComputable ? e.total : 0),
+    (err) => {
+      hideProgress();
+      showError(`could not load ${label}: ${err.message || err}`);
+    },
   );
 }
 

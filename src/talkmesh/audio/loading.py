@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 import soundfile as sf
-from scipy.signal import resample_poly
 
 from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError, TalkmeshWarning
@@ -262,6 +261,8 @@ def _resample_blocks(blocks: Iterator[np.ndarray], n_in: int, orig_sr: int, sr: 
     which fall exactly on output samples. If the stream ends early (a truncated file), the
     output is shortened to match.
     """
+    from scipy.signal import resample_poly  # here: scipy.signal takes a second to import
+
     ratio = Fraction(sr, orig_sr)
     up, down = ratio.numerator, ratio.denominator
     out = np.empty(-(-n_in * up // down), dtype=np.float32)

@@ -25,7 +25,7 @@ import numpy as np
 
 from talkmesh.audio.loading import SAMPLE_RATE, resample
 from talkmesh.audio.waveform import Waveform
-from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.errors import MissingDependencyError, TalkmeshError, TalkmeshWarning
 
 if TYPE_CHECKING:
     from pocketsphinx import Decoder
@@ -59,6 +59,14 @@ MAX_ALIGN_WINDOW_S = 45.0
 # acoustic model hallucinates fricatives.
 SILENCE_DBFS = -60.0
 SILENCE_RMS = 10 ** (SILENCE_DBFS / 20)
+# Forced alignment is tried with PocketSphinx's default beams first, then again with these: a
+# pronunciation the dictionary does not list (espeak-ng's British "remember", synthetic voices)
+# falls off the default beam (1e-48) and the whole transcript fails; on five four-sentence
+# espeak-ng clips the default aligned 2, beams of 1e-150 all 5, at about 0.1 s per second of
+# audio. An aligner searches one linear word graph, so a wide beam costs little. The transcript is
+# then trusted: a wrong one of about the right length aligns too (the default beam had refused
+# some); one that cannot fit the audio still fails and is warned about.
+WIDE_ALIGN_BEAM = 1e-150
 ALLPHONE_LANGUAGE_WEIGHT = 2.0
 
 
@@ -136,6 +144,7 @@ def recognize_phones(
             f"{len(unknown)} transcript word(s) not in the pronunciation dictionary "
             f"({', '.join(unknown[:5])}{', ...' if len(unknown) > 5 else ''}): recognising "
             "phones without the transcript",
+            TalkmeshWarning,
             stacklevel=2,
         )
         return _tidy(_recognize(audio), rms, len(audio))
@@ -145,6 +154,7 @@ def recognize_phones(
         warnings.warn(
             f"the transcript could not be aligned to {where} of the audio: recognised phones "
             "without it there (check that the transcript matches the speech)",
+            TalkmeshWarning,
             stacklevel=2,
         )
     return _tidy(segments, rms, len(audio))
@@ -155,9 +165,9 @@ def transcript_words(text: str) -> list[str]:
     return _WORD.findall(text.lower().replace("\u2019", "'"))
 
 
-def _decoder(align: bool, search: AllphoneSearch = ALLPHONE) -> Decoder:
-    """A PocketSphinx decoder for forced alignment (with the dictionary) or phone recognition
-    (with ``search``'s settings)."""
+def _decoder(align: bool, search: AllphoneSearch = ALLPHONE, wide: bool = False) -> Decoder:
+    """A PocketSphinx decoder for forced alignment (with the dictionary; ``wide``: with beams of
+    ``WIDE_ALIGN_BEAM``) or phone recognition (with ``search``'s settings)."""
     try:
         import pocketsphinx
     except ImportError as e:
@@ -167,8 +177,12 @@ def _decoder(align: bool, search: AllphoneSearch = ALLPHONE) -> Decoder:
     if align:
         # Without bestpath rescoring the word segmentation never has phones shorter than their
         # HMMs, which would make the phone-level pass fail.
+        beams = {"beam": WIDE_ALIGN_BEAM, "wbeam": WIDE_ALIGN_BEAM, "pbeam": WIDE_ALIGN_BEAM}
         return pocketsphinx.Decoder(
-            dict=model("en-us/cmudict-en-us.dict"), bestpath=False, **common
+            dict=model("en-us/cmudict-en-us.dict"),
+            bestpath=False,
+            **(beams if wide else {}),
+            **common,
         )
     return pocketsphinx.Decoder(
         allphone=model("en-us/en-us-phone.lm.bin"),
@@ -229,15 +243,23 @@ def _utterances(audio: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _align(aligner: Decoder, audio: np.ndarray, words: list[str]) -> tuple[Segments, int]:
-    """Forced alignment window by window; windows that fail are phone-recognised instead.
+    """Forced alignment window by window, each tried again with wide beams if it fails
+    (``WIDE_ALIGN_BEAM``); windows that still fail are phone-recognised instead.
 
     Returns the segments in frames and the number of frames that could not be aligned.
     """
     n_frames = math.ceil(len(audio) / SAMPLES_PER_FRAME)
+    wide = None  # the wide-beam aligner, made on the first failure
+
+    def widened() -> Decoder:
+        nonlocal wide
+        wide = wide or _decoder(align=True, wide=True)
+        return wide
+
     if len(audio) <= MAX_ALIGN_WINDOW_S * SAMPLE_RATE:
         windows = [(0, n_frames, words)]
     else:
-        windows = _word_windows(aligner, audio, words)
+        windows = _word_windows(aligner, audio, words) or _word_windows(widened(), audio, words)
         if windows is None:
             return _recognize(audio), n_frames
     segments: Segments = []
@@ -246,6 +268,8 @@ def _align(aligner: Decoder, audio: np.ndarray, words: list[str]) -> tuple[Segme
     for lo, hi, window_words in windows:
         clip = audio[lo * SAMPLES_PER_FRAME : hi * SAMPLES_PER_FRAME]
         found = _align_window(aligner, clip, window_words) if window_words else []
+        if found is None:
+            found = _align_window(widened(), clip, window_words)
         if found is None:
             recognizer = recognizer or _decoder(align=False)
             found = _recognize(clip, recognizer)

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import soundfile as sf
-from scipy.signal import resample_poly
 
 from talkmesh.audio.loading import (
     BLOCK_S,
@@ -96,6 +95,8 @@ class Waveform:
         # input sample falls exactly on an output sample
         first = max(0, (start * down // up - self.margin) // down * down)
         last = min(self.frames, -(-stop * down // up) + self.margin)
+        from scipy.signal import resample_poly  # here: scipy.signal takes a second to import
+
         y = resample_poly(self._input(first, last), up, down)
         lo = start - first * up // down
         return np.ascontiguousarray(y[lo : lo + stop - start], np.float32)

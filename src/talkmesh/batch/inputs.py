@@ -32,9 +32,10 @@ def is_batch_source(path: Path) -> bool:
 def find_inputs(sources: list[Path]) -> list[Input]:
     """Expand folders and lists into speech files, in order, each file once.
 
-    A path that is neither a folder nor a list is taken as a speech file even if it is missing:
-    that file then fails on its own, and the rest of the batch goes on. A missing or empty
-    folder, and a missing, unreadable or empty list, are one-line :class:`TalkmeshError` s.
+    A path that is neither a folder nor a list is a speech file named by the user: a missing or
+    empty one is a one-line :class:`TalkmeshError` here, before any model loads (a file a folder
+    or a list holds fails on its own instead, and the rest of the batch goes on). A missing or
+    empty folder, and a missing, unreadable or empty list, are one-line errors too.
     """
     found: list[Input] = []
     for src in sources:
@@ -45,6 +46,7 @@ def find_inputs(sources: list[Path]) -> list[Input]:
         elif not src.exists() and not src.suffix:
             raise TalkmeshError(f"{src}: no such folder: give a folder of speech files or a list")
         else:
+            check_named(src)
             found.append(Input(src, src.stem))
     seen: set[Path] = set()
     unique = []
@@ -54,6 +56,14 @@ def find_inputs(sources: list[Path]) -> list[Input]:
             seen.add(key)
             unique.append(item)
     return unique
+
+
+def check_named(path: Path) -> None:
+    """Refuse a speech file named on the command line that is missing or empty."""
+    if not path.exists():
+        raise TalkmeshError(f"audio file not found: {path}: check the path")
+    if path.is_file() and path.stat().st_size == 0:
+        raise TalkmeshError(f"audio file {path} is empty (0 bytes): re-export or re-record it")
 
 
 def _folder(folder: Path) -> list[Input]:

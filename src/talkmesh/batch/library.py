@@ -57,6 +57,8 @@ class AnimateSettings:
     size: int = VIDEO_SIZE
     camera: str = "front"
     overwrite: bool = False
+    triangles: bool = True  # False: every output is .npy/.npz, a template needs no triangles
+    normalize_template: bool = False  # normalise a BIWI-topology template as prepare-biwi does
 
 
 class Job(NamedTuple):
@@ -368,4 +370,9 @@ def face_for(settings):
 
     mix = settings.style_mix
     alone = next(iter(mix)) if mix and len(mix) == 1 else None
-    return load_face_template(settings.template, subject=alone)
+    return load_face_template(
+        settings.template,
+        subject=alone,
+        triangles=settings.triangles,
+        normalize=settings.normalize_template,
+    )

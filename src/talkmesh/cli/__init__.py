@@ -13,7 +13,7 @@ import sys
 import warnings
 from collections.abc import Callable
 
-from talkmesh.cli.animate import add_animate, add_export, add_render, add_rig
+from talkmesh.cli.animate import add_animate, add_export, add_export_head, add_render, add_rig
 from talkmesh.cli.common import Subparsers
 from talkmesh.cli.data import (
     add_baseline,
@@ -52,6 +52,7 @@ COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
     add_retarget,
     add_dub,
     add_rig,
+    add_export_head,
     add_serve,
     add_info,
 )

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from talkmesh.cli.common import (
     DEFAULT_OUTPUT,
+    Once,
     Subparsers,
     add_output_options,
     add_quiet,
@@ -21,7 +22,7 @@ from talkmesh.cli.common import (
 from talkmesh.constants import INT8_LAYERS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.corrections import BILABIAL, GAIN, MIX, PAUSE_SOURCE, PAUSE_SOURCES
-from talkmesh.output import write_animation
+from talkmesh.output import output_name, write_animation
 
 
 def add_animate(sub: Subparsers) -> None:
@@ -37,8 +38,9 @@ def add_animate(sub: Subparsers) -> None:
         "--output",
         action="append",
         help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv .json); "
-        "repeat for several; {stem} is the input name (default {stem}.mp4); a folder (out/) "
-        "takes {stem}.mp4 for each input, mirroring the subfolders of an input folder",
+        "repeat for several; {stem} is the input name (default {stem}.mp4); a folder (out/, or "
+        "a name without an extension: out) takes {stem}.mp4 for each input, mirroring the "
+        "subfolders of an input folder",
     )
     who = a.add_mutually_exclusive_group()
     who.add_argument("--identity", help="a bundled identity (see `talkmesh info`)")
@@ -53,6 +55,12 @@ def add_animate(sub: Subparsers) -> None:
         help="your own head mesh without a rig (.obj .ply .stl .off .glb .gltf, any units and "
         "up-axis): registered to the bundled head and moved as the model moves it, outputs in "
         "the mesh's own units and axes (as `talkmesh rig` finds them)",
+    )
+    a.add_argument(
+        "--normalize-template",
+        action="store_true",
+        help="rotate, centre and rescale a BIWI-topology --template as prepare-biwi does (done "
+        "without asking only for BIWI's raw files: a .vl frame, rigid_scans/SUBJECT.obj)",
     )
     a.add_argument(
         "--avatar",
@@ -154,6 +162,7 @@ def add_batch_options(a: argparse.ArgumentParser) -> None:
     a.add_argument(
         "--summary",
         metavar="CSV",
+        action=Once,
         help="write a row per file (file, duration, frames, seconds, status, error); default "
         "summary.csv in the output folder when an input is a folder or a list",
     )
@@ -177,9 +186,13 @@ def cmd_animate(args: argparse.Namespace) -> int:
     library = any(is_batch_source(p) for p in sources)
     found = find_inputs(sources)
     inputs = [f.audio for f in found]
+    if len(inputs) == 1 and not library:  # one file: unreadable audio is refused before the model
+        from talkmesh.audio.loading import audio_duration
+
+        audio_duration(inputs[0])  # its header only (a batch reports such files row by row)
     avatar = Path(args.avatar) if args.avatar else None
     default = DEFAULT_OUTPUT if avatar is None else "{stem}" + avatar.suffix.lower()
-    outputs = parse_outputs(args.output or [default], inputs, [f.stem for f in found])
+    outputs = parse_outputs(args.output or [default], inputs, [f.stem for f in found], default)
     resume = library and not args.overwrite  # existing outputs are done files, not conflicts
     check_outputs(
         outputs, inputs + ([avatar] if avatar else []), args.overwrite or resume, bool(avatar)
@@ -206,14 +219,14 @@ def cmd_animate(args: argparse.Namespace) -> int:
     def on_row(row) -> None:
         bar.update()
         if row.status == "ok" and not args.quiet:
-            names = ", ".join(str(p) for p in written[row.file])
+            names = ", ".join(output_name(p, row.frames) for p in written[row.file])
             tqdm.write(f"wrote {names} ({row.frames} frames, {row.duration:.2f} s)")
 
     try:
         result = animate_batch(
             inputs,
             outputs,
-            animate_settings(args),
+            animate_settings(args, triangles=needs_triangles(outputs)),
             workers=args.workers or (None if args.cluster else 1),
             cluster=args.cluster,
             on_row=on_row,
@@ -229,7 +242,7 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
     """The face to animate: ``--template`` on any topology (a templates.pkl without :SUBJECT
     takes the subject --style names alone) or a bundled identity; a template of another topology
     than the bundled head's is refused with the bundled models and for ARKit outputs."""
-    from talkmesh.datasets.templates import load_face_template
+    from talkmesh.datasets.templates import read_face_template
     from talkmesh.face.assets import load_head
     from talkmesh.pipeline import available_models
 
@@ -248,7 +261,16 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
     if not args.template:
         return load_head(args.identity)
     alone = next(iter(style_mix)) if style_mix and len(style_mix) == 1 else None
-    head = load_face_template(args.template, subject=alone)
+    if args.normalize_template and not args.template:
+        raise TalkmeshError("--normalize-template applies to a --template")
+    head, note = read_face_template(
+        args.template,
+        subject=alone,
+        triangles=needs_triangles(outputs),
+        normalize=args.normalize_template,
+    )
+    if note and not args.quiet:
+        print(f"template {args.template}: {note}")
     if head.rigged:
         return head
     if args.model is None or args.model in available_models():
@@ -272,7 +294,15 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
     return head
 
 
-def animate_settings(args: argparse.Namespace):
+VERTEX_ONLY = (".npy", ".npz")  # outputs that need no triangles (they store them when known)
+
+
+def needs_triangles(outputs: list[list[Path]]) -> bool:
+    """Whether any output draws or exports a surface (a video, .glb, .obj)."""
+    return any(p.suffix.lower() not in VERTEX_ONLY for paths in outputs for p in paths)
+
+
+def animate_settings(args: argparse.Namespace, *, triangles: bool = True):
     """The options of ``talkmesh animate`` as :class:`talkmesh.batch.AnimateSettings`."""
     from talkmesh.batch import AnimateSettings
     from talkmesh.pipeline import default_model, parse_style
@@ -299,6 +329,8 @@ def animate_settings(args: argparse.Namespace):
         size=args.size,
         camera=args.camera,
         overwrite=args.overwrite,
+        triangles=triangles,
+        normalize_template=args.normalize_template,
     )
 
 
@@ -330,7 +362,13 @@ def report_batch(result, summary: Path | None, quiet: bool) -> int:
 def add_render(sub: Subparsers) -> None:
     r = sub.add_parser("render", help="render animations to an mp4 (several: side by side)")
     r.add_argument("anim", nargs="+", help="animation files (.npz .glb .npy)")
-    r.add_argument("-o", "--output", required=True, help="output .mp4")
+    r.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        action="append",
+        help="output .mp4 (.m4v .mov); repeat for several copies of the one video",
+    )
     r.add_argument("--audio", help="speech to mux into the video")
     r.add_argument("--labels", help="comma-separated panel labels for side-by-side")
     r.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
@@ -340,18 +378,28 @@ def add_render(sub: Subparsers) -> None:
 
 def cmd_render(args: argparse.Namespace) -> int:
     from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+    from talkmesh.output import VIDEO_SUFFIXES
     from talkmesh.output.atomic import remove_stale_temps, writing
     from talkmesh.output.render import render_side_by_side, render_video
 
-    out = Path(args.output)
+    outs = [Path(o) for o in args.output]
     inputs = [Path(a) for a in args.anim] + ([Path(args.audio)] if args.audio else [])
-    check_outputs([[out]], inputs, args.overwrite)
+    check_outputs([outs], inputs, args.overwrite)
+    for out in outs:
+        if out.suffix.lower() not in VIDEO_SUFFIXES:
+            raise TalkmeshError(
+                f"{out}: render writes videos ({' '.join(VIDEO_SUFFIXES)}); "
+                "`talkmesh export` writes the other formats"
+            )
     anims = [load_input(a, args.fps) for a in args.anim]
     if args.audio:
         anims[0].audio, anims[0].sample_rate = load_audio(args.audio), SAMPLE_RATE
-    with writing(out):
-        out.parent.mkdir(parents=True, exist_ok=True)
-        remove_stale_temps(out.parent)
+        anims[0].audio_file = Path(args.audio)  # the video keeps its own rate and channels
+    for out in outs:
+        with writing(out):
+            out.parent.mkdir(parents=True, exist_ok=True)
+            remove_stale_temps(out.parent)
+    out = outs[0]
     if len(anims) == 1:
         render_video(anims[0], out, size=args.size, progress=not args.quiet, camera=args.camera)
     else:
@@ -363,16 +411,33 @@ def cmd_render(args: argparse.Namespace) -> int:
         render_side_by_side(
             anims, labels, out, size=args.size, progress=not args.quiet, camera=args.camera
         )
+    for copy in outs[1:]:  # one encode; the other outputs are byte copies of it
+        copy_file(out, copy)
     if not args.quiet:
-        print(f"wrote {out}")
+        print(f"wrote {', '.join(map(str, outs))}")
     return 0
 
 
+def copy_file(src: Path, dst: Path) -> None:
+    """``src``'s bytes to ``dst``, written beside it and renamed into place."""
+    import shutil
+
+    from talkmesh.output.atomic import writing
+    from talkmesh.output.video import atomic_output
+
+    with writing(dst), atomic_output(dst, (dst.suffix.lower(),)) as tmp:
+        shutil.copyfile(src, tmp)
+
+
 def add_export(sub: Subparsers) -> None:
-    e = sub.add_parser("export", help="convert an animation to another format")
+    e = sub.add_parser("export", help="convert an animation to other formats")
     e.add_argument("anim", help="animation file (.npz .glb .npy)")
     e.add_argument(
-        "-o", "--output", required=True, help="output file; the extension picks the format"
+        "-o",
+        "--output",
+        required=True,
+        action="append",
+        help="output file; the extension picks the format; repeat for several",
     )
     e.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
     add_output_options(e)
@@ -380,17 +445,13 @@ def add_export(sub: Subparsers) -> None:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    src, out = Path(args.anim), Path(args.output)
-    check_outputs([[out]], [src], args.overwrite)
-    write_animation(
-        load_input(args.anim, args.fps),
-        out,
-        overwrite=args.overwrite,
-        size=args.size,
-        camera=args.camera,
-    )
-    if not args.quiet:
-        print(f"wrote {out}")
+    src, outs = Path(args.anim), [Path(o) for o in args.output]
+    check_outputs([outs], [src], args.overwrite)
+    anim = load_input(args.anim, args.fps)
+    for out in outs:
+        write_animation(anim, out, overwrite=args.overwrite, size=args.size, camera=args.camera)
+        if not args.quiet:
+            print(f"wrote {output_name(out, anim.num_frames)}")
     return 0
 
 
@@ -399,7 +460,9 @@ def add_rig(sub: Subparsers) -> None:
     rg.add_argument(
         "mesh", help="a head mesh (.obj .ply .stl .off .glb .gltf), any units and up-axis"
     )
-    rg.add_argument("-o", "--output", required=True, help="output .glb (use it with --avatar)")
+    rg.add_argument(
+        "-o", "--output", required=True, action=Once, help="output .glb (use it with --avatar)"
+    )
     rg.add_argument(
         "--landmarks",
         metavar="FILE",
@@ -450,5 +513,34 @@ def cmd_rig(args: argparse.Namespace) -> int:
             f"wrote {out}: 52 ARKit morph targets on {len(rig.vertices)} vertices (units "
             f"{rig.units}, up {rig.up_axis}, fit within {rig.residual:.3g} {rig.units} median; "
             f"separate parts following rigidly: {parts})"
+        )
+    return 0
+
+
+def add_export_head(sub: Subparsers) -> None:
+    eh = sub.add_parser(
+        "export-head",
+        help="write the bundled head's neutral mesh (.obj): a mesh to try `rig` and --template on",
+    )
+    eh.add_argument(
+        "-o", "--output", required=True, action=Once, help="output .obj (or .npy: vertices only)"
+    )
+    eh.add_argument(
+        "--identity", help="a bundled identity (see `talkmesh info`; default: the default one)"
+    )
+    eh.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_quiet(eh)
+    eh.set_defaults(func=cmd_export_head)
+
+
+def cmd_export_head(args: argparse.Namespace) -> int:
+    from talkmesh.face.assets import load_head, write_head_mesh
+
+    head = load_head(args.identity)
+    out = write_head_mesh(head, args.output, overwrite=args.overwrite)
+    if not args.quiet:
+        print(
+            f"wrote {out}: identity {head.name}, {head.num_vertices} vertices, "
+            f"{len(head.faces)} triangles (metres, +y up)"
         )
     return 0

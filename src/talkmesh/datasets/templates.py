@@ -13,16 +13,24 @@ topology (VOCASET's FLAME, 5023 vertices; BIWI, 23370) with the triangles from t
 * ``.ply`` / ``.obj`` (``FLAME_sample.ply``, ``BIWI.ply``, BIWI's ``rigid_scans/<SUBJECT>.obj``):
   vertices and triangles in file order.
 * ``.vl`` (one BIWI frame, as BIWI ships them) and ``.npy`` ((V, 3) or (V*3,)): vertices only;
-  the triangles come from the mesh beside it.
+  the triangles come from the mesh beside it, needed only by outputs that draw or export a surface
+  (a video, ``.glb``, ``.obj``): ``.npy`` and ``.npz`` outputs take the vertices alone.
 
-BIWI meshes in the scanner's frame (a ``.vl`` frame or a rigid scan, whose total area is not 1)
-are normalised as ``talkmesh prepare-biwi`` normalises the dataset (rotated by pi about x,
-centred, unit surface area), which is the frame BIWI models are trained in.
+What is changed, and said (:class:`FaceTemplate` ``.note``; ``talkmesh animate`` prints it):
+
+* a mesh of the bundled topology in other units or axes (millimetres, a Z-up export): found by
+  fitting it to the bundled head vertex for vertex (Umeyama), and converted to metres, +y up
+  (:func:`bundled_frame`); a mesh in metres and +y up is taken as it is, wherever it sits;
+* BIWI's raw scans, known by their files (a ``.vl`` frame, ``rigid_scans/<SUBJECT>.obj``), or any
+  BIWI-topology mesh when asked (``normalize=True``, ``--normalize-template``): normalised as
+  ``talkmesh prepare-biwi`` normalises the dataset (rotated by pi about x, centred, unit surface
+  area), the frame BIWI models are trained in. Any other mesh is taken as it is.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -40,6 +48,16 @@ from talkmesh.face.assets import (
 
 MESH_SUFFIXES = (".ply", ".obj")  # files that carry triangles
 UNIT_AREA_TOLERANCE = 0.01  # a BIWI mesh whose total area is this close to 1 is normalised
+UNITS = {0: "metres", 1: "decimetres", 2: "centimetres", 3: "millimetres"}  # by decade
+AXIS_SNAP_DEGREES = 30.0  # a fitted rotation this close to an axis swap is that swap
+
+
+class FaceTemplate(NamedTuple):
+    """A ``--template`` read: the face, and what was done to the user's mesh ("" for nothing),
+    a line for the terminal."""
+
+    head: Head
+    note: str
 
 
 def split_spec(spec: str | Path) -> tuple[Path, str | None]:
@@ -102,18 +120,83 @@ def faces_beside(path: Path, num_vertices: int) -> np.ndarray:
     )
 
 
+def is_raw_biwi(path: Path) -> bool:
+    """Whether ``path`` is one of BIWI's files in the scanner's frame: a ``.vl`` frame or a
+    ``rigid_scans/<SUBJECT>.obj``."""
+    suffix = path.suffix.lower()
+    return suffix == ".vl" or (suffix == ".obj" and path.parent.name == "rigid_scans")
+
+
 def _biwi_frame(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """A BIWI mesh in the scanner's frame -> the normalised frame BIWI models use."""
-    if len(vertices) != BIWI_VERTICES:
-        return vertices
     if abs(float(surface_area(vertices, faces)) - 1.0) <= UNIT_AREA_TOLERANCE:
         return vertices  # already normalised (templates.pkl, prepared data)
     return normalize_frames(vertices[None], faces)[0]
 
 
-def load_face_template(spec: str | Path, subject: str | None = None) -> Head:
+def _axis_name(vector: np.ndarray) -> str:
+    k = int(np.argmax(np.abs(vector)))
+    return ("+" if vector[k] > 0 else "-") + "xyz"[k]
+
+
+def bundled_frame(vertices: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, str]:
+    """(V, 3) vertices of the bundled topology in any units and axes -> (metres, +y up, +z to
+    the viewer) and a note saying what was converted ("" when nothing was).
+
+    The similarity fit (Umeyama) onto ``reference`` (the bundled head, vertex for vertex) gives
+    the scale, whose decade is the unit (1000: millimetres), and the rotation, which is
+    converted only where it is an axis swap (a Z-up export); a head turned by a few degrees, or
+    placed elsewhere, is the user's and stays so. Units and axes are converted about the origin,
+    so the mesh keeps its place in its own frame.
+    """
+    from talkmesh.face.registration import nearest_axis_rotation, similarity
+
+    vertices = np.asarray(vertices, np.float64)
+    scale, rotation, _ = similarity(vertices, np.asarray(reference, np.float64))
+    if not np.isfinite(scale) or scale <= 0:
+        return vertices.astype(np.float32), ""
+    decade = int(np.clip(np.round(-np.log10(scale)), 0, 3))
+    swap = nearest_axis_rotation(rotation, AXIS_SNAP_DEGREES)
+    changes = []
+    if decade:
+        changes.append(f"{UNITS[decade]} -> metres")
+    if swap is not None and not np.allclose(swap, np.eye(3)):
+        up = swap.T[:, 1]  # the user's axis that the head's up (+y) is
+        changes.append(f"up {_axis_name(up)} -> +y")
+    else:
+        swap = None
+    if not changes:
+        return vertices.astype(np.float32), ""
+    converted = vertices * 10.0**-decade
+    if swap is not None:
+        converted = converted @ swap.T
+    return converted.astype(np.float32), "converted: " + ", ".join(changes)
+
+
+def load_face_template(
+    spec: str | Path,
+    subject: str | None = None,
+    *,
+    triangles: bool = True,
+    normalize: bool = False,
+) -> Head:
     """``--template`` (see the module doc) -> the face to animate; ``subject`` picks one of a
-    templates.pkl's subjects when the spec names none (e.g. the one ``--style`` names)."""
+    templates.pkl's subjects when the spec names none (e.g. the one ``--style`` names).
+    ``triangles=False``: the outputs draw no surface (``.npy``, ``.npz``), so a vertex file with no
+    mesh beside it is taken with no triangles instead of refused. ``normalize``: normalise a
+    BIWI-topology mesh as prepare-biwi does even when its file does not say it is a raw scan.
+    :func:`read_face_template` also says what was changed."""
+    return read_face_template(spec, subject, triangles=triangles, normalize=normalize).head
+
+
+def read_face_template(
+    spec: str | Path,
+    subject: str | None = None,
+    *,
+    triangles: bool = True,
+    normalize: bool = False,
+) -> FaceTemplate:
+    """:func:`load_face_template`, with the note of what was done to the user's mesh."""
     path, named = split_spec(spec)
     if not path.is_file():
         raise TalkmeshError(f"{path}: no such template file")
@@ -138,8 +221,31 @@ def load_face_template(spec: str | Path, subject: str | None = None) -> Head:
         raise TalkmeshError(f"{path}: {bad} vertices have NaN or infinite coordinates")
     bundled = load_head()
     if len(vertices) == bundled.num_vertices:
-        return bundled.with_template(vertices, name)
+        vertices, note = bundled_frame(vertices, bundled.template)
+        return FaceTemplate(bundled.with_template(vertices, name), note)
     if faces is None:
-        faces = faces_beside(path, len(vertices))
-    vertices = _biwi_frame(np.asarray(vertices, np.float64), faces)
-    return plain_head(vertices, faces, name)
+        try:
+            faces = faces_beside(path, len(vertices))
+        except TalkmeshError:
+            if triangles:
+                raise
+            faces = np.zeros((0, 3), np.int32)  # vertices only: nothing drawn needs them
+    note = ""
+    if len(vertices) == BIWI_VERTICES and (normalize or is_raw_biwi(path)):
+        if not len(faces):
+            raise TalkmeshError(
+                f"{path}: normalising a BIWI scan needs its triangles: put BIWI.ply beside it"
+            )
+        before = np.asarray(vertices, np.float64)
+        vertices = _biwi_frame(before, faces)
+        if vertices is not before:
+            note = (
+                "normalised as prepare-biwi does (a raw BIWI scan: rotated by pi about x, "
+                "centred, scaled to unit surface area)"
+            )
+    elif normalize:
+        raise TalkmeshError(
+            f"{path}: --normalize-template applies to BIWI's {BIWI_VERTICES}-vertex meshes, "
+            f"not {len(vertices)} vertices"
+        )
+    return FaceTemplate(plain_head(vertices, faces, name, triangles=triangles), note)

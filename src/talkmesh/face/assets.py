@@ -97,17 +97,20 @@ class Head:
         )
 
 
-def plain_head(template: np.ndarray, faces: np.ndarray, name: str) -> Head:
+def plain_head(
+    template: np.ndarray, faces: np.ndarray, name: str, *, triangles: bool = True
+) -> Head:
     """A neutral face of another topology than the bundled head's (a learned model's own: FLAME's
     5023 vertices for VOCASET models, BIWI's 23370): (V, 3) vertices and (F, 3) triangles, no
-    blendshapes or regions, so learned models animate it and the motion is exported as it is."""
+    blendshapes or regions, so learned models animate it and the motion is exported as it is.
+    ``triangles=False`` accepts (0, 3) faces: vertices only, for outputs that draw no surface."""
     template = np.asarray(template, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
     if template.ndim != 2 or template.shape[1] != 3 or not len(template):
         raise TalkmeshError(f"{name}: a template must be (V, 3) vertices, got {template.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3 or not len(faces):
+    if faces.ndim != 2 or faces.shape[1] != 3 or (triangles and not len(faces)):
         raise TalkmeshError(f"{name}: the mesh needs triangles (F, 3), got {faces.shape}")
-    if faces.min() < 0 or faces.max() >= len(template):
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(template)):
         raise TalkmeshError(f"{name}: a face points past the {len(template)} vertices")
     return Head(name, template, faces, None, (), None)
 
@@ -203,6 +206,52 @@ def load_template(path: str | Path) -> Head:
     except TalkmeshError as e:
         msg = str(e)
         raise TalkmeshError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+
+
+HEAD_MESH_SUFFIXES = (".obj", ".npy")
+
+
+def write_head_mesh(head: Head, path: str | Path, *, overwrite: bool = False) -> Path:
+    """Write ``head``'s neutral mesh to ``path``: ``.obj`` (vertices in metres, +y up, and the
+    triangles) or ``.npy`` ((V, 3) float32 vertices): a mesh to try ``talkmesh rig`` and
+    ``--template`` on. Written beside the target and renamed into place."""
+    import os
+    import tempfile
+
+    from talkmesh.output.atomic import temp_prefix, writing
+    from talkmesh.output.files import move_file
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in HEAD_MESH_SUFFIXES:
+        raise TalkmeshError(
+            f"{path}: the head mesh is written as {' or '.join(HEAD_MESH_SUFFIXES)}"
+        )
+    if path.exists() and not overwrite:
+        raise TalkmeshError(f"{path} already exists: choose another -o or pass --overwrite")
+    with writing(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=temp_prefix(), suffix=suffix)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                if suffix == ".npy":
+                    np.save(f, head.template.astype(np.float32))
+                else:
+                    f.write(_obj_text(head).encode())
+            move_file(Path(tmp), path, overwrite)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+    return path
+
+
+def _obj_text(head: Head) -> str:
+    header = (
+        f"# talkmesh bundled head, identity {head.name}: {head.num_vertices} vertices, "
+        f"{len(head.faces)} triangles, metres, +y up, +z towards the viewer\n"
+    )
+    vertices = ("v %.6f %.6f %.6f\n" * head.num_vertices) % tuple(head.template.ravel().tolist())
+    faces = ("f %d %d %d\n" * len(head.faces)) % tuple((head.faces + 1).ravel().tolist())
+    return header + vertices + faces
 
 
 def lip_opening(vertices: np.ndarray, regions: Regions) -> np.ndarray:

@@ -73,6 +73,14 @@ def _orientations() -> list[np.ndarray]:
     return out
 
 
+def nearest_axis_rotation(rotation: np.ndarray, degrees: float = 30.0) -> np.ndarray | None:
+    """The axis swap (one of the 24 rotations taking axes onto axes) within ``degrees`` of
+    ``rotation``, or None: a Z-up export is a swap, a head turned by a few degrees is not."""
+    best = max(_orientations(), key=lambda o: float(np.trace(o.T @ rotation)))
+    cos = (float(np.trace(best.T @ rotation)) - 1.0) / 2.0
+    return best if cos >= np.cos(np.radians(degrees)) else None
+
+
 def _principal_orientations(source: np.ndarray, target: np.ndarray) -> list[np.ndarray]:
     """The 4 rotations that align the principal axes of ``source`` with those of ``target``."""
     axes = [np.linalg.eigh(np.cov((x - x.mean(0)).T))[1] for x in (source, target)]

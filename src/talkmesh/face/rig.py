@@ -51,6 +51,7 @@ from talkmesh.face.assets import Head, load_head
 from talkmesh.face.landmarks import IDENTITY, Frame, eye_opening, find_landmarks
 from talkmesh.face.registration import (
     closest_points,
+    nearest_axis_rotation,
     nonrigid_fit,
     rigid_fit,
     smoothed_pull,
@@ -168,6 +169,15 @@ class Rig:
         decade = int(np.clip(np.round(np.log10(self.scale)), 0, 3))
         return {0: "m", 1: "dm", 2: "cm", 3: "mm"}[decade]
 
+    def to_gltf(self) -> np.ndarray:
+        """(4, 4) from the user's frame to glTF's (metres, +y up): the unit's decade and the axis
+        swap nearest the fitted rotation (identity for a mesh in metres, +y up)."""
+        decade = int(np.clip(np.round(np.log10(self.scale)), 0, 3))
+        swap = nearest_axis_rotation(self.rotation.T, 45.0)
+        matrix = np.eye(4)
+        matrix[:3, :3] = (np.eye(3) if swap is None else swap) * 10.0**-decade
+        return matrix
+
     @property
     def up_axis(self) -> str:
         """The user's axis the head's up (+y) maps to: '+y', '-z', ..."""
@@ -212,13 +222,15 @@ class Rig:
             sample_rate=anim.sample_rate,
             weight_names=list(anim.weight_names),
             template=self.vertices,
+            audio_file=anim.audio_file,
+            to_gltf=self.to_gltf(),
         )
 
     def facing(self, anim: Animation) -> Animation:
         """``anim`` of the user's mesh turned and scaled into the bundled head's axes and metres
         (y up, looking along +z), as the renderer's front camera expects."""
         vertices = (anim.vertices - self.translation) @ self.rotation / self.scale
-        return replace(anim, vertices=vertices, template=None, basis=None)
+        return replace(anim, vertices=vertices, template=None, basis=None, to_gltf=None)
 
     def neutral_animation(self) -> Animation:
         """One neutral frame with the 52 blendshapes as its ``basis`` (all weights zero): saved as
@@ -231,6 +243,7 @@ class Rig:
             weight_names=list(ARKIT_NAMES),
             template=self.vertices,
             basis=self.blendshapes,
+            to_gltf=self.to_gltf(),
         )
 
 

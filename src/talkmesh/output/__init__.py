@@ -10,7 +10,20 @@ from pathlib import Path
 from talkmesh.errors import TalkmeshError
 from talkmesh.output.media import VIDEO_SIZE, VIDEO_SUFFIXES
 
-__all__ = ["VIDEO_SIZE", "VIDEO_SUFFIXES", "write_animation"]
+__all__ = ["VIDEO_SIZE", "VIDEO_SUFFIXES", "output_name", "write_animation"]
+
+
+def output_name(path: Path, num_frames: int) -> str:
+    """How to name what writing ``num_frames`` frames to ``path`` made: the path itself, or for an
+    OBJ sequence its first and last files (``talk_00000.obj ... talk_00089.obj``)."""
+    if path.suffix.lower() != ".obj" or path.is_dir():
+        return str(path)
+    from talkmesh.output.obj import obj_frame_path
+
+    first = obj_frame_path(path, 0, num_frames)
+    if num_frames < 2:
+        return str(first)
+    return f"{first} ... {obj_frame_path(path, num_frames - 1, num_frames).name}"
 
 
 def write_animation(

@@ -45,7 +45,7 @@ def move_file(src: Path, dst: Path, overwrite: bool) -> None:
 
 
 def exists_error(path: Path) -> TalkmeshError:
-    return TalkmeshError(f"{path} already exists: pass overwrite=True (--overwrite) to replace it")
+    return TalkmeshError(f"{path} already exists: choose another -o or pass --overwrite")
 
 
 def check_readable(path: Path) -> None:

@@ -78,6 +78,14 @@ def export_glb(anim: Animation, path: Path) -> None:
         "POSITION": buf.add(rig.base, "VEC3", target=ARRAY_BUFFER, bounds=True),
         "NORMAL": buf.add(vertex_normals(rig.neutral(), anim.faces), "VEC3", target=ARRAY_BUFFER),
     }
+    base_color = [0.8, 0.62, 0.52, 1.0]  # skin, unless the vertices carry their colours
+    if anim.colors is not None:
+        colors = np.asarray(anim.colors, np.float32)
+        assert colors.shape == (anim.num_vertices, 3), colors.shape
+        # glTF's COLOR_0 is linear; the colours are sRGB (IEC 61966-2-1)
+        linear = np.where(colors <= 0.04045, colors / 12.92, ((colors + 0.055) / 1.055) ** 2.4)
+        attributes["COLOR_0"] = buf.add(linear.astype(np.float32), "VEC3", target=ARRAY_BUFFER)
+        base_color = [1.0, 1.0, 1.0, 1.0]
     primitive: dict = {"attributes": attributes, "material": 0, "mode": TRIANGLES}
     if len(anim.faces):
         # 65535 is the primitive-restart index, so 16-bit indices reach 65534 at most.
@@ -95,11 +103,16 @@ def export_glb(anim: Animation, path: Path) -> None:
         "output": buf.add(rig.weights.ravel(), "SCALAR"),
         "interpolation": "LINEAR",
     }
+    nodes: list[dict] = [{"name": "face", "mesh": 0}]
+    if anim.to_gltf is not None and not np.allclose(anim.to_gltf, np.eye(4)):
+        # the user's frame (units, up-axis) to glTF's, as the root: the vertices stay as given
+        matrix = np.asarray(anim.to_gltf, np.float64)
+        nodes.append({"name": "root", "children": [0], "matrix": matrix.T.ravel().tolist()})
     gltf = {
         "asset": {"version": "2.0", "generator": "talkmesh"},
         "scene": 0,
-        "scenes": [{"nodes": [0]}],
-        "nodes": [{"name": "face", "mesh": 0}],
+        "scenes": [{"nodes": [len(nodes) - 1]}],
+        "nodes": nodes,
         "meshes": [
             {
                 "name": "face",
@@ -112,7 +125,7 @@ def export_glb(anim: Animation, path: Path) -> None:
             {
                 "name": "skin",
                 "pbrMetallicRoughness": {
-                    "baseColorFactor": [0.8, 0.62, 0.52, 1.0],
+                    "baseColorFactor": base_color,
                     "metallicFactor": 0.0,
                     "roughnessFactor": 0.6,
                 },

@@ -210,7 +210,10 @@ class Renderer:
     ) -> None:
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
-            raise TalkmeshError(f"faces must be a non-empty (F, 3) array, got {faces.shape}")
+            raise TalkmeshError(
+                f"no triangles to draw (faces {faces.shape}): the animation holds vertices "
+                "only; animate with a template whose mesh has triangles to render it"
+            )
         if faces.min() < 0:
             raise TalkmeshError("faces must not have negative vertex indices")
         self.faces = faces.astype(np.int32)

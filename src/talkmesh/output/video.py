@@ -104,11 +104,14 @@ def write_video(
     inputs: Iterable[str | os.PathLike],
     crf: int,
     progress: bool,
+    audio_file: str | os.PathLike | None = None,
 ) -> Path:
     """Encodes ``num_frames`` (H, W, 4) uint8 RGBA frames and optional (S,) audio into an mp4.
 
     One ffmpeg process reads the frames on stdin and the audio, padded or trimmed to the video's
-    duration so that both streams end together, from a temporary wav.
+    duration so that both streams end together, from a temporary wav; or, given ``audio_file``
+    (the user's speech file, which ``audio`` was read from), from that file, at its own sample
+    rate and with its own channels (a 44.1 kHz recording keeps what lies above 8 kHz).
     """
     width, height = video_size(size)
     path = Path(path)
@@ -116,7 +119,11 @@ def write_video(
     cmd += ["-f", "rawvideo", "-pix_fmt", "rgba", "-s", f"{width}x{height}"]
     cmd += ["-framerate", fps_arg(fps), "-i", "pipe:0"]
     with tempfile.TemporaryDirectory(prefix="talkmesh-") as tmpdir:
-        if audio is not None:
+        if audio_file is not None and Path(audio_file).is_file():
+            seconds = f"{num_frames / fps:.6f}"
+            cmd += ["-i", str(audio_file), "-map", "0:v:0", "-map", "1:a:0"]
+            cmd += ["-af", "apad", "-t", seconds, "-c:a", "aac", "-b:a", AUDIO_BITRATE]
+        elif audio is not None:
             wav = Path(tmpdir) / "audio.wav"
             soundfile.write(wav, fit_audio(audio, sample_rate, num_frames / fps), sample_rate)
             cmd += ["-i", str(wav), "-map", "0:v:0", "-map", "1:a:0"]

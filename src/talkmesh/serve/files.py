@@ -51,8 +51,10 @@ def animate_file(audio: Path, out: Path, model: str, max_seconds: float | None =
 
 
 def neutral_head_glb() -> bytes:
-    """The bundled head as .glb: its 52 ARKit blendshapes as morph targets, one neutral frame."""
+    """The bundled head as .glb: its 52 ARKit blendshapes as morph targets, one neutral frame,
+    and the video renderer's colours as vertex colours (irises and pupils, lips, teeth)."""
     from talkmesh.animation import Animation
+    from talkmesh.face.look import head_colors
     from talkmesh.output.formats import save_animation
 
     head = load_head()
@@ -64,6 +66,7 @@ def neutral_head_glb() -> bytes:
         weight_names=list(ARKIT_NAMES),
         template=head.template,
         basis=head.blendshapes,
+        colors=head_colors(head),
     )
     with tempfile.TemporaryDirectory(prefix="talkmesh-serve-") as tmp:
         (path,) = save_animation(anim, Path(tmp) / "head.glb")

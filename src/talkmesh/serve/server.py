@@ -127,6 +127,25 @@ def resolve_models(models: Sequence[str]) -> dict[str, str]:
     return out
 
 
+def streaming_hint(name: str, source: str, error: TalkmeshError) -> str:
+    """The refusal of a model that cannot stream; for a bundled one (the default of ``talkmesh
+    animate``, which animates files but has no causal decoder), which bundled model streams and
+    the command that serves it."""
+    from talkmesh.models.release import MODELS_DIR
+
+    message = str(error)
+    bundled = Path(source).parent == MODELS_DIR.resolve()
+    if not bundled or "cannot stream" not in message:
+        return message
+    reason = message.split("cannot stream", 1)[1].split("(", 1)[0].strip(" :")
+    return (
+        f"--model {name}: the bundled {name} animates files (`talkmesh animate`) but cannot "
+        f"stream ({reason}); the bundled model that streams is procedural: "
+        "`talkmesh serve --model procedural` (or train a streaming CodeTalker with "
+        "configs/codetalker_stream.yaml and pass its model.safetensors to --model)"
+    )
+
+
 class ClientError(Exception):
     """Ends one session: the client gets ``message`` and the close ``code``."""
 
@@ -560,8 +579,11 @@ def create_app(
     if workers < 0:
         raise TalkmeshError(f"--workers must be 0 or more, got {workers}")
     service = Service(resolve_models(models), limits, avatar, batch_wait_ms / 1000)
-    for source in service.models.values():
-        open_stream(source, head=service.head)
+    for name, source in service.models.items():
+        try:
+            open_stream(source, head=service.head)
+        except TalkmeshError as e:
+            raise TalkmeshError(streaming_hint(name, source, e)) from None
     if workers and PROCEDURAL in service.models.values():
         # each worker makes its share of the sessions' recognisers up front (WorkerPool)
         service.pool = WorkerPool(workers, spares=-(-limits.max_sessions // workers))
