@@ -530,12 +530,16 @@ COMMANDS = {
         ["audio"],
         "--avatar --bilabial-closure --camera --cluster --fps --head --identity --int8 "
         "--lip-closure --loudness-gain --model --no-bilabial-closure --no-blinks --no-pause-gate "
-        "--normalize-template --output --overwrite "
+        "--normalize-template --output --overwrite --pause-source "
         "--procedural-mix --quiet --seed --size --style --summary --template --text --workers",
     ),
     "render": (["anim"], "--audio --camera --fps --labels --output --overwrite --quiet --size"),
     "export": (["anim"], "--camera --fps --output --overwrite --quiet --size"),
-    "synth": ([], "--out --overwrite --quiet --seed --sentences --subjects --workers"),
+    "synth": (
+        [],
+        "--languages --multilingual --out --overwrite --quiet --seed --sentences --subjects "
+        "--workers",
+    ),
     "evaluate": ([], "--data --dataset --json --overwrite --pred --protocol --regions --split"),
     "baseline": ([], "--data --dataset --method --out --quiet --split"),
     "predict": (

@@ -108,10 +108,11 @@ def parse_outputs(
 
 
 def is_folder(pattern: str) -> bool:
-    """Whether an ``-o`` value names a folder: it ends in ``/``, is an existing folder, or has no
-    extension and is neither an existing file nor a ``{stem}`` pattern."""
+    """Whether an ``-o`` value names a folder: it ends in ``/``, is an existing folder without an
+    extension, or has no extension and is neither an existing file nor a ``{stem}`` pattern. An
+    existing folder named like a file (``out.npz/``) is refused later as a folder, not filled."""
     path = Path(pattern)
-    if pattern.endswith(("/", os.sep)) or path.is_dir():
+    if pattern.endswith(("/", os.sep)) or (path.is_dir() and not path.suffix):
         return True
     return not path.suffix and "{stem}" not in pattern and not path.exists() and bool(path.name)
 
