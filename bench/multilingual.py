@@ -71,6 +71,13 @@ def main() -> None:
     ap.add_argument("--per-voice", type=int, default=4, help="utterances per held-out voice")
     ap.add_argument("--languages", default="", help="comma-separated codes (default: all)")
     ap.add_argument("--out", type=Path, default=None, help="folder for multilingual.json/.png")
+    ap.add_argument(
+        "--merge",
+        type=Path,
+        action="append",
+        default=[],
+        help="rows of an earlier run (multilingual.json) to report beside these (same clips)",
+    )
     args = ap.parse_args()
     if not (args.data / "manifest.json").is_file():
         raise SystemExit(f"{args.data}: no multilingual corpus (talkmesh synth --multilingual)")
@@ -110,6 +117,10 @@ def main() -> None:
                         **scores,
                     }
                 )
+    for earlier in args.merge:
+        old = json.loads(earlier.read_text())
+        methods = [*dict.fromkeys([r["method"] for r in old] + methods)]
+        rows = old + rows
     print(report(rows, methods, conditions))
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)

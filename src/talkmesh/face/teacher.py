@@ -7,8 +7,9 @@ model trained on that truth learns those faults. :func:`teach` applies three rul
 animator, each one measured by the real-speech metrics (``bench/synthetic_lips.py``):
 
 1. Open vowels open as far as their viseme says, scaled by loudness: a raised-cosine jaw gesture
-   over the vowel, ``peak = jaw target x speaker's jaw x VOWEL_GAIN x loudness``, taken where it is
-   wider than the blend.
+   over the vowel, ``peak = jaw target x speaker's jaw x VOWEL_GAIN x sqrt(loudness)`` (at most
+   ``MAX_JAW``), taken where it is wider than the blend; every opening also follows the loudness
+   (``LOUDNESS_SHARE``).
 2. Pauses of :data:`REST_PAUSE_S` or more return the whole mouth to rest (a gate with
    raised-cosine ramps of :data:`REST_RAMP_S` inside the pause, so it closes and opens in time).
 3. The lips meet through the closure of every /p b m/: at each frame inside the phone the mouth
@@ -34,7 +35,11 @@ CLOSURE_MM = 0.5  # lips closer than this count as met
 CLOSURE_TARGET_MM = 0.25  # what the solve aims for (margin under CLOSURE_MM)
 BILABIALS = frozenset({"P", "B", "M"})
 OPEN_VOWELS = frozenset({"AA", "AE", "AH", "AO", "AW", "AY"})
-VOWEL_GAIN = 1.0  # open-vowel jaw peak relative to the viseme's jaw target, at full loudness
+# open-vowel jaw peak relative to the viseme's jaw target, at full loudness (the square root of
+# the loudness scales it below that): the synthesisers' vowels are short (English /@/ 20-30 ms),
+# and with 1.3 the truth's open vowels open as far as the procedural animator's on real clips
+VOWEL_GAIN = 1.3
+MAX_JAW = 0.45  # no vowel opens the jaw further (about 18 mm of lip opening)
 LOUDNESS_RANGE_DB = 24.0
 LOUDNESS_SHARE = 0.5  # share of every opening that follows loudness (the rest is articulation)
 OPENING_CHANNELS = (
@@ -104,7 +109,8 @@ def open_vowels(
             half /= 2
             centre = p.start + half
         k = int(np.clip(round(centre * fps), 0, len(weights) - 1))
-        peak = VISEMES[first].get("jaw", 0.0) * jaw_scale * VOWEL_GAIN * loudness[k]
+        target = VISEMES[first].get("jaw", 0.0) * jaw_scale * VOWEL_GAIN
+        peak = min(MAX_JAW, target * np.sqrt(loudness[k]))
         # a gesture as wide as the vowel plus 40 ms each side, flat over its middle
         bump = _raised_cosine((times - centre) / (half + 0.04))
         bump = np.minimum(1.0, 1.6 * bump)
