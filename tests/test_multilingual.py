@@ -102,3 +102,33 @@ def test_corpus_phones_match_the_synthesiser_and_the_truth_meets_the_rules(tmp_p
     for p in closures:
         inside = (centres >= p.start) & (centres < p.end)
         assert opening[inside].max() <= 0.5
+
+
+def test_warm_start_copies_every_matching_tensor_but_a_new_style_table():
+    """A recipe's warm_start: a model for other speakers starts from a release where shapes
+    match; its style table (one row per training voice) and frozen parts keep their own."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    import torch
+
+    from talkmesh.models.codetalker import CodeTalker
+    from talkmesh.models.release import load_model
+    from talkmesh.training.trainer import warm_start
+
+    release = Path(__file__).parent / "fixtures" / "old_releases" / "codetalker.safetensors"
+    old = load_model(release)
+    cfg = replace(old.cfg, stage2=replace(old.cfg.stage2, styles=("x", "y", "z")))
+    torch.manual_seed(0)
+    net = CodeTalker(cfg)
+    style_before = net.style.weight.detach().clone()
+    net.vqvae.requires_grad_(False)  # as stage 2 freezes the VQ-VAE from its init
+    vq_before = {k: v.clone() for k, v in net.vqvae.state_dict().items()}
+    copied, kept = warm_start(net, release)
+    assert "style.weight" in kept and copied > 10
+    assert torch.equal(net.style.weight, style_before)
+    for name, tensor in net.state_dict().items():
+        if name.startswith("vqvae."):
+            assert torch.equal(tensor, vq_before[name.removeprefix("vqvae.")])
+        elif name != "style.weight":
+            assert torch.equal(tensor, old.state_dict()[name].to(tensor.dtype)), name
