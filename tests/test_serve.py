@@ -495,3 +495,24 @@ def test_served_head_has_the_renderers_colours():
     assert len(pupils) > 0 and (head.regions.vertex_part[pupils] == 1).all()  # on the eyes
     base = gltf["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"]
     assert base == [1.0, 1.0, 1.0, 1.0]  # the vertex colours alone
+
+
+def test_animate_mp4_keeps_the_uploads_own_sound(tmp_path):
+    """POST /animate?format=mp4 muxes the uploaded file's sound (44.1 kHz stays 44.1 kHz)."""
+    import soundfile as sf
+    from imageio_ffmpeg import get_ffmpeg_exe
+
+    clip, rate = sf.read(CLIP, dtype="float32")
+    wide = tmp_path / "wide.wav"
+    t = np.arange(round(len(clip) / rate * 44100))
+    sf.write(wide, np.interp(t * rate / 44100, np.arange(len(clip)), clip), 44100)
+    with TestClient(create_app()) as client:
+        response = client.post("/animate?format=mp4&model=procedural", content=wide.read_bytes())
+    assert response.status_code == 200, response.text
+    video = tmp_path / "out.mp4"
+    video.write_bytes(response.content)
+    probe = subprocess.run(
+        [get_ffmpeg_exe(), "-hide_banner", "-i", str(video)], capture_output=True
+    )
+    (audio,) = [ln for ln in probe.stderr.decode().splitlines() if "Audio:" in ln]
+    assert "44100 Hz" in audio, audio

@@ -44,6 +44,7 @@ def animate_file(audio: Path, out: Path, model: str, max_seconds: float | None =
     from talkmesh.pipeline import animate
 
     anim = animate(load_audio(audio, max_seconds=max_seconds), model=model)
+    anim.audio_file = audio  # an .mp4 keeps the upload's own sound, not the 16 kHz copy
     try:
         write_animation(anim, out, overwrite=True)
     except TalkmeshError as e:
