@@ -255,6 +255,15 @@ def test_template_in_other_units_or_axes_is_converted_and_said(
     assert 1e-3 < moved < 0.05  # metre-sized motion on a metre-sized face
 
 
+def test_template_at_one_point_is_one_line(speech, tmp_path, capsys):
+    npy = tmp_path / "dot.npy"
+    np.save(npy, np.zeros_like(load_head().template))
+    assert (
+        main(["animate", str(speech), "--template", str(npy), "-o", str(tmp_path / "a.npz")]) == 2
+    )
+    assert_one_line_error(capsys.readouterr().err, "dot.npy", "one point")
+
+
 def test_template_in_metres_and_y_up_is_taken_as_it_is(speech, tmp_path, capsys):
     head = load_head()
     tilt = np.radians(8.0)  # a head turned a little is the user's pose, not another axis

@@ -221,6 +221,8 @@ def read_face_template(
         raise TalkmeshError(f"{path}: {bad} vertices have NaN or infinite coordinates")
     bundled = load_head()
     if len(vertices) == bundled.num_vertices:
+        if not np.ptp(np.asarray(vertices, np.float64), axis=0).max() > 0:
+            raise TalkmeshError(f"{path}: every vertex lies at one point: not a face")
         vertices, note = bundled_frame(vertices, bundled.template)
         return FaceTemplate(bundled.with_template(vertices, name), note)
     if faces is None:
