@@ -417,9 +417,7 @@ def convert_whisper(
     """
     out = Path(out_dir).expanduser()
     if out.exists() and not overwrite:
-        raise TalkmeshError(
-            f"{out} already exists: choose another directory or pass --overwrite (overwrite=True)"
-        )
+        raise TalkmeshError(f"{out} already exists: choose another directory or pass --overwrite")
     try:
         from safetensors.torch import save_file
     except ImportError:
@@ -448,7 +446,7 @@ def convert_whisper(
         if out.exists() or out.is_symlink():
             if not overwrite:
                 raise TalkmeshError(
-                    f"{out} already exists: choose another directory or pass --overwrite (overwrite=True)"
+                    f"{out} already exists: choose another directory or pass --overwrite"
                 )
             old = out.with_name(f"{tmp.name}.old")
             out.rename(old)
