@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 from talkmesh.audio.phonemes import ALLPHONE, ALLPHONE_STREAM, recognize_phones
+from talkmesh.audio.vad import speech_pauses
 from talkmesh.evaluation.real_speech import (
     BETTER,
     CONDITIONS,
@@ -63,6 +64,11 @@ VARIANTS = {
     "-nobilabial": replace(Corrections(), bilabial=False),
     "-faithful": FAITHFUL,
     "-closure": replace(Corrections(), lip_closure=True),
+    # the pause gate alone, its pauses from voice activity (any language) or the recogniser
+    "-gate": Corrections(mix=0.0, gain=0.0, bilabial=False),
+    "-recgate": Corrections(mix=0.0, gain=0.0, bilabial=False, pauses="recognizer"),
+    # no recogniser at all: the gate from voice activity and every near-closure shut
+    "-anylang": Corrections(mix=0.0, gain=0.0, bilabial=False, lip_closure=True, met_lips=True),
 }
 
 
@@ -88,6 +94,7 @@ def _animate_condition(wave, methods, head) -> dict[str, np.ndarray]:
     them and the corrections use them; a learned model runs once, bare, and each variant corrects
     a copy (the corrections move the mouth only, so this equals ``animate`` on the lips)."""
     phones = recognize_phones(wave, SAMPLE_RATE)
+    pauses = None  # voice activity, found once when a variant's pause gate needs it
     bare = {}
     out = {}
     for method in methods:
@@ -110,7 +117,11 @@ def _animate_condition(wave, methods, head) -> dict[str, np.ndarray]:
                 loudness_gain=0.0,
                 bilabial_closure=False,
             ).vertices
-        out[method] = correct_mouth(bare[model].copy(), head, phones, wave, FPS, corrections)
+        if corrections.pause_gate and corrections.pauses == "vad" and pauses is None:
+            pauses = speech_pauses(wave)
+        out[method] = correct_mouth(
+            bare[model].copy(), head, phones, wave, FPS, corrections, pauses=pauses
+        )
     return out
 
 
@@ -177,7 +188,8 @@ def main() -> None:
         help="procedural, procedural-stream(-full) (module docstring), bundled models as animate "
         "runs them (default corrections), MODEL-raw (none), MODEL-nogate / -nomix / -nogain / "
         "-nobilabial (one off), MODEL-faithful (the settings within 3% of the synthetic LVE), "
-        "MODEL-closure (with the lip closure at every near-closure)",
+        "MODEL-closure (with the lip closure at every near-closure), MODEL-gate / -recgate (the "
+        "pause gate alone, from voice activity / from the recogniser)",
     )
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--clips", default="", help="comma-separated name prefixes (default: all)")

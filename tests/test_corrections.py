@@ -305,3 +305,22 @@ def test_voice_activity_finds_pauses_in_real_speech_and_in_other_languages(tmp_p
     assert abs(gated[mid] - rest) < 0.1
     first_word = next(p for p in segments if p.label == "SPEECH")
     assert gated[int((first_word.start + first_word.end) / 2 * FPS)] > rest + 3  # speech: open
+
+
+def test_met_lips_shut_near_closures_to_closed_lips_not_to_the_rest_face():
+    """With met_lips a shut near-closure has its lips met (the teacher's closure), below the rest
+    face's small gap; without, it goes to the rest face."""
+    from talkmesh.face.corrections import closed_lips
+
+    head = load_head()
+    rest = float(_mm(head, head.template[None])[0])
+    assert float(_mm(head, closed_lips(head)[None])[0]) <= 0.5 < rest
+    plain = Corrections(pause_gate=False, lip_closure=True, mix=0.0, gain=0.0, bilabial=False)
+    met = Corrections(
+        pause_gate=False, lip_closure=True, mix=0.0, gain=0.0, bilabial=False, met_lips=True
+    )
+    to_rest = _mm(head, correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, plain))
+    to_met = _mm(head, correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, met))
+    assert abs(to_rest[20] - rest) < 0.05
+    assert to_met[20] <= 0.5
+    np.testing.assert_allclose(to_met[:18], to_rest[:18], rtol=1e-6)  # elsewhere the same

@@ -79,6 +79,9 @@ class Corrections:
         bilabial: shut the lips fully at the model's near-closures by a recognised /p b m/.
         pauses: where the pause gate finds pauses: ``vad`` (voice activity, any language) or
             ``recognizer`` (the English phone recogniser's silences).
+        met_lips: near-closures that shut (``lip_closure``, ``bilabial``) shut to met lips (the
+            teacher's /p b m/ closure on this head, :func:`closed_lips`) instead of the rest
+            face, whose lips are a little apart.
     """
 
     pause_gate: bool = True
@@ -87,6 +90,7 @@ class Corrections:
     gain: float = GAIN
     bilabial: bool = BILABIAL
     pauses: str = PAUSE_SOURCE
+    met_lips: bool = False
 
     @property
     def needs_phones(self) -> bool:
@@ -123,6 +127,20 @@ def loudness_curve(wave: np.ndarray, num_frames: int, fps: float) -> np.ndarray:
     loud = np.convolve(loud, np.ones(k) / k, mode="same")
     at = ((np.arange(num_frames) + 0.5) / fps / HOP_S).astype(int)
     return loud[np.clip(at, 0, len(loud) - 1)].astype(np.float32)
+
+
+def closed_lips(head: Head) -> np.ndarray:
+    """(V, 3) the head's rest face with its lips met, as the teacher closes them for /p b m/
+    (:func:`talkmesh.face.teacher.close_lips` on the rest weights); cached on the head."""
+    cached = getattr(head, "_closed_lips", None)
+    if cached is None:
+        from talkmesh.face.teacher import close_lips
+
+        w = np.zeros((1, len(head.blendshape_names)), np.float32)
+        close_lips(w, [Phone("M", 0.0, 1.0)], 1.0, head, ease_frames=0)
+        cached = head.vertices_from_weights(w)[0]
+        object.__setattr__(head, "_closed_lips", cached)
+    return cached
 
 
 def find_pauses(wave: np.ndarray, corrections: Corrections, phones: list[Phone]) -> list[Phone]:
@@ -301,6 +319,7 @@ def _correct(
         _blend(chunk, lambda b: head.vertices_from_weights(w[b]), pull, mouth)
     if shut_at is not None:
         shut = (closures & shut_at[start:end]).astype(np.float32)
-        _blend(chunk, lambda b: head.template[None], shut, mouth)
+        closed = closed_lips(head) if corrections.met_lips else head.template
+        _blend(chunk, lambda b: closed[None], shut, mouth)
     if gate is not None:
         gate_mouth(chunk, head.template, mouth, gate[start:end])
