@@ -44,7 +44,7 @@ from talkmesh.evaluation.real_speech import (
     truth_phones,
 )
 from talkmesh.face.assets import load_head
-from talkmesh.face.corrections import FAITHFUL, NONE, Corrections, correct_mouth
+from talkmesh.face.corrections import FAITHFUL, NONE, PREVIOUS, Corrections, correct_mouth
 from talkmesh.pipeline import animate, available_models
 from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, ProceduralStreamer
 
@@ -63,6 +63,7 @@ VARIANTS = {
     "-nogain": replace(Corrections(), gain=0.0),
     "-nobilabial": replace(Corrections(), bilabial=False),
     "-faithful": FAITHFUL,
+    "-previous": PREVIOUS,
     "-closure": replace(Corrections(), lip_closure=True),
     # the pause gate alone, its pauses from voice activity (any language) or the recogniser
     "-gate": Corrections(mix=0.0, gain=0.0, bilabial=False),

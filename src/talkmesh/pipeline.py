@@ -19,6 +19,7 @@ from talkmesh.face.assets import Head, load_head
 from talkmesh.face.corrections import (
     BILABIAL,
     GAIN,
+    LIP_CLOSURE,
     MIX,
     NONE,
     PAUSE_SOURCE,
@@ -85,7 +86,7 @@ def animate(
     blinks: bool = True,
     int8: str | None = None,
     pause_gate: bool = True,
-    lip_closure: bool = False,
+    lip_closure: bool = LIP_CLOSURE,
     procedural_mix: float = MIX,
     loudness_gain: float = GAIN,
     bilabial_closure: bool = BILABIAL,
@@ -119,8 +120,8 @@ def animate(
             exact (its effect on accuracy: docs/results/codetalker.md).
         pause_gate: learned models: close the mouth in pauses (voice activity, any language;
             :mod:`talkmesh.face.pauses`), where noisy real recordings keep it open otherwise.
-        lip_closure: learned models: shut the lips fully where the model nearly closes them
-            (:mod:`talkmesh.face.corrections`; off by default: it costs synthetic LVE).
+        lip_closure: learned models: shut the lips (met) where the model nearly closes them in
+            speech (:mod:`talkmesh.face.corrections`; on by default).
         procedural_mix: learned models: share of the procedural animator's mouth (recognised
             phones) mixed into the model's except at its lip closures, in [0, 1]; 0: off.
         loudness_gain: learned models: the loudest speech opens the mouth ``1 + gain`` times as
@@ -189,7 +190,7 @@ def animate_blocks(
     blinks: bool = True,
     int8: str | None = None,
     pause_gate: bool = True,
-    lip_closure: bool = False,
+    lip_closure: bool = LIP_CLOSURE,
     procedural_mix: float = MIX,
     loudness_gain: float = GAIN,
     bilabial_closure: bool = BILABIAL,

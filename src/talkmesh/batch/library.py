@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 from talkmesh.audio.loading import SOUNDFILE_EXTENSIONS, audio_duration
 from talkmesh.errors import TalkmeshError, os_error_message
-from talkmesh.face.corrections import BILABIAL, GAIN, MIX, PAUSE_SOURCE
+from talkmesh.face.corrections import BILABIAL, GAIN, LIP_CLOSURE, MIX, PAUSE_SOURCE
 from talkmesh.output import VIDEO_SIZE
 
 OK, SKIPPED, FAILED = "ok", "skipped", "failed"
@@ -48,7 +48,7 @@ class AnimateSettings:
     style_mix: dict[str, float] | None = field(default=None, hash=False)
     blinks: bool = True
     pause_gate: bool = True
-    lip_closure: bool = False
+    lip_closure: bool = LIP_CLOSURE
     procedural_mix: float = MIX
     loudness_gain: float = GAIN
     bilabial_closure: bool = BILABIAL

@@ -21,7 +21,14 @@ from talkmesh.cli.common import (
 )
 from talkmesh.constants import INT8_LAYERS
 from talkmesh.errors import TalkmeshError
-from talkmesh.face.corrections import BILABIAL, GAIN, MIX, PAUSE_SOURCE, PAUSE_SOURCES
+from talkmesh.face.corrections import (
+    BILABIAL,
+    GAIN,
+    LIP_CLOSURE,
+    MIX,
+    PAUSE_SOURCE,
+    PAUSE_SOURCES,
+)
 from talkmesh.output import output_name, write_animation
 
 
@@ -115,9 +122,10 @@ def _add_corrections(a) -> None:
     )
     a.add_argument(
         "--lip-closure",
-        action="store_true",
-        help="learned models: shut the lips fully where the model nearly closes them (p, b, m "
-        "close more often; costs accuracy on the synthetic test set)",
+        action=argparse.BooleanOptionalAction,
+        default=LIP_CLOSURE,
+        help="learned models: shut the lips (met) where the model nearly closes them in speech "
+        "(default on; any language)",
     )
     a.add_argument(
         "--procedural-mix",
@@ -132,8 +140,7 @@ def _add_corrections(a) -> None:
         action=argparse.BooleanOptionalAction,
         default=BILABIAL,
         help="learned models: shut the lips where the model nearly closes them by a /p b m/ "
-        "the phone recogniser finds (default on; --no-bilabial-closure: closer to the "
-        "synthetic test set's truth, which leaves half its /p b m/ open)",
+        "the English phone recogniser finds (default off: --lip-closure does it in any language)",
     )
     a.add_argument(
         "--loudness-gain",
