@@ -598,7 +598,7 @@ def reduce_mesh(vertices: np.ndarray, faces: np.ndarray, count: int) -> tuple[np
         import fast_simplification
     except ImportError:
         raise MissingDependencyError(
-            "fast-simplification", "rig", f"rigging meshes of over {REDUCE_ABOVE} vertices"
+            "fast-simplification", "all", f"rigging meshes of over {REDUCE_ABOVE} vertices"
         ) from None
     target = int(len(faces) * min(1.0, 2 * count / len(faces)))  # F ~ 2V on a closed surface
     small_v, small_f = fast_simplification.simplify(
