@@ -211,6 +211,54 @@ def test_killed_batch_leaves_no_partial_output_and_resumes(library, tmp_path):
         assert np.load(p).shape[0] == round(seconds * 30)
 
 
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc: no psutil needed)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _running(pid: int) -> bool:
+    """``pid`` exists and is not a zombie (a container's pid 1 may never reap one)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["kill -9", "SIGTERM"])
+def test_workers_die_with_their_parent(library, tmp_path, sig):
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "talkmesh", "animate", str(library), "-o", f"{out}/{{stem}}.npz"]
+    cmd += ["--model", "procedural", "--workers", "2", "-q"]
+    env = dict(os.environ, HF_HUB_OFFLINE="1")
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while len(workers := _children(proc.pid)) < 2:
+        assert proc.poll() is None and time.monotonic() < deadline, "no workers started"
+        time.sleep(0.05)
+    proc.send_signal(sig)
+    proc.wait(timeout=60)
+    try:
+        assert proc.returncode == (-signal.SIGKILL if sig == signal.SIGKILL else 128 + sig)
+        deadline = time.monotonic() + 10
+        while alive := [w for w in workers if _running(w)]:
+            assert time.monotonic() < deadline, f"workers {alive} outlived their parent"
+            time.sleep(0.1)
+    finally:  # a failed run leaves no orphans behind
+        for w in workers:
+            if _running(w):
+                os.kill(w, signal.SIGKILL)
+
+
 @pytest.mark.parametrize(
     "make, fragment",
     [

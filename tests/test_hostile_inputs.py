@@ -584,3 +584,16 @@ def test_release_whose_config_is_nested_deep_is_one_line(tmp_path):
     save_file({"w": torch.zeros(1)}, str(path), metadata={**meta, "format_version": "x"})
     with pytest.raises(TalkmeshError, match="deep.safetensors: a malformed talkmesh model"):
         load_model(path)
+
+
+def test_save_animation_refuses_nan_frames(tmp_path):
+    from talkmesh.animation import Animation
+    from talkmesh.output.formats import save_animation
+
+    vertices = np.zeros((2, 3, 3), np.float32)
+    vertices[1, 0, 0] = np.nan
+    anim = Animation(vertices=vertices, faces=np.array([[0, 1, 2]]), fps=30.0)
+    for name in ("a.glb", "a.obj", "a.npz"):
+        with pytest.raises(TalkmeshError, match="NaN or infinite"):
+            save_animation(anim, tmp_path / name)
+    assert list(tmp_path.iterdir()) == []

@@ -262,3 +262,68 @@ def test_cli_rig_of_a_z_up_mesh_stands_up_in_gltf(tmp_path, capsys):
     np.testing.assert_allclose(up, [0.0, 0.001, 0.0], atol=1e-9)  # +y, and metres
     placed = stored @ matrix[:3, :3].T + matrix[:3, 3]
     np.testing.assert_allclose(placed, head.template, atol=1e-5)
+
+
+# --------------------------------------------------------------------------- dense meshes
+
+
+def test_a_dense_mesh_is_registered_on_a_reduced_copy_and_carried_back(head, monkeypatch):
+    """Over REDUCE_ABOVE vertices the registration runs on a decimated copy (its cost no longer
+    grows with the mesh) and the shapes come back to every vertex, block by block: the bundled
+    head, with the threshold below its own size, gets its own shapes back."""
+    from talkmesh.face import rig as rig_module
+
+    monkeypatch.setattr(rig_module, "REDUCE_ABOVE", 3000)
+    monkeypatch.setattr(rig_module, "CARRY_BLOCK", 1000)
+    registered = []
+    inner = rig_module._rig
+    monkeypatch.setattr(
+        rig_module, "_rig", lambda v, *args: registered.append(len(v)) or inner(v, *args)
+    )
+    rig = rig_head(head.template, head.faces, head, method="closest")
+    assert registered and registered[0] <= 3200  # the copy, not the 4766 vertices
+    assert rig.blendshapes.shape == head.blendshapes.shape and np.isfinite(rig.blendshapes).all()
+    assert rig.corners.shape == (head.num_vertices, 3) and rig.weights.shape == (
+        head.num_vertices,
+        3,
+    )
+    error = np.linalg.norm(rig.blendshapes - head.blendshapes, axis=2).mean(1)
+    magnitude = np.linalg.norm(head.blendshapes, axis=2).mean(1)
+    assert (error / np.maximum(magnitude, 1e-9)).mean() < 0.2
+    jaw = ARKIT_NAMES.index("jawOpen")
+    upper, lower = head.regions.lip_pair  # the lower lip takes the lower lip's motion
+    assert rig.blendshapes[jaw, lower, 1] < rig.blendshapes[jaw, upper, 1] - 1e-3
+
+
+def test_a_dense_mesh_that_is_no_head_is_refused_on_the_reduced_copy(tmp_path, monkeypatch):
+    from talkmesh.face import rig as rig_module
+
+    monkeypatch.setattr(rig_module, "REDUCE_ABOVE", 2000)
+    registered = []
+    inner = rig_module._rig
+    monkeypatch.setattr(
+        rig_module, "_rig", lambda v, *args: registered.append(len(v)) or inner(v, *args)
+    )
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.1)  # 10242 vertices
+    with pytest.raises(TalkmeshError, match="does not look like a head"):
+        rig_head(sphere.vertices, sphere.faces)
+    assert registered == [pytest.approx(2000, rel=0.1)]  # the check ran on the reduced copy
+
+
+@pytest.mark.slow
+def test_a_million_vertices_rig_in_bounded_memory(head, tmp_path):
+    """The bundled head subdivided four times (1.2M vertices, in millimetres): `talkmesh rig`
+    under 2.5 GB peak (the shapes alone are 750 MB; docs/results/rigging.md has the numbers)."""
+    import resource
+    import subprocess
+    import sys
+
+    v, f = head.template.astype(np.float64), head.faces
+    for _ in range(4):
+        v, f = trimesh.remesh.subdivide(v, f)
+    path = tmp_path / "dense.ply"
+    trimesh.Trimesh(1000 * v, f, process=False).export(path)
+    cmd = [sys.executable, "-m", "talkmesh", "rig", str(path), "-o", str(tmp_path / "d.glb")]
+    subprocess.run(cmd, check=True, capture_output=True)
+    peak_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    assert peak_mb < 2500, peak_mb

@@ -22,6 +22,7 @@ import httpx
 import numpy as np
 import pytest
 import soundfile as sf
+from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from talkmesh.serve.limits import JobQueue, QueueFull
@@ -177,6 +178,65 @@ def test_a_silent_websocket_client_frees_its_slot_quickly(tmp_path):
             assert closed.value.rcvd.code == CLOSE_POLICY
         with connect(ws_url) as talker:  # the one slot is free again
             assert json.loads(talker.recv())["type"] == "hello"
+
+
+def _rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmRSS")
+
+
+def test_garbage_is_a_protocol_error_and_big_heads_get_400(tmp_path):
+    """Deeply nested JSON in a WebSocket message is a policy close (not 1011 and a traceback);
+    request heads over 16 kB get 400 (docs/security.md), and their URLs are cut in the log."""
+    with server(tmp_path, "--workers", "0") as s:  # its log is checked for tracebacks on exit
+        with connect(f"ws://127.0.0.1:{s.port}/ws/stream") as ws:
+            assert json.loads(ws.recv())["type"] == "hello"
+            ws.send("[" * 30000)
+            error = json.loads(ws.recv(timeout=WAIT_S))
+            assert error["type"] == "error" and "nested" in error["message"], error
+            with pytest.raises(Exception) as closed:
+                ws.recv(timeout=WAIT_S)
+            assert closed.value.rcvd.code == CLOSE_POLICY
+        long_url = f"{s.url}/health?" + "x" * 60_000  # httpx sends up to 64 kB
+        assert httpx.get(long_url, timeout=WAIT_S).status_code == 400
+        big_header = {"x-junk": "y" * 40_000}
+        assert httpx.get(f"{s.url}/health", headers=big_header, timeout=WAIT_S).status_code == 400
+        assert httpx.get(f"{s.url}/health", timeout=WAIT_S).status_code == 200
+        with pytest.raises(InvalidStatus) as refused:  # a WebSocket upgrade with a big head
+            junk = [(f"x-junk-{k}", "y" * 6000) for k in range(3)]  # lines under 8 kB each
+            with connect(f"ws://127.0.0.1:{s.port}/ws/stream", additional_headers=junk):
+                pass
+        assert refused.value.response.status_code == 403
+        s.wait_for_log("refused")
+        assert max(len(line) for line in s.log_lines()) < 1000
+        # no per-request leak: a few hundred more bad requests leave the server's memory flat
+
+        def bad_request() -> None:
+            try:  # 400, or h11's own refusal of a head that arrived in pieces (a reset)
+                assert httpx.get(long_url, timeout=WAIT_S).status_code == 400
+            except httpx.TransportError:
+                pass
+
+        for _ in range(50):
+            bad_request()
+        before = _rss_kb(s.proc.pid)
+        for _ in range(300):
+            bad_request()
+        assert _rss_kb(s.proc.pid) - before < 20_000, (before, _rss_kb(s.proc.pid))
+
+
+def test_long_log_fields_are_cut():
+    import logging
+
+    from talkmesh.serve.limits import ShortLogFields
+
+    args = ("127.0.0.1:5000", "GET", "/health?" + "x" * 100_000, "1.1", 400)
+    record = logging.LogRecord("uvicorn.access", 20, "", 0, '%s - "%s %s HTTP/%s" %d', args, None)
+    assert ShortLogFields().filter(record)
+    line = record.getMessage()
+    assert len(line) < 300 and "(100008 characters)" in line, line
 
 
 def test_a_stream_outlives_the_request_timeout(tmp_path):

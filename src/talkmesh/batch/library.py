@@ -249,27 +249,40 @@ def run_local(jobs: list[Job], settings: AnimateSettings, workers: int = 1) -> I
     ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
     if ctx.get_start_method() == "fork":
         _PRELOADED = _preload(settings)
+    pool = ProcessPoolExecutor(
+        max_workers=min(workers, len(jobs)),
+        mp_context=ctx,
+        initializer=_start_worker,
+        initargs=(settings, threads, os.getpid()),
+    )
     try:
-        with ProcessPoolExecutor(
-            max_workers=min(workers, len(jobs)),
-            mp_context=ctx,
-            initializer=_start_worker,
-            initargs=(settings, threads),
-        ) as pool:
-            futures = {pool.submit(_work, job): job for job in longest_first(jobs)}
-            _PRELOADED = None  # the workers have forked with it: this process needs it no more
-            for future in as_completed(futures):
-                job = futures[future]
-                try:
-                    yield future.result()
-                except BrokenProcessPool:
-                    message = (
-                        f"{job.audio}: a worker process died (out of memory?): rerun the batch "
-                        "to resume, with fewer --workers"
-                    )
-                    yield Row(str(job.audio), None, None, 0.0, FAILED, message)
+        futures = {pool.submit(_work, job): job for job in longest_first(jobs)}
+        _PRELOADED = None  # the workers have forked with it: this process needs it no more
+        for future in as_completed(futures):
+            job = futures[future]
+            try:
+                yield future.result()
+            except BrokenProcessPool:
+                message = (
+                    f"{job.audio}: a worker process died (out of memory?): rerun the batch "
+                    "to resume, with fewer --workers"
+                )
+                yield Row(str(job.audio), None, None, 0.0, FAILED, message)
+    except BaseException:  # Ctrl-C, SIGTERM (SystemExit), a closed generator: stop the workers
+        stop_workers(pool)
+        raise
     finally:
         _PRELOADED = None
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def stop_workers(pool: ProcessPoolExecutor) -> None:
+    """End ``pool``'s workers now, mid-file (their outputs are temporaries, cleared by the next
+    run): ``shutdown`` alone would let each finish the file it is on."""
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        if process.is_alive():
+            process.terminate()
 
 
 def longest_first(jobs: list[Job]) -> list[Job]:
@@ -327,8 +340,9 @@ _ANIMATOR: Animator | str | None = None
 _PRELOADED: Animator | None = None
 
 
-def _start_worker(settings: AnimateSettings, threads: int) -> None:
+def _start_worker(settings: AnimateSettings, threads: int, parent: int) -> None:
     global _ANIMATOR
+    die_with_parent(parent)
     try:
         if _PRELOADED is not None and _PRELOADED.settings == settings:
             _set_threads(threads)
@@ -337,6 +351,40 @@ def _start_worker(settings: AnimateSettings, threads: int) -> None:
         _ANIMATOR = Animator(settings, threads)
     except Exception as e:  # reported on every file it was given, instead of a dead pool
         _ANIMATOR = str(e) or type(e).__name__
+
+
+PARENT_POLL_S = 1.0  # how often a worker checks that the batch that started it is alive
+
+
+def die_with_parent(parent: int) -> None:
+    """Make this worker process end when ``parent`` (the batch's process) does, however it
+    ends: ``kill -9``, SIGTERM from ``timeout``, systemd or ``docker stop``. The kernel sends
+    SIGKILL when the parent dies (Linux's PR_SET_PDEATHSIG); elsewhere, and as a second net, a
+    thread checks the parent's pid every PARENT_POLL_S. SIGTERM and SIGINT get their default
+    actions back: the parent's handlers are for the parent (a SystemExit raised in a worker
+    would be sent back as a job's result and the worker would go on)."""
+    import signal
+    import sys
+    import threading
+
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent:  # the parent died before the line above
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="talkmesh-parent-watch", daemon=True).start()
 
 
 def _work(job: Job) -> Row:

@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from talkmesh.cli.common import (
@@ -230,19 +234,38 @@ def cmd_animate(args: argparse.Namespace) -> int:
             tqdm.write(f"wrote {names} ({row.frames} frames, {row.duration:.2f} s)")
 
     try:
-        result = animate_batch(
-            inputs,
-            outputs,
-            animate_settings(args, triangles=needs_triangles(outputs)),
-            workers=args.workers or (None if args.cluster else 1),
-            cluster=args.cluster,
-            on_row=on_row,
-        )
+        with exit_on_sigterm():  # `timeout`, systemd, `docker stop`: the workers stop too
+            result = animate_batch(
+                inputs,
+                outputs,
+                animate_settings(args, triangles=needs_triangles(outputs)),
+                workers=args.workers or (None if args.cluster else 1),
+                cluster=args.cluster,
+                on_row=on_row,
+            )
     finally:
         bar.close()
     if summary is not None:
         write_summary(summary, with_earlier(result.rows, read_summary(summary)))
     return report_batch(result, summary, args.quiet)
+
+
+@contextmanager
+def exit_on_sigterm() -> Iterator[None]:
+    """SIGTERM as SystemExit(143) in the main thread, so that ``finally`` blocks run (a batch
+    stops its worker processes, temporaries are removed) instead of the process vanishing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar: Path | None):

@@ -43,6 +43,7 @@ POINT_WEIGHT = 1.0  # point-to-point pull beside the point-to-plane one (which l
 LANDMARK_WEIGHT = 10.0  # a landmark counts as ten closest-point pairs
 CANDIDATES = 12  # nearest vertices whose triangles are searched for the closest point
 ROUGH_CANDIDATES = 4  # ... while fitting, when the next round corrects a near miss
+POINT_BLOCK = 8192  # points searched at a time: memory is their candidate pairs, not all of them
 COARSE_POINTS = 1500  # points of each mesh the 28 coarse fits use
 FACING = 0.3  # cosine between normals below which a triangle faces away from a point ...
 AWAY_PENALTY = 1e3  # ... and is taken only when no triangle facing the point is a candidate
@@ -157,12 +158,16 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit area-weighted vertex normals."""
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    """(V, 3) unit area-weighted vertex normals (POINT_BLOCK x 32 faces at a time: the (F, 3, 3)
+    corners of a dense mesh's every face would be 170 MB at 2.4M faces)."""
     out = np.zeros_like(vertices, dtype=np.float64)
-    for c in range(3):
-        np.add.at(out, faces[:, c], fn)
+    step = 32 * POINT_BLOCK
+    for a in range(0, len(faces), step):
+        part = faces[a : a + step]
+        tri = vertices[part]
+        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        for c in range(3):
+            out += np.stack([np.bincount(part[:, c], fn[:, x], len(vertices)) for x in range(3)], 1)
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-30)
 
 
@@ -179,12 +184,33 @@ def closest_points(
     points' (P, 3) ``normals``, triangles facing away are passed over while one facing the same
     way is near: closed lips and eyelids touch, and the lower lip must not take the upper's motion.
     """
-    import trimesh
-
     corner_of = faces.ravel()  # vertex -> its faces, as CSR arrays
     order = np.argsort(corner_of, kind="stable")
     starts = np.searchsorted(corner_of[order], np.arange(len(vertices) + 1))
-    _, near = cKDTree(vertices).query(points, k=min(candidates, len(vertices)))
+    tree = cKDTree(vertices)
+    out = [
+        _closest_block(
+            points[a : a + POINT_BLOCK],
+            vertices,
+            faces,
+            None if normals is None else normals[a : a + POINT_BLOCK],
+            candidates,
+            tree,
+            order,
+            starts,
+        )
+        for a in range(0, len(points), POINT_BLOCK)
+    ]
+    if not out:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+    return tuple(np.concatenate(parts) for parts in zip(*out))
+
+
+def _closest_block(points, vertices, faces, normals, candidates, tree, order, starts):
+    """:func:`closest_points` of a block of points (its memory: the block's candidate pairs)."""
+    import trimesh
+
+    _, near = tree.query(points, k=min(candidates, len(vertices)))
     near = near.reshape(len(points), -1)
     counts = starts[near + 1] - starts[near]  # faces around each candidate vertex
     point_ids = np.repeat(np.repeat(np.arange(len(points)), near.shape[1]), counts.ravel())
@@ -209,6 +235,7 @@ def closest_points(
     p = pairs[first, 0]
     best[p], best_face[p], best_point[p] = dist[first], pairs[first, 1], closest[first]
     bary = trimesh.triangles.points_to_barycentric(vertices[faces[best_face]], best_point)
+    bary[~np.isfinite(bary).all(1)] = 1 / 3  # a degenerate (zero-area) triangle: its centre
     return best_face, np.clip(bary, 0.0, 1.0), best
 
 

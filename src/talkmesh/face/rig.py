@@ -75,6 +75,11 @@ SEALED_LIPS = 0.2  # surface path between the lips shorter than this x the RMS r
 # (around the corners, the mouth's width: over 0.35 x; over welded lips about 0.1 x)
 # (around the mouth corners it is its width, over 0.35 x; over welded lips 0.1 x)
 METHODS = ("transfer", "closest")
+# A mesh with more vertices is registered on a copy decimated to this many (the registration's
+# memory and time grow with the mesh: 5.4 GB at 19k vertices, over 22 GB at 1.2M), whose shapes
+# are then carried to every vertex CARRY_BLOCK vertices at a time (docs/results/rigging.md).
+REDUCE_ABOVE = 12_000
+CARRY_BLOCK = 32_768
 PART_SKIN = 8  # skin vertices nearest each part vertex whose mean motion the part takes
 PART_MATCH = 0.3  # mean distance to a part over its RMS radius within which a component is it
 SKIN, EYE, TEETH, TONGUE = 0, 1, 2, 3  # Regions.vertex_part
@@ -343,8 +348,14 @@ def _closest_rig(
 
 
 def _closest_shapes(head, corners, weights, scale, rotation) -> np.ndarray:
-    """(52, V, 3) float64 the bundled shapes at each vertex's corresponding point, user axes."""
-    return scale * np.einsum("vc,kvcx->kvx", weights, head.blendshapes[:, corners]) @ rotation.T
+    """(52, V, 3) float64 the bundled shapes at each vertex's corresponding point, user axes;
+    CARRY_BLOCK vertices at a time (the (52, V, 3, 3) gather is 3.7 GB at a million)."""
+    out = np.empty((len(head.blendshapes), len(corners), 3))
+    for a in range(0, len(corners), CARRY_BLOCK):
+        b = slice(a, a + CARRY_BLOCK)
+        gathered = head.blendshapes[:, corners[b]]
+        out[:, b] = scale * np.einsum("vc,kvcx->kvx", weights[b], gathered) @ rotation.T
+    return out
 
 
 def read_landmarks(path: str | Path) -> dict[str, int]:
@@ -534,6 +545,13 @@ def rig_head(
     faces = np.asarray(faces, np.int64)
     _check_input(vertices, faces)
     head = head or load_head()
+    if len(vertices) > REDUCE_ABOVE:  # registered on a reduced copy, carried back blockwise
+        return _rig_reduced(vertices, faces, head, landmarks, method, automatic, pre_fit)
+    return _rig(vertices, faces, head, landmarks, method, automatic, pre_fit)
+
+
+def _rig(vertices, faces, head, landmarks, method, automatic, pre_fit) -> Rig:
+    """:func:`rig_head` on the mesh as it is (its steps 1 to 4)."""
     scale, rotation, shift, radius, skin, skin_faces, registered, found, user_normals = _register(
         vertices, faces, head, landmarks, automatic, pre_fit
     )
@@ -580,6 +598,69 @@ def rig_head(
         residual=float(np.median(cKDTree(vertices).query(registered)[0])),
         landmarks=found,
         parts=parts,
+        corners=corners,
+        weights=weights,
+    )
+
+
+def reduce_mesh(vertices: np.ndarray, faces: np.ndarray, count: int) -> tuple[np.ndarray, ...]:
+    """(V', 3) vertices and (F', 3) faces of the mesh decimated to about ``count`` vertices by
+    quadric edge collapse (fast-simplification): edges collapse, separate surfaces never merge,
+    so lips that touch stay two lips."""
+    try:
+        import fast_simplification
+    except ImportError:
+        raise MissingDependencyError(
+            "fast-simplification", "all", f"rigging meshes of over {REDUCE_ABOVE} vertices"
+        ) from None
+    target = int(len(faces) * min(1.0, 2 * count / len(faces)))  # F ~ 2V on a closed surface
+    small_v, small_f = fast_simplification.simplify(
+        vertices.astype(np.float64), faces.astype(np.int32), target_count=target
+    )
+    tri = small_v[small_f]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    small_f = small_f[area > 1e-8 * np.median(area)]  # slivers: no closest point is on them
+    used = np.unique(small_f)  # vertices no face uses (collapsed away) are dropped
+    remap = np.full(len(small_v), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return small_v[used], remap[small_f]
+
+
+def _rig_reduced(vertices, faces, head, landmarks, method, automatic, pre_fit) -> Rig:
+    """:func:`rig_head` of a mesh over REDUCE_ABOVE vertices: registered (and refused if no
+    head) on a copy decimated to REDUCE_ABOVE vertices, whose shapes every vertex then takes at
+    its closest point on the copy (facing the same way: the lower lip does not take the
+    upper's), CARRY_BLOCK vertices at a time. Memory: the (52, V, 3) float32 shapes (624 bytes a
+    vertex) and a block's work, not the registration's, which grows with the mesh."""
+    _check_landmarks(landmarks or {}, len(vertices))
+    small_v, small_f = reduce_mesh(vertices, faces, REDUCE_ABOVE)
+    near = cKDTree(small_v)
+    given = {n: int(near.query(vertices[int(i)])[1]) for n, i in (landmarks or {}).items()}
+    small = _rig(small_v, small_f, head, given, method, automatic, pre_fit)
+    normals = vertex_normals(vertices, faces)
+    shapes = np.empty((len(small.blendshapes), len(vertices), 3), np.float32)
+    corners = np.empty((len(vertices), 3), np.int64)
+    weights = np.empty((len(vertices), 3))
+    for a in range(0, len(vertices), CARRY_BLOCK):
+        b = slice(a, a + CARRY_BLOCK)
+        face, bary, _ = closest_points(vertices[b], small_v, small_f, normals[b])
+        tri = small_f[face]
+        shapes[:, b] = np.einsum("vc,kvcx->kvx", bary, small.blendshapes[:, tri])
+        nearest = tri[np.arange(len(tri)), np.argmax(bary, axis=1)]
+        corners[b], weights[b] = small.corners[nearest], small.weights[nearest]
+    tree = cKDTree(vertices)
+    found = {n: int(tree.query(small_v[i])[1]) for n, i in small.landmarks.items()}
+    found.update({n: int(i) for n, i in (landmarks or {}).items()})  # the user's ids, as given
+    return Rig(
+        vertices=vertices.astype(np.float32),
+        faces=faces.astype(np.int32),
+        blendshapes=shapes,
+        scale=small.scale,
+        rotation=small.rotation,
+        translation=small.translation,
+        residual=small.residual,
+        landmarks=found,
+        parts=small.parts,
         corners=corners,
         weights=weights,
     )

@@ -108,6 +108,11 @@ def save_animation(
         )
     if anim.num_frames == 0:
         raise TalkmeshError(f"{path}: the animation has no frames to save")
+    frames = range(0, anim.num_frames, 1024)  # a block at a time: no (T, V, 3) mask
+    if not all(np.isfinite(anim.vertices[a : a + 1024]).all() for a in frames) or (
+        anim.weights is not None and not np.isfinite(anim.weights).all()
+    ):  # never a file of NaN: glTF readers and players take them as they are
+        raise TalkmeshError(f"{path}: the animation holds NaN or infinite values: nothing written")
     sequence = ext in SEQUENCE_SUFFIXES
     if raw.endswith(("/", os.sep)) or path.is_dir():
         if not sequence:

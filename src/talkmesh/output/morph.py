@@ -42,6 +42,8 @@ class MorphRig:
 
     def neutral(self) -> np.ndarray:
         """(V, 3) float32 neutral face."""
+        if not self.rest_weights.any():  # a rig's blendshapes: no float64 copy of them all
+            return self.base.astype(np.float32)
         offset = np.tensordot(self.rest_weights.astype(np.float64), self.targets, axes=1)
         return (self.base + offset).astype(np.float32)
 
@@ -49,9 +51,17 @@ class MorphRig:
 BLOCK_FRAMES = 1024  # frames processed at a time when checking long animations
 
 
+BLEND_VERTICES = 65536  # of a float32 basis upcast at a time (the whole is 1.5 GB at 1M)
+
+
 def _blend(weights: np.ndarray, basis: np.ndarray) -> np.ndarray:
     """(T, K) weights and (K, V, 3) basis -> (T, V, 3) offsets in float64."""
-    return np.tensordot(weights.astype(np.float64), basis, axes=1)
+    weights = weights.astype(np.float64)
+    out = np.empty((len(weights), basis.shape[1], 3))
+    for a in range(0, basis.shape[1], BLEND_VERTICES):
+        part = basis[:, a : a + BLEND_VERTICES].astype(np.float64)
+        out[:, a : a + BLEND_VERTICES] = np.tensordot(weights, part, axes=1)
+    return out
 
 
 def _max_over_blocks(fn, num_frames: int) -> float:
@@ -87,7 +97,7 @@ def morph_rig(anim: Animation) -> MorphRig:
         and anim.basis.shape == (anim.weights.shape[1], num_v, 3)
     )
     if has_basis:
-        basis = anim.basis.astype(np.float64)
+        basis = anim.basis  # float32 is upcast a block at a time (_blend)
         if template is None:
             template = _mean_over_blocks(
                 lambda b: anim.vertices[b] - _blend(anim.weights[b], basis), anim.num_frames
@@ -129,7 +139,9 @@ def morph_rig(anim: Animation) -> MorphRig:
         rest.append(-lo / span)
     return MorphRig(
         base=reference.astype(np.float32),
-        targets=np.concatenate(targets).astype(np.float32),
+        targets=(targets[0] if len(targets) == 1 else np.concatenate(targets)).astype(
+            np.float32, copy=False
+        ),
         weights=np.concatenate(weights, axis=1).astype(np.float32),
         rest_weights=np.concatenate(rest).astype(np.float32),
         names=names,

@@ -6,6 +6,9 @@
   a long job never holds up a short one. Up to ``max_queue`` jobs wait; more get 503 + Retry-After.
 * A connection must deliver a complete request head within ``request_timeout`` seconds and its
   body within the same time after the head, else it is dropped (uvicorn has no such timeout).
+* A request head (request line and headers) over ``MAX_HEAD_BYTES`` gets 400 (a WebSocket
+  upgrade, 403): h11 bounds only heads that arrive in pieces, not one that comes whole. Access
+  log lines cut what a client sent to ``LOG_FIELD_CHARS``: a 100 kB URL is not written out.
 """
 
 from __future__ import annotations
@@ -27,6 +30,57 @@ DEFAULT_SHORT_SECONDS = 30.0  # jobs up to this long always find a slot free of 
 DEFAULT_REQUEST_TIMEOUT_S = 30.0  # to send a request head, then again to send its body
 DEFAULT_FIRST_MESSAGE_TIMEOUT_S = 2.0  # WebSocket: accept -> first message, holding a slot
 RETRY_SECONDS_PER_AUDIO_SECOND = 0.1  # rough cost of a job, for Retry-After
+MAX_HEAD_BYTES = 16 * 1024  # request line + headers (docs/security.md)
+LOG_FIELD_CHARS = 200  # of a path, header or client's text in one log line
+
+
+def head_bytes(scope: dict) -> int:
+    """The size of a request's head as the client sent it (request line and headers)."""
+    path = scope.get("raw_path") or scope.get("path", "").encode()
+    line = len(scope.get("method", "GET")) + len(path) + len(scope.get("query_string", b"")) + 12
+    return line + sum(len(k) + len(v) + 4 for k, v in scope.get("headers", ()))
+
+
+class HeadLimit:
+    """ASGI middleware: 400 for a request head over MAX_HEAD_BYTES (403 for a WebSocket
+    upgrade, which cannot be answered otherwise before it is accepted), one log line."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] not in ("http", "websocket") or head_bytes(scope) <= MAX_HEAD_BYTES:
+            await self.app(scope, receive, send)
+            return
+        client = scope.get("client")
+        who = f"{client[0]}:{client[1]}" if client else "a client"
+        log.warning(
+            "refused %s: a request head of %d bytes, over %d (%s)",
+            who,
+            head_bytes(scope),
+            MAX_HEAD_BYTES,
+            shorten(scope.get("path", "")),
+        )
+        if scope["type"] == "websocket":
+            await send({"type": "websocket.close", "code": 1008})
+            return
+        message = f"the request head is over {MAX_HEAD_BYTES // 1024} kB: send a shorter URL"
+        await JSONResponse({"type": "error", "message": message}, 400)(scope, receive, send)
+
+
+def shorten(text: str, limit: int = LOG_FIELD_CHARS) -> str:
+    """``text`` cut to ``limit`` characters, saying how long it was."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
+class ShortLogFields(logging.Filter):
+    """Cut the long strings of a log record's arguments (uvicorn's access log writes the path
+    a client sent verbatim)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple):
+            record.args = tuple(shorten(a) if isinstance(a, str) else a for a in record.args)
+        return True
 
 
 class QueueFull(Exception):

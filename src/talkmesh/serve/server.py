@@ -52,6 +52,7 @@ from pathlib import Path
 import anyio
 import numpy as np
 from starlette.applications import Starlette
+from starlette.middleware import Middleware
 from starlette.requests import ClientDisconnect, Request
 from starlette.responses import HTMLResponse, JSONResponse, Response
 from starlette.routing import Mount, Route, WebSocketRoute
@@ -529,6 +530,10 @@ def _parse_end(text: str | None) -> None:
         raise ClientError(
             CLOSE_POLICY, 'text messages must be JSON: send {"type": "end"} to end the audio'
         ) from None
+    except RecursionError:  # '[' x 30000: a protocol error, not a bug
+        raise ClientError(
+            CLOSE_POLICY, 'text messages are {"type": "end"}, not JSON nested thousands deep'
+        ) from None
     if not isinstance(message, dict) or message.get("type") != "end":
         raise ClientError(
             CLOSE_POLICY,
@@ -598,7 +603,7 @@ def create_app(
         routes.append(Mount("/", StaticFiles(directory=static_dir, html=True)))
     else:
         routes.append(Route("/", _viewer_missing))
-    app = Starlette(routes=routes)
+    app = Starlette(routes=routes, middleware=[Middleware(lim.HeadLimit)])
     app.state.service = service
     return app
 
@@ -668,6 +673,7 @@ def serve(
         ws_per_message_deflate=False,
         timeout_graceful_shutdown=SHUTDOWN_WAIT_S,
     )
+    logging.getLogger("uvicorn.access").addFilter(lim.ShortLogFields())  # after Config's setup
     sock = _listen(host, port)
     if not quiet:
         bound = sock.getsockname()[1]
