@@ -29,7 +29,8 @@ from rig_transfer import decimate, rotation  # noqa: E402
 from talkmesh.audio.tts import synthesize_speech  # noqa: E402
 from talkmesh.face.arkit import ARKIT_NAMES  # noqa: E402
 from talkmesh.face.assets import load_head  # noqa: E402
-from talkmesh.face.rig import load_mesh, rig_head  # noqa: E402
+from talkmesh.face.rig import rig_head  # noqa: E402
+from talkmesh.face.rig_files import load_mesh  # noqa: E402
 from talkmesh.output.labels import TextOverlay  # noqa: E402
 from talkmesh.output.raster import Renderer  # noqa: E402
 from talkmesh.pipeline import animate  # noqa: E402

@@ -334,7 +334,7 @@ def test_export_and_render_bad_animation_files(tmp_path, capsys):
 
 def test_export_head_writes_a_mesh_to_try_template_and_rig_on(tmp_path, capsys):
     from talkmesh.face.assets import list_identities, read_mesh_vertices
-    from talkmesh.face.rig import load_mesh
+    from talkmesh.face.rig_files import load_mesh
 
     out = tmp_path / "head.obj"
     identity = list_identities()[-1]

@@ -15,8 +15,8 @@ import trimesh
 from talkmesh.cli import main
 from talkmesh.cli.common import load_input
 from talkmesh.errors import TalkmeshWarning
-from talkmesh.face import rig as rig_module
 from talkmesh.face import rig_cache
+from talkmesh.face import rig_files as rig_module
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
 

@@ -13,7 +13,7 @@ from talkmesh.cli import main
 from talkmesh.cli.common import load_input
 from talkmesh.face.assets import load_head
 from talkmesh.face.registration import closest_points, vertex_normals
-from talkmesh.face.rig import load_rig
+from talkmesh.face.rig_files import load_rig
 
 CLIP = Path(
     "/usr/share/pocketsphinx/test/data/librivox/sense_and_sensibility_01_austen_64kb-0880.wav"

@@ -197,22 +197,17 @@ def animate_blocks(
     pause_source: str = PAUSE_SOURCE,
     block: int = BLOCK,
 ) -> AnimationBlocks:
-    """:func:`animate` a ``block`` of frames at a time (arguments as there): memory does not grow
-    with the audio (its waveform aside) when the model generates in chunks (the procedural
-    animator, CodeTalker models with a causal VQ decoder); write it with
-    :func:`talkmesh.output.streaming.save_blocks`. The frames are :func:`animate`'s. A file
-    libsndfile reads is read a slice at a time (the block's ``audio`` is then a
-    :class:`~talkmesh.audio.waveform.Waveform`), so not even the waveform is held whole."""
+    """:func:`animate` ``block`` frames at a time (arguments as there; the same frames): memory
+    does not grow with the audio when the model generates in chunks (the procedural animator,
+    causal CodeTalker models); :func:`talkmesh.output.streaming.save_blocks` writes it. A file
+    libsndfile reads is read a slice at a time (``audio`` is then a ``Waveform``)."""
     wave = _checked_wave(audio, fps, block)
     check_fps_seed(fps, seed)
     source = Path(audio) if isinstance(audio, (str, Path)) else None  # videos mux its sound
     head = head or load_head()
     if model is None:  # a transcript or phones ask for the phone-driven animator
         model = "procedural" if text is not None or phones is not None else default_model()
-    if int8 is not None and int8 not in INT8_MODES:
-        raise TalkmeshError(f"--int8 {int8}: use one of {', '.join(INT8_MODES)}")
-    if model == "procedural" and int8 is not None:
-        raise TalkmeshError("--int8 applies to CodeTalker models, not the procedural animator")
+    _check_int8(int8, model)
     if model == "procedural":
         made = animate_procedural(
             wave, head, text=text, phones=phones, fps=fps, seed=seed, style=style, block=block
@@ -234,20 +229,11 @@ def animate_blocks(
         frames = num_frames_for(len(wave), SAMPLE_RATE, fps)
     chunks = _learned_chunks(net, wave, head, weights, fps, frames, seed, block)
     if not head.rigged:  # another topology (the model's own): the model's motion as it is
-        return AnimationBlocks(
-            blocks=(Animation(vertices=c, faces=head.faces, fps=fps) for c in chunks),
-            num_frames=frames,
-            faces=head.faces,
-            fps=fps,
-            audio=wave,
-            sample_rate=SAMPLE_RATE,
-            template=head.template,
-            audio_file=source,
-        )
-    if corrections != NONE:  # the recogniser (English) and voice activity correct the mouth
-        phones = recognize_phones(wave, SAMPLE_RATE) if corrections.needs_phones else []
+        return _plain_blocks(chunks, head, fps, frames, wave, source)
+    if corrections != NONE:  # voice activity (and the English recogniser, if asked): the mouth
+        found = recognize_phones(wave, SAMPLE_RATE) if corrections.needs_phones else []
         chunks = correct_mouth_chunks(
-            chunks, frames, head, phones, wave, fps, corrections, style=style, seed=seed
+            chunks, frames, head, found, wave, fps, corrections, seed=seed, style=style
         )
     eyes = blink_gaze_weights(frames, fps, seed=seed, style=style) if blinks else None
     return AnimationBlocks(
@@ -262,6 +248,26 @@ def animate_blocks(
         basis=head.blendshapes,
         audio_file=source,
     )
+
+
+def _plain_blocks(chunks, head: Head, fps: float, frames: int, wave, source) -> AnimationBlocks:
+    return AnimationBlocks(
+        blocks=(Animation(vertices=c, faces=head.faces, fps=fps) for c in chunks),
+        num_frames=frames,
+        faces=head.faces,
+        fps=fps,
+        audio=wave,
+        sample_rate=SAMPLE_RATE,
+        template=head.template,
+        audio_file=source,
+    )
+
+
+def _check_int8(int8: str | None, model) -> None:
+    if int8 is not None and int8 not in INT8_MODES:
+        raise TalkmeshError(f"--int8 {int8}: use one of {', '.join(INT8_MODES)}")
+    if model == "procedural" and int8 is not None:
+        raise TalkmeshError("--int8 applies to CodeTalker models, not the procedural animator")
 
 
 def _finish_learned(

@@ -96,7 +96,7 @@ class Animator:
         self.head = face_for(s) if s.template else load_head(s.identity)
         self.rig = None
         if s.head is not None:
-            from talkmesh.face.rig import load_rig
+            from talkmesh.face.rig_files import load_rig
 
             self.rig = load_rig(s.head)
         self.model: object = s.model
@@ -402,7 +402,7 @@ def check_settings(settings: AnimateSettings) -> None:
     else:
         load_head(settings.identity)
     if settings.head:
-        from talkmesh.face.rig import load_rig
+        from talkmesh.face.rig_files import load_rig
 
         load_rig(settings.head)
     if settings.model != "procedural":

@@ -279,7 +279,7 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
     if args.head:
         if avatar is not None:
             raise TalkmeshError("--head and --avatar: give one (a plain mesh or a rigged avatar)")
-        from talkmesh.face.rig import load_rig
+        from talkmesh.face.rig_files import load_rig
 
         rig = load_rig(args.head)  # registered once: forked workers share it
         if not args.quiet:
@@ -514,7 +514,8 @@ def add_rig(sub: Subparsers) -> None:
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
-    from talkmesh.face.rig import load_mesh, read_landmarks, rig_head, save_registration
+    from talkmesh.face.rig import read_landmarks, rig_head
+    from talkmesh.face.rig_files import load_mesh, save_registration
     from talkmesh.output.formats import save_animation
 
     out = Path(args.output)
@@ -564,7 +565,8 @@ def add_export_head(sub: Subparsers) -> None:
 
 
 def cmd_export_head(args: argparse.Namespace) -> int:
-    from talkmesh.face.assets import load_head, write_head_mesh
+    from talkmesh.face.assets import load_head
+    from talkmesh.output.head_mesh import write_head_mesh
 
     head = load_head(args.identity)
     out = write_head_mesh(head, args.output, overwrite=args.overwrite)

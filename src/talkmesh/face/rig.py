@@ -27,7 +27,7 @@
 ``method="closest"`` skips steps 3-4 and gives every vertex the closest-point offsets (the
 comparison the bench makes). :meth:`Rig.carry` maps any motion of the bundled topology (a vertex
 model's prediction) onto the user's mesh through the same correspondence, and
-:meth:`Rig.carry_blocks` a whole animation (``talkmesh animate --head``; :func:`load_rig` registers
+:meth:`Rig.carry_blocks` a whole animation (``talkmesh animate --head``; :func:`talkmesh.face.rig_files.load_rig` registers
 a mesh file once, and saves the registration for later runs: :mod:`talkmesh.face.rig_cache`).
 """
 
@@ -44,8 +44,7 @@ from scipy.spatial import cKDTree
 
 from talkmesh.animation import Animation, AnimationBlocks
 from talkmesh.constants import MOTION_FPS
-from talkmesh.errors import MissingDependencyError, TalkmeshError
-from talkmesh.face import rig_cache
+from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import Head, load_head
 from talkmesh.face.landmarks import IDENTITY, Frame, eye_opening, find_landmarks
@@ -57,6 +56,7 @@ from talkmesh.face.registration import (
     smoothed_pull,
     vertex_normals,
 )
+from talkmesh.face.rig_dense import carry_back, closest_shapes, reduce_mesh
 from talkmesh.face.transfer import (
     SAMPLES,
     deformation_gradients,
@@ -72,12 +72,10 @@ COARSER = 1.5  # a found landmark holds the fit where the mesh's edges are at mo
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 NOT_A_HEAD = 0.08  # median registration distance over RMS radius beyond which it is no head
 SEALED_LIPS = 0.2  # surface path between the lips shorter than this x the RMS radius: no mouth
-# (around the corners, the mouth's width: over 0.35 x; over welded lips about 0.1 x)
 # (around the mouth corners it is its width, over 0.35 x; over welded lips 0.1 x)
 METHODS = ("transfer", "closest")
-# A mesh with more vertices is registered on a copy decimated to this many (the registration's
-# memory and time grow with the mesh: 5.4 GB at 19k vertices, over 22 GB at 1.2M), whose shapes
-# are then carried to every vertex CARRY_BLOCK vertices at a time (docs/results/rigging.md).
+# over this many vertices a mesh is registered on a copy decimated to it and its shapes are carried
+# back CARRY_BLOCK vertices at a time (talkmesh.face.rig_dense; docs/results/rigging.md)
 REDUCE_ABOVE = 12_000
 CARRY_BLOCK = 32_768
 PART_SKIN = 8  # skin vertices nearest each part vertex whose mean motion the part takes
@@ -250,112 +248,6 @@ class Rig:
             basis=self.blendshapes,
             to_gltf=self.to_gltf(),
         )
-
-
-def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(V, 3) vertices and (F, 3) triangles of a mesh file (all its meshes merged, in the file's
-    units and axes); one-line TalkmeshErrors for missing, unreadable or empty files."""
-    path = Path(path)
-    if not path.is_file():
-        raise TalkmeshError(f"{path}: no such file")
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise TalkmeshError(f"{path}: give a head mesh as {', '.join(MESH_SUFFIXES)}")
-    try:
-        import trimesh
-    except ImportError:
-        raise MissingDependencyError("trimesh", "rig", "talkmesh rig") from None
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many kinds on bad files
-        raise TalkmeshError(f"{path}: cannot read the mesh ({type(e).__name__}: {e})") from None
-    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
-    if not len(faces):
-        raise TalkmeshError(f"{path}: no triangles in the file")
-    return np.asarray(mesh.vertices, np.float64), faces.astype(np.int64)
-
-
-def load_rig(path: str | Path) -> Rig:
-    """The head mesh at ``path`` registered to the bundled head (the closest-point shapes: what
-    :meth:`Rig.carry` needs), once per file and process (a CLI check and the workers forked
-    after it share it), and across runs through the saved registration of the same file bytes
-    (:mod:`talkmesh.face.rig_cache`). One-line TalkmeshErrors for a file that is no head mesh."""
-    path = Path(path)
-    if not path.is_file():
-        raise TalkmeshError(f"{path}: no such file")
-    return _rig_file(str(path.resolve()), path.stat().st_mtime)
-
-
-@lru_cache(maxsize=2)
-def _rig_file(path: str, mtime: float) -> Rig:
-    vertices, faces = load_mesh(path)
-    head = load_head()
-    digest, head_id = rig_cache.file_digest(path), _head_id(head)
-    saved = rig_cache.load(digest, head_id, len(vertices), head.num_vertices)
-    if saved is not None:
-        arrays, landmarks = saved
-        return _closest_rig(vertices, faces, head, landmarks=landmarks, **arrays)
-    try:
-        rig = rig_head(vertices, faces, head, method="closest")
-    except TalkmeshError as e:
-        message = str(e)
-        raise TalkmeshError(message if path in message else f"{path}: {message}") from None
-    rig_cache.save(digest, head_id, _correspondence(rig), rig.landmarks)
-    return rig
-
-
-def save_registration(path: str | Path, rig: Rig) -> None:
-    """Save ``rig``'s registration of the mesh file at ``path`` (``talkmesh rig``) for
-    :func:`load_rig` (``animate --head``) to read back instead of registering the file again."""
-    rig_cache.save(
-        rig_cache.file_digest(path), _head_id(load_head()), _correspondence(rig), rig.landmarks
-    )
-
-
-def _head_id(head: Head) -> str:
-    return rig_cache.head_fingerprint(head.template.tobytes(), head.faces.tobytes())
-
-
-def _correspondence(rig: Rig) -> dict[str, np.ndarray]:
-    """The arrays a saved registration keeps (``rig_cache.FIELDS``)."""
-    return {
-        "scale": np.float64(rig.scale),
-        "rotation": rig.rotation,
-        "translation": rig.translation,
-        "residual": np.float64(rig.residual),
-        "corners": rig.corners,
-        "weights": rig.weights,
-    }
-
-
-def _closest_rig(
-    vertices, faces, head, *, scale, rotation, translation, residual, corners, weights, landmarks
-) -> Rig:
-    """The closest-point Rig (``method="closest"``) from a correspondence: every vertex takes the
-    bundled offsets at its corresponding point (``weights`` over the ``corners``)."""
-    scale, residual = float(scale), float(residual)
-    return Rig(
-        vertices=np.asarray(vertices, np.float32),
-        faces=np.asarray(faces, np.int32),
-        blendshapes=_closest_shapes(head, corners, weights, scale, rotation).astype(np.float32),
-        scale=scale,
-        rotation=rotation,
-        translation=translation,
-        residual=residual,
-        landmarks=landmarks,
-        corners=corners,
-        weights=weights,
-    )
-
-
-def _closest_shapes(head, corners, weights, scale, rotation) -> np.ndarray:
-    """(52, V, 3) float64 the bundled shapes at each vertex's corresponding point, user axes;
-    CARRY_BLOCK vertices at a time (the (52, V, 3, 3) gather is 3.7 GB at a million)."""
-    out = np.empty((len(head.blendshapes), len(corners), 3))
-    for a in range(0, len(corners), CARRY_BLOCK):
-        b = slice(a, a + CARRY_BLOCK)
-        gathered = head.blendshapes[:, corners[b]]
-        out[:, b] = scale * np.einsum("vc,kvcx->kvx", weights[b], gathered) @ rotation.T
-    return out
 
 
 def read_landmarks(path: str | Path) -> dict[str, int]:
@@ -565,7 +457,7 @@ def _rig(vertices, faces, head, landmarks, method, automatic, pre_fit) -> Rig:
     fade = np.clip((far - dist) / (far - near), 0.0, 1.0)
     corners = head_faces[face]
     weights = bary * fade[:, None]
-    guess = _closest_shapes(head, corners, weights, scale, rotation)
+    guess = closest_shapes(head, corners, weights, scale, rotation, CARRY_BLOCK)
     parts: dict[str, int] = {}
     if method == "transfer":
         labels = _components(faces, len(vertices))
@@ -603,64 +495,24 @@ def _rig(vertices, faces, head, landmarks, method, automatic, pre_fit) -> Rig:
     )
 
 
-def reduce_mesh(vertices: np.ndarray, faces: np.ndarray, count: int) -> tuple[np.ndarray, ...]:
-    """(V', 3) vertices and (F', 3) faces of the mesh decimated to about ``count`` vertices by
-    quadric edge collapse (fast-simplification): edges collapse, separate surfaces never merge,
-    so lips that touch stay two lips."""
-    try:
-        import fast_simplification
-    except ImportError:
-        raise MissingDependencyError(
-            "fast-simplification", "all", f"rigging meshes of over {REDUCE_ABOVE} vertices"
-        ) from None
-    target = int(len(faces) * min(1.0, 2 * count / len(faces)))  # F ~ 2V on a closed surface
-    small_v, small_f = fast_simplification.simplify(
-        vertices.astype(np.float64), faces.astype(np.int32), target_count=target
-    )
-    tri = small_v[small_f]
-    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    small_f = small_f[area > 1e-8 * np.median(area)]  # slivers: no closest point is on them
-    used = np.unique(small_f)  # vertices no face uses (collapsed away) are dropped
-    remap = np.full(len(small_v), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    return small_v[used], remap[small_f]
-
-
 def _rig_reduced(vertices, faces, head, landmarks, method, automatic, pre_fit) -> Rig:
     """:func:`rig_head` of a mesh over REDUCE_ABOVE vertices: registered (and refused if no
-    head) on a copy decimated to REDUCE_ABOVE vertices, whose shapes every vertex then takes at
-    its closest point on the copy (facing the same way: the lower lip does not take the
-    upper's), CARRY_BLOCK vertices at a time. Memory: the (52, V, 3) float32 shapes (624 bytes a
-    vertex) and a block's work, not the registration's, which grows with the mesh."""
+    head) on a copy decimated to REDUCE_ABOVE vertices, its shapes carried back to every vertex
+    (:func:`talkmesh.face.rig_dense.carry_back`)."""
     _check_landmarks(landmarks or {}, len(vertices))
     small_v, small_f = reduce_mesh(vertices, faces, REDUCE_ABOVE)
     near = cKDTree(small_v)
     given = {n: int(near.query(vertices[int(i)])[1]) for n, i in (landmarks or {}).items()}
     small = _rig(small_v, small_f, head, given, method, automatic, pre_fit)
-    normals = vertex_normals(vertices, faces)
-    shapes = np.empty((len(small.blendshapes), len(vertices), 3), np.float32)
-    corners = np.empty((len(vertices), 3), np.int64)
-    weights = np.empty((len(vertices), 3))
-    for a in range(0, len(vertices), CARRY_BLOCK):
-        b = slice(a, a + CARRY_BLOCK)
-        face, bary, _ = closest_points(vertices[b], small_v, small_f, normals[b])
-        tri = small_f[face]
-        shapes[:, b] = np.einsum("vc,kvcx->kvx", bary, small.blendshapes[:, tri])
-        nearest = tri[np.arange(len(tri)), np.argmax(bary, axis=1)]
-        corners[b], weights[b] = small.corners[nearest], small.weights[nearest]
-    tree = cKDTree(vertices)
-    found = {n: int(tree.query(small_v[i])[1]) for n, i in small.landmarks.items()}
-    found.update({n: int(i) for n, i in (landmarks or {}).items()})  # the user's ids, as given
-    return Rig(
+    shapes, corners, weights, found = carry_back(
+        vertices, faces, small_v, small_f, small, landmarks, CARRY_BLOCK
+    )
+    return replace(
+        small,
         vertices=vertices.astype(np.float32),
         faces=faces.astype(np.int32),
         blendshapes=shapes,
-        scale=small.scale,
-        rotation=small.rotation,
-        translation=small.translation,
-        residual=small.residual,
         landmarks=found,
-        parts=small.parts,
         corners=corners,
         weights=weights,
     )

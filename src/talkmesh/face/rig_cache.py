@@ -9,7 +9,7 @@ registering; an edited mesh has another name, so it is registered again. A saved
 be read, was written by another format version or for another bundled head, or does not fit the
 mesh, is one warning and the mesh is registered again (and saved over it).
 
-Everything here is plain arrays: :func:`talkmesh.face.rig.load_rig` turns them into a ``Rig``.
+Everything here is plain arrays: :func:`talkmesh.face.rig_files.load_rig` turns them into a ``Rig``.
 """
 
 from __future__ import annotations
