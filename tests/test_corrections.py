@@ -35,7 +35,7 @@ PHONES = [
 T = 60
 t = (np.arange(T) + 0.5) / FPS
 # the pause gate on the pauses of PHONES (the tests' waves are tones, not speech)
-RECOGNISED = Corrections(mix=0.0, pauses="recognizer")
+RECOGNISED = Corrections(mix=0.0, gain=0.0, lip_closure=False, pauses="recognizer")
 
 
 def _open_mouth(head):
@@ -93,7 +93,7 @@ def test_lip_closure_shuts_the_models_near_closure_and_only_with_its_switch():
     rest = float(_mm(head, head.template[None])[0])
     bare = _mm(head, _dipping(head))
     assert bare[20] - rest > 0.5 and bare[20] - rest < NEAR_CLOSED_MM  # nearly closed
-    closure = Corrections(pause_gate=False, lip_closure=True, mix=0.0, gain=0.0)
+    closure = Corrections(pause_gate=False, lip_closure=True, mix=0.0, gain=0.0, met_lips=False)
     closed = _mm(head, correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, closure))
     assert abs(closed[20] - rest) < 0.05  # shut at the minimum
     np.testing.assert_allclose(np.delete(closed, 20), np.delete(bare, 20), rtol=1e-6)
@@ -113,11 +113,15 @@ def test_bilabial_closure_shuts_near_closures_by_a_recognised_p_b_m_only():
     verts[45:] = head.vertices_from_weights(w)[45:]
     bare = _mm(head, verts)
     assert bare[50] - rest > 0.5 and bare[50] - rest < NEAR_CLOSED_MM
-    fix = Corrections(pause_gate=False, mix=0.0, gain=0.0, bilabial=True)
+    fix = Corrections(
+        pause_gate=False, lip_closure=False, mix=0.0, gain=0.0, met_lips=False, bilabial=True
+    )
     shut = _mm(head, correct_mouth(verts.copy(), head, PHONES, _wave(), FPS, fix))
     assert abs(shut[20] - rest) < 0.05  # by the M: shut
     np.testing.assert_allclose(np.delete(shut, 20), np.delete(bare, 20), rtol=1e-6)  # not at 50
-    every = Corrections(pause_gate=False, mix=0.0, gain=0.0, bilabial=True, lip_closure=True)
+    every = Corrections(
+        pause_gate=False, mix=0.0, gain=0.0, bilabial=True, lip_closure=True, met_lips=False
+    )
     both = _mm(head, correct_mouth(verts.copy(), head, PHONES, _wave(), FPS, every))
     assert abs(both[50] - rest) < 0.05 and abs(both[20] - rest) < 0.05
 
@@ -158,7 +162,7 @@ def test_gain_opens_the_mouth_further_in_loud_speech_but_keeps_closures():
     head = load_head()
     rest = float(_mm(head, head.template[None])[0])
     bare = _mm(head, _dipping(head))
-    gain = Corrections(pause_gate=False, mix=0.0, gain=0.5, bilabial=False)
+    gain = Corrections(pause_gate=False, lip_closure=False, mix=0.0, gain=0.5, bilabial=False)
     louder = _mm(head, correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, gain))
     speech = (t > 0.4) & (t < 0.55)  # loud, far from the closure at frame 20
     # the lips' displacement from the closed mouth grows by half
@@ -178,7 +182,12 @@ def test_the_gain_fades_with_the_pause_gate():
 
     def opening(pause_gate: bool, gain: float) -> np.ndarray:
         fix = Corrections(
-            pause_gate=pause_gate, mix=0.0, gain=gain, bilabial=False, pauses="recognizer"
+            pause_gate=pause_gate,
+            lip_closure=False,
+            mix=0.0,
+            gain=gain,
+            bilabial=False,
+            pauses="recognizer",
         )
         return _mm(head, correct_mouth(_open_mouth(head), head, PHONES, _wave(), FPS, fix))
 
@@ -195,7 +204,9 @@ def test_the_gain_fades_with_the_pause_gate():
 def test_chunks_are_corrected_as_the_whole_clip(size):
     """Chunk edges next to the near-closure at frame 20: the look-ahead must see its neighbours."""
     head = load_head()
-    every = Corrections(pause_gate=True, lip_closure=True, mix=0.5, gain=0.3, pauses="recognizer")
+    every = Corrections(
+        pause_gate=True, lip_closure=True, mix=0.5, gain=0.3, pauses="recognizer", met_lips=False
+    )
     whole = correct_mouth(_dipping(head), head, PHONES, _wave(), FPS, every)
     verts = _dipping(head)
     chunks = (verts[i : i + size] for i in range(0, T, size))
@@ -315,7 +326,9 @@ def test_met_lips_shut_near_closures_to_closed_lips_not_to_the_rest_face():
     head = load_head()
     rest = float(_mm(head, head.template[None])[0])
     assert float(_mm(head, closed_lips(head)[None])[0]) <= 0.5 < rest
-    plain = Corrections(pause_gate=False, lip_closure=True, mix=0.0, gain=0.0, bilabial=False)
+    plain = Corrections(
+        pause_gate=False, lip_closure=True, mix=0.0, gain=0.0, bilabial=False, met_lips=False
+    )
     met = Corrections(
         pause_gate=False, lip_closure=True, mix=0.0, gain=0.0, bilabial=False, met_lips=True
     )

@@ -59,9 +59,12 @@ def test_learned_model_on_a_real_recording_shuts_the_mouth_in_pauses_only_with_t
     wave = rs.read_clip(clip)
     phones = rs.truth_phones(clip, wave)
     head = load_head()
-    anim = animate(wave, head=head, model="codetalker-synth", fps=FPS, pause_gate=gate)
+    anim = animate(
+        wave, head=head, model="codetalker-synth", fps=FPS, pause_gate=gate, lip_closure=False
+    )
     opening = lip_opening(anim.vertices, head.regions) * 1000
     rest = float(lip_opening(head.template[None], head.regions)[0]) * 1000
     m = rs.score_opening(opening, rest, phones, wave, FPS)
-    # the bundled model alone keeps the mouth ~4 mm open in this clip's pauses
-    assert (m["pause_mm"] < 0.5) if gate else (m["pause_mm"] > 1.0)
+    # the bundled model alone keeps the mouth about 1 mm open in this clip's pauses (the model
+    # before 2026-11-27: about 4 mm)
+    assert (m["pause_mm"] < 0.5) if gate else (m["pause_mm"] > 0.8)
