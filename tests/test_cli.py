@@ -538,7 +538,8 @@ COMMANDS = {
     "animate": (
         ["audio"],
         "--avatar --bilabial-closure --camera --cluster --fps --head --identity --int8 "
-        "--lip-closure --loudness-gain --model --no-bilabial-closure --no-blinks --no-pause-gate "
+        "--lip-closure --loudness-gain --model --no-bilabial-closure --no-blinks --no-lip-closure "
+        "--no-pause-gate "
         "--normalize-template --output --overwrite --pause-source "
         "--procedural-mix --quiet --seed --size --style --summary --template --text --workers",
     ),

@@ -147,7 +147,7 @@ def test_wrong_dataset_and_missing_files_are_named(tmp_path):
     with pytest.raises(TalkmeshError, match="no such checkpoint"):
         import_checkpoint([tmp_path / "none.pth"], "faceformer", "vocaset")
     (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
-    with pytest.raises(TalkmeshError, match="refused: not a plain PyTorch weight file"):
+    with pytest.raises(TalkmeshError, match="refused: a plain Python pickle"):
         import_checkpoint([tmp_path / "junk.pth"], "faceformer", "vocaset")
 
 

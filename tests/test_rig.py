@@ -205,7 +205,7 @@ def test_not_a_head(head):
 def test_cli_rig_then_animate_as_avatar(tmp_path, capsys, monkeypatch):
     """The rigged .glb drives like any avatar; `animate --head` on the same mesh file reads the
     registration `talkmesh rig` saved instead of registering again."""
-    import talkmesh.face.rig as rig_module
+    import talkmesh.face.rig_files as rig_module
 
     head = load_head()
     mesh = trimesh.Trimesh(1000 * head.template, head.faces, process=False)  # millimetres

@@ -39,7 +39,9 @@ def load_weights_only(path: Path, *, mmap: bool = False, kind: str = "checkpoint
     except OSError as e:
         raise TalkmeshError(os_error_message(e, path, action="read")) from None
     except pickle.UnpicklingError as e:
-        raise TalkmeshError(f"{path}: refused: {refusal(str(e), zipped)}") from None
+        raise TalkmeshError(
+            f"{path}: refused: {refusal(str(e), zipped)}: delete it or use one you trust"
+        ) from None
     except (RuntimeError, EOFError, ValueError, AttributeError, IndexError, KeyError) as e:
         if "Invalid magic number" in str(e) or "invalid load key" in str(e):
             raise TalkmeshError(

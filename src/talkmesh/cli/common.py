@@ -187,14 +187,15 @@ def load_input(path: str, fps: float | None):
 
 def check_writable(path: Path, what: str) -> None:
     """Refuse ``path`` (``what``: the option that names it) when no file can be written there:
-    its folder is made if missing and a probe file is written and removed, so a read-only or
-    full folder is found before any work rather than after it."""
+    its folder is made if missing and a probe file is written and removed (and the folders made
+    for it), so a read-only or full folder is found before any work rather than after it."""
     import tempfile
 
     from talkmesh.errors import os_error_message
 
     if path.is_dir():
         raise TalkmeshError(f"{what} {path} is a folder: give a file name")
+    missing = [p for p in [path.parent, *path.parent.parents] if not p.exists()]
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".talkmesh-probe-"):
@@ -203,3 +204,9 @@ def check_writable(path: Path, what: str) -> None:
         raise TalkmeshError(
             f"{what} {os_error_message(e, path.parent, action='write in')}"
         ) from None
+    finally:  # folders made for the probe go again: a later refusal leaves nothing behind
+        for folder in missing:
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
