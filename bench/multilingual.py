@@ -134,6 +134,11 @@ def _median(rows, key):
     return float(np.median(vals)) if vals else math.nan
 
 
+def _extreme(rows, key, pick):
+    vals = [r[key] for r in rows if not math.isnan(r[key])]
+    return pick(vals) if vals else math.nan
+
+
 def report(rows, methods, conditions) -> str:
     languages = sorted({r["language"] for r in rows})
     lines = []
@@ -159,10 +164,12 @@ def report(rows, methods, conditions) -> str:
                     continue
                 trained = "-" if lang == "all" else ("yes" if sel[0]["trained_language"] else "no")
                 vals = " | ".join(_fmt(_median(sel, k)) for k in METRICS)
-                worst = max(
-                    (r["pause_mm"] for r in sel if not math.isnan(r["pause_mm"])), default=math.nan
+                worst = _extreme(sel, "pause_mm", max)
+                slowest = _extreme(sel, "speed_ratio", min)
+                lines.append(
+                    f"| {lang} | {trained} | {m} | {len(sel)} | {vals} | {_fmt(worst)} | "
+                    f"{_fmt(slowest)} |"
                 )
-                lines.append(f"| {lang} | {trained} | {m} | {len(sel)} | {vals} | {_fmt(worst)} |")
         lines.append("")
     return "\n".join(lines)
 

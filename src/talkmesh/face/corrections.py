@@ -141,16 +141,12 @@ def loudness_curve(wave: np.ndarray, num_frames: int, fps: float) -> np.ndarray:
 
 def closed_lips(head: Head) -> np.ndarray:
     """(V, 3) the head's rest face with its lips met, as the teacher closes them for /p b m/
-    (:func:`talkmesh.face.teacher.close_lips` on the rest weights); cached on the head."""
-    cached = getattr(head, "_closed_lips", None)
-    if cached is None:
-        from talkmesh.face.teacher import close_lips
+    (:func:`talkmesh.face.teacher.close_lips` on the rest weights)."""
+    from talkmesh.face.teacher import close_lips
 
-        w = np.zeros((1, len(head.blendshape_names)), np.float32)
-        close_lips(w, [Phone("M", 0.0, 1.0)], 1.0, head, ease_frames=0)
-        cached = head.vertices_from_weights(w)[0]
-        object.__setattr__(head, "_closed_lips", cached)
-    return cached
+    w = np.zeros((1, len(head.blendshape_names)), np.float32)
+    close_lips(w, [Phone("M", 0.0, 1.0)], 1.0, head, ease_frames=0)
+    return head.vertices_from_weights(w)[0]
 
 
 def find_pauses(wave: np.ndarray, corrections: Corrections, phones: list[Phone]) -> list[Phone]:
@@ -260,6 +256,9 @@ def correct_mouth_chunks(
     shut_at = np.ones(num_frames, bool) if corrections.lip_closure else None
     if corrections.bilabial and not corrections.lip_closure:
         shut_at = bilabial_frames(phones, num_frames, fps)
+    closed = None  # where shut lips go: met (solved once per clip) or the rest face
+    if shut_at is not None:
+        closed = closed_lips(head) if corrections.met_lips else head.template
     if corrections.gain > 0:
         loud = corrections.gain * loudness_curve(wave, num_frames, fps)
     if corrections.mix > 0:
@@ -281,12 +280,22 @@ def correct_mouth_chunks(
         pending.append(chunk)
         while pending and done + len(pending[0]) + look <= known:
             chunk = pending.pop(0)
-            _correct(chunk, done, opening, rest, (loud, weights, shut_at, gate), head, corrections)
+            _correct(
+                chunk,
+                done,
+                opening,
+                rest,
+                (loud, weights, shut_at, gate, closed),
+                head,
+                corrections,
+            )
             done += len(chunk)
             yield chunk
     assert known == num_frames, (known, num_frames)
     for chunk in pending:
-        _correct(chunk, done, opening, rest, (loud, weights, shut_at, gate), head, corrections)
+        _correct(
+            chunk, done, opening, rest, (loud, weights, shut_at, gate, closed), head, corrections
+        )
         done += len(chunk)
         yield chunk
 
@@ -302,9 +311,9 @@ def _correct(
 ) -> None:
     """Frames ``start``.. of the clip (``chunk``) corrected in place: ``opening`` is known from
     two frames before to two frames after them (or to the clip's ends); ``curves`` are the
-    clip's (T,) gain, (T, 52) procedural weights, (T,) frames where near-closures shut and (T,)
-    pause gate (None: not applied)."""
-    loud, weights, shut_at, gate = curves
+    clip's (T,) gain, (T, 52) procedural weights, (T,) frames where near-closures shut, (T,)
+    pause gate (None: not applied) and the (V, 3) face shut lips go to."""
+    loud, weights, shut_at, gate, closed = curves
     mouth = head.regions.mouth_weight
     end = start + len(chunk)
     if opening is not None:  # closures from a frame before to a frame after the chunk
@@ -332,7 +341,6 @@ def _correct(
         if gate is not None and corrections.met_lips:  # in speech only: a pause is at rest
             shut &= gate[start:end] >= 1.0
         shut = shut.astype(np.float32)
-        closed = closed_lips(head) if corrections.met_lips else head.template
         _blend(chunk, lambda b: closed[None], shut, mouth)
     if gate is not None:
         gate_mouth(chunk, head.template, mouth, gate[start:end])

@@ -37,7 +37,8 @@ BILABIALS = frozenset({"P", "B", "M"})
 OPEN_VOWELS = frozenset({"AA", "AE", "AH", "AO", "AW", "AY"})
 # open-vowel jaw peak relative to the viseme's jaw target, at full loudness (the square root of
 # the loudness scales it below that): the synthesisers' vowels are short (English /@/ 20-30 ms),
-# and with 1.3 the truth's open vowels open as far as the procedural animator's on real clips
+# and with 1.3 the truth's open vowels open 12.1 mm (median of the multilingual test split; the
+# procedural animator on real clips: 10.4; English alone 7.2)
 VOWEL_GAIN = 1.3
 MAX_JAW = 0.45  # no vowel opens the jaw further (about 18 mm of lip opening)
 LOUDNESS_RANGE_DB = 24.0
