@@ -121,6 +121,7 @@ def _step_stage2(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     return StepOutput(
         out.loss,
         {"feature": float(out.feature_loss.detach()), "motion": float(out.motion_loss.detach())},
+        out.motion,
     )
 
 

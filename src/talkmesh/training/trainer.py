@@ -88,6 +88,7 @@ class TrainConfig:
     devices: int = 1
     num_nodes: int = 1
     grad_clip: float = 0.0
+    lip_gap_weight: float = 0.0  # the lip-gap loss (talkmesh.training.lip_gap); 0: the paper's
     log_every: int = 10  # steps between log rows
     val_every: int = 1  # epochs between validation runs
     out_dir: str = "runs/train"
@@ -100,6 +101,8 @@ class TrainConfig:
             raise ValueError("train.epochs must be at least 1")
         if self.devices < 1 or self.num_nodes < 1:
             raise ValueError("train.devices and train.num_nodes must be at least 1")
+        if not self.lip_gap_weight >= 0:
+            raise ValueError("train.lip_gap_weight must be >= 0")
         if self.lr_step_size < 0 or not 0 < self.lr_gamma <= 1:
             raise ValueError("train.lr_step_size must be >= 0 and train.lr_gamma in (0, 1]")
 
@@ -184,10 +187,12 @@ def load_recipes(path: str | Path, overrides: list[str] = ()) -> list[tuple[str,
 
 
 class StepOutput(NamedTuple):
-    """What a task's step returns: the loss to minimise and scalar diagnostics to log."""
+    """What a task's step returns: the loss to minimise, scalar diagnostics to log and, from
+    tasks that predict motion, the predicted offsets (B, T, V*3) (the lip-gap loss reads them)."""
 
     loss: Any  # () tensor
     logs: dict[str, float]
+    motion: Any = None
 
 
 class TorchBatch(NamedTuple):
@@ -395,22 +400,27 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
             super().__init__()
             self.model = task.build(recipe.model, info, init)
             self.recorded: list[str] = []
+            self.lip_gap: Any = None  # a lip_gap.LipGap when train.lip_gap_weight > 0
+
+        def _loss(self, batch: TorchBatch) -> tuple[Any, dict[str, float]]:
+            out = task.step(self.model, batch)
+            if self.lip_gap is None:
+                return out.loss, out.logs
+            return self.lip_gap.add(out, batch, recipe.task)
 
         def training_step(self, batch: TorchBatch, batch_idx: int):
-            out = task.step(self.model, batch)
+            loss, logs = self._loss(batch)
             bs = len(batch.names)
-            self.log("train/loss", out.loss.detach(), prog_bar=True, batch_size=bs, sync_dist=False)
-            for key, value in out.logs.items():
+            self.log("train/loss", loss.detach(), prog_bar=True, batch_size=bs, sync_dist=False)
+            for key, value in logs.items():
                 self.log(f"train/{key}", value, batch_size=bs)
             if recipe.train.record_batches:
                 self.recorded.extend(batch.names)
-            return out.loss
+            return loss
 
         def validation_step(self, batch: TorchBatch, batch_idx: int) -> None:
-            out = task.step(self.model, batch)
-            self.log(
-                "val/loss", out.loss, prog_bar=True, batch_size=len(batch.names), sync_dist=True
-            )
+            loss, _ = self._loss(batch)
+            self.log("val/loss", loss, prog_bar=True, batch_size=len(batch.names), sync_dist=True)
 
         def configure_optimizers(self):
             params = [p for p in task.parameters(self.model) if p.requires_grad]
@@ -636,6 +646,10 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     task = task_spec(recipe.task)
     if task.prepare is not None and not resume:  # a resumed run restores them from the checkpoint
         task.prepare(system.model, train_set)
+    if recipe.train.lip_gap_weight > 0:
+        from talkmesh.training.lip_gap import LipGap
+
+        system.lip_gap = LipGap.from_data(train_set, info.regions, recipe.train.lip_gap_weight)
 
     train_loader, val_loader = _loaders(recipe, train_set)
     trainer = _lightning_trainer(L, recipe, out, progress)

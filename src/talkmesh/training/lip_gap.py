@@ -1,0 +1,112 @@
+"""The lip-gap loss: an optional training term on the distance between the lips.
+
+The vertex losses of the papers (CodeTalker's Eq. 6, FaceFormer's MSE) weigh every coordinate of
+the face alike; a closure of the lips is a millimetre or two of a few vertices among thousands, and
+a model can leave it out at almost no cost: the lips of a model trained on them alone stop 2 mm
+apart at /p b m/ where its teacher closes them (docs/results/multilingual.md). This term compares
+the predicted gap between facing lip vertices with the truth's, so that a gap left open costs what
+it looks like.
+
+The pairs are found from the data, for any topology: pairs of lip vertices (the dataset's lip
+vertex error region) close together on the template whose distance changes the most over the
+training motion: the lips facing each other across the mouth, which part and meet as it speaks.
+
+``train.lip_gap_weight`` in a recipe turns it on (0, the papers' loss, by default).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from talkmesh.errors import TalkmeshError
+
+REACH = 0.08  # candidate pairs: at most this share of the lip region's width apart on the template
+SHARE = 0.5  # keep pairs whose gap varies at least this share of the most varying pair's
+SAMPLES = 32  # training clips read to find the pairs
+
+
+def lip_width(template: np.ndarray, lips: np.ndarray) -> float:
+    """The lip region's width (its largest extent along an axis), in the data's units."""
+    return float(np.ptp(template[lips], axis=0).max())
+
+
+def lip_gap_pairs(dataset, lips: np.ndarray | None) -> np.ndarray:
+    """(P, 2) vertex pairs across the lip gap, from the template and the training motion of
+    ``dataset`` (a ``MotionDataset``); ``lips``: the lip region's vertex ids."""
+    if lips is None or len(lips) < 2:
+        raise TalkmeshError(
+            "train.lip_gap_weight needs the data's lip region (regions/lve.txt): add it or set "
+            "lip_gap_weight to 0"
+        )
+    lips = np.asarray(lips, np.int64)
+    step = max(1, len(dataset) // SAMPLES)
+    clips = [dataset[i] for i in range(0, len(dataset), step)]
+    template = clips[0].template.astype(np.float64)
+    candidates = cKDTree(template[lips]).query_pairs(
+        REACH * lip_width(template, lips), output_type="ndarray"
+    )
+    if not len(candidates):
+        raise TalkmeshError("the lip region's vertices are too far apart to find the lip gap")
+    i, j = lips[candidates[:, 0]], lips[candidates[:, 1]]
+    gaps = np.concatenate(
+        [np.linalg.norm(c.vertices[:, i] - c.vertices[:, j], axis=-1) for c in clips]
+    )
+    spread = gaps.std(axis=0)
+    keep = spread >= SHARE * spread.max()
+    return np.stack([i[keep], j[keep]], axis=1)
+
+
+def lip_gap_loss(
+    motion: torch.Tensor,
+    vertices: torch.Tensor,
+    templates: torch.Tensor,
+    pairs: torch.Tensor,
+    width: float,
+    mask: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Mean squared error of the gap vectors between ``pairs`` (P, 2), in per cent of the lip
+    region's ``width``: motion (B, T, V*3) predicted offsets, vertices (B, T, V, 3) the truth,
+    templates (B, V, 3), mask (B, T) the real frames."""
+    B, T = vertices.shape[:2]
+    pred = motion.reshape(B, T, -1, 3)
+    true = vertices - templates[:, None]
+    a, b = pairs[:, 0], pairs[:, 1]
+    err = ((pred[:, :, a] - pred[:, :, b]) - (true[:, :, a] - true[:, :, b])) * (100.0 / width)
+    per_frame = err.pow(2).sum(-1).mean(-1)  # (B, T)
+    if mask is None:
+        return per_frame.mean()
+    w = mask.to(per_frame.dtype)
+    return (per_frame * w).sum() / w.sum().clamp(min=1)
+
+
+class LipGap:
+    """The term as a recipe adds it to a task's loss: ``weight`` x :func:`lip_gap_loss`."""
+
+    def __init__(self, pairs: np.ndarray, width: float, weight: float) -> None:
+        self.pairs = torch.from_numpy(np.asarray(pairs, np.int64))
+        self.width = width
+        self.weight = weight
+
+    @classmethod
+    def from_data(cls, dataset, regions, weight: float) -> LipGap:
+        lips = getattr(regions, "lve", None)
+        pairs = lip_gap_pairs(dataset, lips)
+        width = lip_width(dataset[0].template, np.asarray(lips, np.int64))
+        print(f"lip-gap loss on {len(pairs)} vertex pairs (weight {weight})")
+        return cls(pairs, width, weight)
+
+    def add(self, out, batch, task: str) -> tuple[torch.Tensor, dict[str, float]]:
+        """A task's StepOutput ``out`` on ``batch`` -> (its loss plus this term, its logs)."""
+        if out.motion is None:
+            raise TalkmeshError(f"task {task} has no lip-gap loss: set train.lip_gap_weight to 0")
+        gap = lip_gap_loss(
+            out.motion,
+            batch.vertices,
+            batch.templates,
+            self.pairs.to(out.motion.device),
+            self.width,
+            batch.motion_mask,
+        )
+        return out.loss + self.weight * gap, {**out.logs, "lip_gap": float(gap.detach())}

@@ -1,0 +1,78 @@
+"""The lip-gap loss (talkmesh.training.lip_gap): which pairs it finds, what it measures."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from talkmesh.errors import TalkmeshError
+from talkmesh.training.lip_gap import LipGap, lip_gap_loss, lip_gap_pairs
+from talkmesh.training.trainer import StepOutput, TrainConfig
+
+XS = np.arange(5) * 2.0  # five columns 2 apart: the region is 8 wide, candidates 0.64 apart
+
+
+def _mouth(opening: float) -> np.ndarray:
+    """Three rows of five vertices: the outer upper lip, the inner upper lip 0.5 below it, the
+    lower lip 0.5 below that; the lower lip drops by ``opening``."""
+    rows = [(0.75, 0.0), (0.25, 0.0), (-0.25, -opening)]
+    return np.array([[x, y + drop, 0.0] for y, drop in rows for x in XS], np.float32)
+
+
+def _dataset(openings: list[list[float]]):
+    template = _mouth(0.0)
+    clips = [
+        SimpleNamespace(template=template, vertices=np.stack([_mouth(o) for o in clip]))
+        for clip in openings
+    ]
+    return clips
+
+
+def test_pairs_are_the_lips_facing_each_other_across_the_mouth():
+    data = _dataset([[0.0, 0.3, 0.1], [0.5, 0.0, 0.2]])
+    pairs = lip_gap_pairs(data, np.arange(15))
+    # the inner upper lip (5..9) over the lower lip (10..14), column by column; the outer and
+    # inner upper lip move together, so their pairs do not count
+    assert sorted(map(tuple, np.sort(pairs, axis=1))) == [(5 + k, 10 + k) for k in range(5)]
+
+
+def test_pairs_need_the_lip_region():
+    with pytest.raises(TalkmeshError, match="lip region"):
+        lip_gap_pairs(_dataset([[0.0, 0.2]]), None)
+
+
+def test_the_loss_is_the_gap_error_in_per_cent_of_the_lip_width():
+    template = torch.from_numpy(_mouth(0.0))[None]
+    truth = torch.from_numpy(np.stack([_mouth(0.0), _mouth(0.5)]))[None]  # (1, 2, V, 3)
+    pairs = torch.tensor([[7, 12]])
+    exact = (truth - template[:, None]).flatten(2)
+    assert float(lip_gap_loss(exact, truth, template, pairs, 8.0)) == 0.0
+    moved = exact.view(1, 2, 15, 3) + torch.tensor([0.3, -0.2, 0.1])  # the whole face shifted
+    assert float(lip_gap_loss(moved.flatten(2), truth, template, pairs, 8.0)) == pytest.approx(0)
+    # the lips left shut in the second frame: 0.5 of an 8-wide region = 6.25 %, in one frame of 2
+    shut = torch.zeros_like(exact)
+    got = float(lip_gap_loss(shut, truth, template, pairs, 8.0))
+    assert got == pytest.approx(6.25**2 / 2)
+    only_first = torch.tensor([[True, False]])
+    assert float(lip_gap_loss(shut, truth, template, pairs, 8.0, only_first)) == 0.0
+
+
+def test_the_term_adds_to_the_task_loss_and_needs_predicted_motion():
+    template = torch.from_numpy(_mouth(0.0))[None]
+    truth = torch.from_numpy(np.stack([_mouth(0.0), _mouth(0.5)]))[None]
+    batch = SimpleNamespace(vertices=truth, templates=template, motion_mask=None)
+    term = LipGap(np.array([[7, 12]]), 8.0, weight=0.1)
+    out = StepOutput(torch.tensor(1.0), {"motion": 1.0}, torch.zeros(1, 2, 45))
+    loss, logs = term.add(out, batch, "codetalker-stage2")
+    assert float(loss) == pytest.approx(1.0 + 0.1 * 6.25**2 / 2)
+    assert logs["lip_gap"] == pytest.approx(6.25**2 / 2) and logs["motion"] == 1.0
+    with pytest.raises(TalkmeshError, match="no lip-gap loss"):
+        term.add(StepOutput(torch.tensor(1.0), {}), batch, "meshtalk-prior")
+
+
+def test_a_negative_weight_is_refused():
+    with pytest.raises(ValueError, match="lip_gap_weight"):
+        TrainConfig(lip_gap_weight=-1.0)
