@@ -445,19 +445,7 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
 
         def on_save_checkpoint(self, checkpoint: dict) -> None:
             checkpoint["talkmesh_recipe"] = to_dict(recipe)
-            # plain types and tensors only: the checkpoint loads with torch.load(weights_only=True)
-            name, keys, pos, has_gauss, cached = np.random.get_state()
-            checkpoint["talkmesh_rng"] = {
-                "torch": torch.get_rng_state(),
-                "numpy": [
-                    name,
-                    torch.from_numpy(keys.astype(np.int64)),
-                    int(pos),
-                    int(has_gauss),
-                    float(cached),
-                ],
-                "python": random.getstate(),
-            }
+            checkpoint["talkmesh_rng"] = _rng_state()
 
         def on_load_checkpoint(self, checkpoint: dict) -> None:
             rng = checkpoint.get("talkmesh_rng")
@@ -473,6 +461,23 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
                     group["weight_decay"] = recipe.train.weight_decay if i == 0 else 0.0
 
     return MotionSystem()
+
+
+def _rng_state() -> dict:
+    """The random generators' states in plain types and tensors only: the checkpoint loads with
+    torch.load(weights_only=True)."""
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": [
+            name,
+            torch.from_numpy(keys.astype(np.int64)),
+            int(pos),
+            int(has_gauss),
+            float(cached),
+        ],
+        "python": random.getstate(),
+    }
 
 
 def decay_groups(
