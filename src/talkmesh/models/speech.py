@@ -5,8 +5,8 @@ num_frames) -> (B, T, D)`` at the motion frame rate, resampled generally (no dat
 * ``wav2vec2``: transformers' ``Wav2Vec2Model`` (CodeTalker's choice) from a local path or hub id
   (``source``), or a random model from ``hf_config`` (tests); its CNN feature extractor is frozen;
   features (50 Hz) are linearly interpolated to the motion frames.
-* ``whisper``: transformers' ``WhisperEncoder`` (tiny.en, 8.2 M parameters, 384-d at 50 Hz),
-  converted offline with ``talkmesh convert-whisper`` (``source``: the converted directory), or
+* ``whisper``: Whisper's audio encoder (:mod:`talkmesh.models.whisper_encoder`; tiny.en, 8.2 M
+  parameters, 384-d at 50 Hz), converted offline with ``talkmesh convert-whisper`` (``source``: the converted directory), or
   random from ``hf_config``; ``frozen: true`` keeps its pretrained weights fixed.
 
 A model built from ``source`` records the encoder's full config in ``hf_config`` and drops
@@ -29,7 +29,8 @@ from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.models.frames import fit_sample_frames, interpolate_frames
 from talkmesh.models.mel import LOG_FLOOR, MelAudioEncoder, MelConfig
-from talkmesh.models.whisper import WhisperFeatures, load_whisper_encoder, whisper_classes
+from talkmesh.models.whisper import WhisperFeatures, load_whisper_encoder
+from talkmesh.models.whisper_encoder import WhisperAudioEncoder
 
 KINDS = ("mel", "wav2vec2", "whisper")
 
@@ -373,12 +374,10 @@ class MelFeatureStream:
 class WhisperEncoder(nn.Module):
     def __init__(self, cfg: SpeechEncoderConfig) -> None:
         super().__init__()
-        config_cls, encoder_cls = whisper_classes()
-
         if cfg.source:
             encoder = load_whisper_encoder(cfg.source)
         elif cfg.hf_config:
-            encoder = encoder_cls(config_cls(**cfg.hf_config)).eval()
+            encoder = WhisperAudioEncoder(cfg.hf_config).eval()
         else:
             raise TalkmeshError(
                 "speech.kind whisper needs speech.source (a directory written by "

