@@ -21,6 +21,7 @@ from typing import NamedTuple
 from talkmesh.audio.loading import SOUNDFILE_EXTENSIONS, audio_duration
 from talkmesh.errors import TalkmeshError, os_error_message
 from talkmesh.face.corrections import BILABIAL, GAIN, LIP_CLOSURE, MIX, PAUSE_SOURCE
+from talkmesh.face.performance import Performance
 from talkmesh.output import VIDEO_SIZE
 
 OK, SKIPPED, FAILED = "ok", "skipped", "failed"
@@ -53,6 +54,7 @@ class AnimateSettings:
     loudness_gain: float = GAIN
     bilabial_closure: bool = BILABIAL
     pause_source: str = PAUSE_SOURCE
+    performance: Performance | None = field(default=None, hash=False)  # None: neutral
     int8: str | None = None
     size: int = VIDEO_SIZE
     camera: str = "front"
@@ -132,6 +134,7 @@ class Animator:
                 bilabial_closure=s.bilabial_closure,
                 pause_source=s.pause_source,
                 int8=self.int8,
+                performance=s.performance,
             )
             # .npz and .npy stream as frames are made; the other formats get the whole animation
             rigged = [
