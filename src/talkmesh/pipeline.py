@@ -16,7 +16,7 @@ from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, WeightFitter
 from talkmesh.face.assets import Head, load_head
-from talkmesh.face.composition import compose, compose_vertices, lip_basis
+from talkmesh.face.composition import compose, compose_vertices, lip_basis, rest_gap
 from talkmesh.face.corrections import (
     BILABIAL,
     GAIN,
@@ -301,8 +301,9 @@ def _finish_learned(
             replace_eye_motion(verts, weights, eyes[t : t + n], basis)
         if performance is not None:
             emotion = performance.weights((t + np.arange(n)) / fps)
+            rest = rest_gap(head.template, head.regions.lip_pair)
             weights = compose_vertices(
-                verts, weights, emotion, head.blendshapes, head.regions.lip_pair
+                verts, weights, emotion, head.blendshapes, head.regions.lip_pair, rest
             )
         yield Animation(
             vertices=verts,
@@ -379,7 +380,7 @@ def _compose_weights(weights: np.ndarray, emotion: np.ndarray, head: Head) -> np
     upper, lower = head.regions.lip_pair
     basis = lip_basis(head.blendshapes, head.regions.lip_pair)
     lips = (head.template[upper] - head.template[lower]).astype(np.float64) + weights @ basis
-    return compose(weights, emotion, lips, basis)
+    return compose(weights, emotion, lips, basis, rest_gap(head.template, head.regions.lip_pair))
 
 
 def parse_style(text: str | None) -> dict[str, float] | None:

@@ -14,7 +14,8 @@ owns; the emotion keeps the lips' shape (a smile, pressed or stretched lips) but
    vowel or at rest), lips part (AU25: ``mouthUpperUp`` and ``mouthLowerDown``) as far as the
    speech's opening.
 
-``tolerance`` is the larger of ``GAP_TOLERANCE_M`` and ``GAP_TOLERANCE_SHARE`` of the opening.
+``tolerance`` is the larger of ``GAP_TOLERANCE_M`` and ``GAP_TOLERANCE_SHARE`` of the speech's
+opening above the rest face's (so pauses and closures, at or under rest, get 2 micrometres).
 Both steps are found by bisection per frame on the clipped weights, exactly for the bundled head
 (its vertices are linear in the weights), so frames are independent: a clip composed in blocks
 equals one composed at once. An emotion that is zero everywhere returns the speech's weights
@@ -27,12 +28,13 @@ import numpy as np
 
 from talkmesh.face.arkit import ARKIT_NAMES
 
-GAP_TOLERANCE_M = 0.25e-3  # the lips' gap may move this far (metres) ...
-GAP_TOLERANCE_SHARE = 0.03  # ... or this share of the speech's gap, whichever is larger
+GAP_TOLERANCE_M = 0.002e-3  # the lips' gap may move this far (metres) ...
+GAP_TOLERANCE_SHARE = 0.03  # ... or this share of the speech's opening above rest, if larger
 BISECTIONS = 14  # steps of each bisection: 1/16384 of the range
 
 # channels that shape the lips: the emotion's share of them yields to the speech
-LOWER = np.array([n.startswith(("jaw", "mouth", "cheekPuff", "tongue")) for n in ARKIT_NAMES])
+# (the nose wrinkler and cheek raiser lift the upper lip a little too)
+LOWER = np.array([n.startswith(("jaw", "mouth", "cheek", "nose", "tongue")) for n in ARKIT_NAMES])
 # AU25 (lips part): the upper lip raised and the lower lowered, the channels that open the lips
 # without the jaw
 PART = np.zeros(len(ARKIT_NAMES), np.float32)
@@ -48,7 +50,7 @@ def lip_basis(blendshapes: np.ndarray, lip_pair: np.ndarray) -> np.ndarray:
 
 
 def compose(
-    speech: np.ndarray, emotion: np.ndarray, lips: np.ndarray, basis: np.ndarray
+    speech: np.ndarray, emotion: np.ndarray, lips: np.ndarray, basis: np.ndarray, rest: float
 ) -> np.ndarray:
     """The speech's weights with the emotion added, the lips' gap the speech's.
 
@@ -57,6 +59,7 @@ def compose(
         emotion: (T, 52) the emotion's weights in [0, 1] (:meth:`Performance.weights`).
         lips: (T, 3) upper minus lower inner-lip vertex (metres) of the speech's face.
         basis: (52, 3) :func:`lip_basis`.
+        rest: the rest face's lip gap (metres).
 
     Returns:
         (T, 52) float32 weights in [0, 1]; ``speech`` itself where ``emotion`` is all zero.
@@ -68,7 +71,7 @@ def compose(
     s = speech.astype(np.float64)
     lips = lips.astype(np.float64)
     gap0 = np.linalg.norm(lips, axis=1)
-    tol = np.maximum(GAP_TOLERANCE_M, GAP_TOLERANCE_SHARE * gap0)
+    tol = np.maximum(GAP_TOLERANCE_M, GAP_TOLERANCE_SHARE * (gap0 - rest))
     upper = np.where(LOWER, 0.0, emotion).astype(np.float64)
     lower = np.where(LOWER, emotion, 0.0).astype(np.float64)
 
@@ -119,14 +122,21 @@ def compose_vertices(
     emotion: np.ndarray,
     blendshapes: np.ndarray,
     lip_pair: np.ndarray,
+    rest: float,
 ) -> np.ndarray:
     """A learned model's (t, V, 3) ``vertices`` and their fitted (t, 52) ``weights`` with the
-    (t, 52) ``emotion`` composed in (:func:`compose`): the change of the weights is added to the
+    (t, 52) ``emotion`` composed in (:func:`compose`, ``rest`` the rest face's lip gap): the change of the weights is added to the
     vertices in place as blendshape offsets (``blendshapes`` (52, V, 3)); returns the weights."""
     upper, lower = lip_pair
     lips = vertices[:, upper] - vertices[:, lower]
-    new = compose(weights, emotion, lips, lip_basis(blendshapes, lip_pair))
+    new = compose(weights, emotion, lips, lip_basis(blendshapes, lip_pair), rest)
     if new is not weights:
         delta = (new - weights) @ blendshapes.reshape(len(blendshapes), -1)
         vertices += delta.reshape(vertices.shape).astype(vertices.dtype, copy=False)
     return new
+
+
+def rest_gap(template: np.ndarray, lip_pair: np.ndarray) -> float:
+    """The lip gap (metres) of the (V, 3) rest face."""
+    upper, lower = lip_pair
+    return float(np.linalg.norm(template[upper].astype(np.float64) - template[lower]))
