@@ -537,7 +537,8 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
 COMMANDS = {
     "animate": (
         ["audio"],
-        "--avatar --bilabial-closure --camera --cluster --emotion --fps --head --identity --int8 "
+        "--avatar --bilabial-closure --camera --cluster --emotion --fps --head --head-motion "
+        "--identity --int8 "
         "--lip-closure --loudness-gain --model --no-bilabial-closure --no-blinks --no-lip-closure "
         "--no-pause-gate "
         "--normalize-template --output --overwrite --pause-source "

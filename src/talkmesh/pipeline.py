@@ -27,6 +27,7 @@ from talkmesh.face.corrections import (
     Corrections,
     correct_mouth_chunks,
 )
+from talkmesh.face.head_motion import NATURAL, check_amount, head_pose
 from talkmesh.face.lipsync import (
     SpeakingStyle,
     blink_gaze_weights,
@@ -94,6 +95,7 @@ def animate(
     bilabial_closure: bool = BILABIAL,
     pause_source: str = PAUSE_SOURCE,
     performance: Performance | None = None,
+    head_motion: float = NATURAL,
 ) -> Animation:
     """Animate a face from speech.
 
@@ -135,6 +137,8 @@ def animate(
         performance: the emotion over the clip (:mod:`talkmesh.face.performance`), composed with
             the speech so that the speech keeps the lips' opening
             (:mod:`talkmesh.face.composition`); ``[happy]`` tags in ``text`` add spans to it.
+        head_motion: how much the head moves with the speech's prosody, 0 (still) to 1
+            (:mod:`talkmesh.face.head_motion`; the bundled topology only), as ``head_pose``.
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
@@ -186,17 +190,19 @@ def animate_blocks(
     pause_source: str = PAUSE_SOURCE,
     block: int = BLOCK,
     performance: Performance | None = None,
+    head_motion: float = NATURAL,
 ) -> AnimationBlocks:
     """:func:`animate` ``block`` frames at a time (arguments as there; the same frames): memory
     does not grow with the audio when the model generates in chunks (the procedural animator,
     causal CodeTalker models); :func:`talkmesh.output.streaming.save_blocks` writes it. A file
     libsndfile reads is read a slice at a time (``audio`` is then a ``Waveform``)."""
     wave = _checked_wave(audio, fps, block, seed)
+    check_amount(head_motion)
     source = Path(audio) if isinstance(audio, (str, Path)) else None  # videos mux its sound
     head = head or load_head()
     if model is None:  # a transcript or phones ask for the phone-driven animator
         model = "procedural" if text is not None or phones is not None else default_model()
-    _check_int8(int8, model)
+    _check_options(int8, model, text, phones)
     if model == "procedural":
         made = animate_procedural(
             wave,
@@ -208,14 +214,10 @@ def animate_blocks(
             style=style,
             block=block,
             performance=performance,
+            head_motion=head_motion,
         )
         made.audio_file = source
         return made
-    if text is not None or phones is not None:
-        raise TalkmeshError(
-            f"--text and phones drive the procedural animator, not {model_name(model)}: drop "
-            "them or pass --model procedural"
-        )
     corrections = Corrections(
         pause_gate, lip_closure, procedural_mix, loudness_gain, bilabial_closure, pause_source
     )
@@ -233,8 +235,9 @@ def animate_blocks(
             chunks, frames, head, found, wave, fps, corrections, seed=seed, style=style
         )
     eyes = blink_gaze_weights(frames, fps, seed=seed, style=style) if blinks else None
+    pose = _pose(wave, frames, fps, head_motion, seed)
     return AnimationBlocks(
-        blocks=_finish_learned(chunks, head, fps, eyes, _rigged_only(performance, head)),
+        blocks=_finish_learned(chunks, head, fps, eyes, _rigged_only(performance, head), pose),
         num_frames=frames,
         faces=head.faces,
         fps=fps,
@@ -273,7 +276,13 @@ def _rigged_only(performance: Performance | None, head: Head) -> Performance | N
     return performance
 
 
-def _check_int8(int8: str | None, model) -> None:
+def _check_options(int8: str | None, model, text: str | None, phones) -> None:
+    """One-line errors for options the model cannot take."""
+    if model != "procedural" and (text is not None or phones is not None):
+        raise TalkmeshError(
+            f"--text and phones drive the procedural animator, not {model_name(model)}: drop "
+            "them or pass --model procedural"
+        )
     if int8 is not None and int8 not in INT8_MODES:
         raise TalkmeshError(f"--int8 {int8}: use one of {', '.join(INT8_MODES)}")
     if model == "procedural" and int8 is not None:
@@ -286,11 +295,12 @@ def _finish_learned(
     fps: float,
     eyes: np.ndarray | None,
     performance: Performance | None = None,
+    pose: np.ndarray | None = None,
 ) -> Iterator[Animation]:
     """A learned model's vertices (their mouth corrected), a chunk at a time, made into
     :func:`animate`'s frames: ARKit weights fitted (so ARKit exports work for learned models),
     the model's own eye motion replaced by procedural ``eyes`` and the ``performance``'s emotion
-    composed in as blendshape offsets."""
+    composed in as blendshape offsets; ``pose`` (T, 6) is the head's motion."""
     fitter = WeightFitter(head.blendshapes)
     basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
     t = 0
@@ -313,6 +323,7 @@ def _finish_learned(
             weight_names=list(ARKIT_NAMES),
             template=head.template,
             basis=head.blendshapes,
+            head_pose=None if pose is None else pose[t : t + n],
         )
         t += n
 
@@ -328,6 +339,7 @@ def animate_procedural(
     style: SpeakingStyle | None,
     block: int = BLOCK,
     performance: Performance | None = None,
+    head_motion: float = NATURAL,
 ) -> AnimationBlocks:
     """The phone-driven animator on ``head`` (arguments as in :func:`animate_blocks`): the weight
     curves (T, 52) at once, the vertices a block at a time."""
@@ -350,6 +362,7 @@ def animate_procedural(
     performance = _rigged_only(performance, head)
     if performance is not None:
         weights = _compose_weights(weights, performance.weights(np.arange(num_frames) / fps), head)
+    pose = _pose(wave, num_frames, fps, head_motion, seed)
 
     def blocks() -> Iterator[Animation]:
         for t in range(0, num_frames, block):
@@ -360,6 +373,7 @@ def animate_procedural(
                 fps=fps,
                 weights=w,
                 weight_names=list(ARKIT_NAMES),
+                head_pose=None if pose is None else pose[t : t + block],
             )
 
     return AnimationBlocks(
@@ -373,6 +387,11 @@ def animate_procedural(
         template=head.template,
         basis=head.blendshapes,
     )
+
+
+def _pose(wave, frames: int, fps: float, amount: float, seed: int) -> np.ndarray | None:
+    """(T, 6) head motion of the bundled head, None when still (``amount`` 0)."""
+    return head_pose(wave, frames, fps, amount=amount, seed=seed) if amount > 0 else None
 
 
 def _compose_weights(weights: np.ndarray, emotion: np.ndarray, head: Head) -> np.ndarray:

@@ -21,6 +21,7 @@ from typing import NamedTuple
 from talkmesh.audio.loading import SOUNDFILE_EXTENSIONS, audio_duration
 from talkmesh.errors import TalkmeshError, os_error_message
 from talkmesh.face.corrections import BILABIAL, GAIN, LIP_CLOSURE, MIX, PAUSE_SOURCE
+from talkmesh.face.head_motion import NATURAL
 from talkmesh.face.performance import Performance
 from talkmesh.output import VIDEO_SIZE
 
@@ -55,6 +56,7 @@ class AnimateSettings:
     bilabial_closure: bool = BILABIAL
     pause_source: str = PAUSE_SOURCE
     performance: Performance | None = field(default=None, hash=False)  # None: neutral
+    head_motion: float = NATURAL  # 0: the head still
     int8: str | None = None
     size: int = VIDEO_SIZE
     camera: str = "front"
@@ -135,6 +137,7 @@ class Animator:
                 pause_source=s.pause_source,
                 int8=self.int8,
                 performance=s.performance,
+                head_motion=s.head_motion,
             )
             # .npz and .npy stream as frames are made; the other formats get the whole animation
             rigged = [

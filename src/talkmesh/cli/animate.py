@@ -33,6 +33,7 @@ from talkmesh.face.corrections import (
     PAUSE_SOURCE,
     PAUSE_SOURCES,
 )
+from talkmesh.face.head_motion import NATURAL, check_amount
 from talkmesh.output import output_name, write_animation
 
 
@@ -119,6 +120,14 @@ def _add_performance(a) -> None:
         metavar="MIX",
         help="the emotion of the whole clip: neutral happy sad angry surprised fearful disgusted, "
         "with intensities 0 to 1 and mixes, e.g. happy:0.6,surprised:0.2 (default neutral)",
+    )
+    a.add_argument(
+        "--head-motion",
+        type=float,
+        default=NATURAL,
+        metavar="AMOUNT",
+        help="how much the head nods, turns and tilts with the speech's prosody, 0 (still) to 1 "
+        f"(lively); default {NATURAL:g}, a natural amount (the bundled head's topology)",
     )
     a.add_argument(
         "--performance",
@@ -226,6 +235,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
 
         split_tags(args.text)  # a bad tag is refused before any file is looked at
     performance_from(args)
+    check_amount(args.head_motion)
     style_mix = parse_style(args.style)
     sources = [Path(a) for a in args.audio]
     library = any(is_batch_source(p) for p in sources)
@@ -390,6 +400,7 @@ def animate_settings(args: argparse.Namespace, *, triangles: bool = True):
         bilabial_closure=args.bilabial_closure,
         pause_source=args.pause_source,
         performance=performance_from(args),
+        head_motion=args.head_motion,
         int8=args.int8,
         size=args.size,
         camera=args.camera,
