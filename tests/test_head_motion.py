@@ -10,10 +10,12 @@ from talkmesh.audio.phonemes import Phone
 from talkmesh.cli import main
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.head_motion import (
+    BREATH_M,
     NATURAL,
     PIVOT,
     head_pose,
     phrase_ends,
+    pivot_offset,
     pose_vertices,
     quaternions,
     rotations,
@@ -115,3 +117,24 @@ def test_cli_refuses_a_bad_amount_before_any_work(tmp_path, capsys):
     assert main(["animate", str(speech), "-o", str(tmp_path / "a.npz"), "--head-motion", "3"]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and "--head-motion 3" in err[0]
+
+
+def test_the_face_does_not_freeze_when_the_speech_stops():
+    # two seconds of speech, then ten of silence: breathing, sway, blinks and gaze go on
+    wave = np.concatenate([accented(seconds=2.0, at=1.0), np.zeros(10 * SR, np.float32)])
+    phones = [Phone("SIL", 0.0, 0.2), Phone("AA", 0.2, 1.9), Phone("SIL", 1.9, 12.0)]
+    anim = animate(wave, phones=phones, model="procedural", seed=1)
+    quiet = slice(int(3 * anim.fps), anim.num_frames)
+    pose = anim.head_pose[quiet]
+    rise = pose[:, 4] - pivot_offset(pose[:, :3])[:, 1]  # the lift, less the turn's share
+    breaths = (np.diff((rise > 0.5 * BREATH_M).astype(int)) == 1).sum()
+    assert 2 <= breaths <= 4  # a breath about every 4 s
+    assert np.degrees(np.ptp(anim.head_pose[quiet, :3], axis=0)).min() > 0.1
+    names = anim.weight_names
+    blink = anim.weights[quiet, names.index("eyeBlinkLeft")]
+    assert (np.diff((blink > 0.5).astype(int)) == 1).sum() >= 1
+    gaze = (
+        anim.weights[quiet, names.index("eyeLookInLeft")]
+        - anim.weights[quiet, names.index("eyeLookOutLeft")]
+    )
+    assert np.ptp(gaze) > 0.05

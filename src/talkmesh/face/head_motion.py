@@ -17,7 +17,10 @@ and *Human Movement Science* 2:35-46); head motion correlates with the voice's F
 * at each phrase boundary (a pause of ``BOUNDARY_S`` or more) a new resting posture (yaw, roll,
   pitch), eased in over ``SHIFT_S``;
 * slow sway on every axis, larger while speaking than in pauses, and the head lifted a little and
-  leaning forward as the speech gets louder.
+  leaning forward as the speech gets louder;
+* breathing: the head rises a little (``BREATH_M``, ``BREATH_DEG`` back) with each breath in,
+  taken at every phrase boundary and, in a silence, every ``BREATH_S`` or so: when the speech
+  stops the head does not freeze.
 
 Everything random comes from one seeded generator. The pose is (T, 6): pitch, yaw, roll in
 radians (pitch > 0 nods the chin down, yaw > 0 turns the face towards +x, the head's left, roll
@@ -48,6 +51,9 @@ LEAN_M = 0.003  # ... and leans this far forward
 BOUNDARY_S = 0.3  # a pause this long ends a phrase
 SHIFT_S = 0.6  # a posture shift takes this long
 HOP_S = 0.01  # the prosody's frame step
+BREATH_M = 0.0008  # the head rises this much (metres) with a breath in ...
+BREATH_DEG = 0.3  # ... and tips back this much
+BREATH_S = 4.0  # a breath every 4 s in a silence (15 a minute, a resting rate)
 SNAP_S = 0.2  # a nod's apex moves to the loudest syllable nucleus this close to its F0 peak
 
 
@@ -86,10 +92,13 @@ def head_pose(
     for k in range(3):
         angles[:, k] += SWAY_DEG[k] * _DEG * level * _smooth_noise(rng, times, 1.3 + 0.4 * k)
     angles[:, 0] -= LIFT_DEG * _DEG * loud
+    breath = breathing(speaking, times, rng)
+    angles[:, 0] -= BREATH_DEG * _DEG * breath
     angles *= scale
     pose[:, :3] = angles
     pose[:, 3:] = pivot_offset(angles)
     pose[:, 5] += scale * LEAN_M * loud
+    pose[:, 4] += scale * BREATH_M * breath
     return pose
 
 
@@ -205,6 +214,27 @@ def phrase_ends(speaking: np.ndarray, times: np.ndarray) -> list[float]:
         else:
             k += 1
     return ends
+
+
+def breathing(speaking: np.ndarray, times: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(T,) in [0, 1]: breaths in (a rise over up to 1.2 s) and out (2 s), one at the start of
+    every pause of ``BOUNDARY_S`` or more and one about every ``BREATH_S`` while it lasts."""
+    out = np.zeros(len(times))
+    if len(times) < 2:
+        return out
+    step = times[1] - times[0]
+    starts = np.flatnonzero(~speaking & np.r_[True, speaking[:-1]])
+    for k in starts:
+        end = k + int(np.argmax(speaking[k:])) if speaking[k:].any() else len(times)
+        length = (end - k) * step
+        if length < BOUNDARY_S and end < len(times):
+            continue
+        t = times[k] + 0.05
+        while t < times[k] + max(length, 0.1):
+            rise = min(1.2, max(length - (t - times[k]), 0.3))
+            out = np.maximum(out, rng.uniform(0.7, 1.0) * _bump(times, t, rise, 0.1, 2.0))
+            t += BREATH_S * rng.uniform(0.8, 1.2)
+    return out
 
 
 def _postures(speaking: np.ndarray, times: np.ndarray, rng: np.random.Generator) -> np.ndarray:
