@@ -119,12 +119,13 @@ def quaternions(angles: np.ndarray) -> np.ndarray:
     qx = np.stack([np.sin(p), 0 * p, 0 * p, np.cos(p)], -1)
     qy = np.stack([0 * y, np.sin(y), 0 * y, np.cos(y)], -1)
     qz = np.stack([0 * r, 0 * r, np.sin(r), np.cos(r)], -1)
-    return _qmul(_qmul(qy, qx), qz)
+    return qmul(qmul(qy, qx), qz)
 
 
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = a.T
-    bx, by, bz, bw = b.T
+def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products of (..., 4) quaternions (x, y, z, w)."""
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
     return np.stack(
         [
             aw * bx + ax * bw + ay * bz - az * by,
