@@ -138,3 +138,20 @@ def test_the_face_does_not_freeze_when_the_speech_stops():
         - anim.weights[quiet, names.index("eyeLookOutLeft")]
     )
     assert np.ptp(gaze) > 0.05
+
+
+def test_cli_writes_the_head_pose_unless_it_is_off(tmp_path):
+    from test_cli import CLIP
+
+    wav = tmp_path / "a.wav"
+    wav.write_bytes(CLIP.read_bytes())
+    files = {}
+    for name, extra in (("moving", []), ("still", ["--head-motion", "0"])):
+        files[name] = tmp_path / f"{name}.npz"
+        argv = ["animate", str(wav), "--model", "procedural", "-o", str(files[name]), "-q"]
+        assert main(argv + extra) == 0
+    with np.load(files["moving"]) as moving, np.load(files["still"]) as still:
+        assert "head_pose" not in still.files
+        assert moving["head_pose"].shape == (len(moving["weights"]), 6)
+        assert np.degrees(np.ptp(moving["head_pose"][:, :3], axis=0)).min() > 0.5
+        np.testing.assert_array_equal(moving["offsets"], still["offsets"])
