@@ -14,6 +14,13 @@ plot ``real-speech.png`` there.
 ``procedural-stream-full`` streams the same way with the offline recogniser settings:
 
     python bench/real_speech.py --methods procedural,procedural-stream-full,procedural-stream --conditions clean
+
+``--emotions`` animates every method again under each emotion at full intensity (method names
+``METHOD+EMOTION``) and prints how far its /p b m/ closure, pause rest and vowel opening are from
+the neutral run (docs/guide/performance.md):
+
+    python bench/real_speech.py --methods procedural,codetalker-synth --conditions clean \
+        --emotions neutral,happy,sad,angry,surprised,fearful,disgusted
 """
 
 from __future__ import annotations
@@ -43,8 +50,11 @@ from talkmesh.evaluation.real_speech import (
     to_json,
     truth_phones,
 )
+from talkmesh.face.arkit import WeightFitter
 from talkmesh.face.assets import load_head
+from talkmesh.face.composition import compose_vertices, rest_gap
 from talkmesh.face.corrections import FAITHFUL, NONE, PREVIOUS, Corrections, correct_mouth
+from talkmesh.face.performance import Performance
 from talkmesh.pipeline import animate, available_models
 from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, ProceduralStreamer
 
@@ -126,6 +136,64 @@ def _animate_condition(wave, methods, head) -> dict[str, np.ndarray]:
     return out
 
 
+def _with_emotions(animated: dict[str, np.ndarray], wave, head, emotions, phones) -> None:
+    """Adds ``METHOD+EMOTION`` to ``animated`` for every emotion but neutral, at intensity 1:
+    the procedural animator animates again with it; a learned model's vertices get it as
+    ``animate`` adds it (ARKit weights fitted, the emotion composed in as blendshape offsets)."""
+    fitter = WeightFitter(head.blendshapes)
+    for method, vertices in list(animated.items()):
+        weights = None
+        for emotion in emotions:
+            if emotion == "neutral":
+                continue
+            perf = Performance({emotion: 1.0})
+            name = f"{method}+{emotion}"
+            if method == "procedural":
+                animated[name] = animate(
+                    wave, head=head, phones=phones, fps=FPS, seed=0, performance=perf
+                ).vertices
+                continue
+            if weights is None:
+                weights = fitter(vertices.astype(np.float64) - head.template)
+            moved = vertices.copy()
+            emo = perf.weights(np.arange(len(vertices)) / FPS)
+            pair = head.regions.lip_pair
+            rest = rest_gap(head.template, pair)
+            compose_vertices(moved, weights, emo, head.blendshapes, pair, rest)
+            animated[name] = moved
+
+
+EMOTION_METRICS = ("bilabial", "pause_mm", "vowel_mm")
+
+
+def emotion_table(med, methods, emotions, condition: str) -> str:
+    """Each method under each emotion against its neutral run: the medians and their change."""
+    lines = [
+        "| method | emotion | " + " | ".join(EMOTION_METRICS) + " | change (closure, pause, "
+        "vowel) |",
+        "|---|---|" + "---|" * (len(EMOTION_METRICS) + 1),
+    ]
+    for m in methods:
+        base = med.get((m, condition))
+        for e in emotions:
+            key = (m if e == "neutral" else f"{m}+{e}", condition)
+            if base is None or key not in med:
+                continue
+            vals = " | ".join(_fmt(med[key][k]) for k in EMOTION_METRICS)
+            change = ", ".join(_change(med[key][k], base[k]) for k in EMOTION_METRICS)
+            lines.append(f"| {m} | {e} | {vals} | {change} |")
+    return "\n".join(lines)
+
+
+def _change(value: float, neutral: float) -> str:
+    """The change from neutral, in % of it (and in its units where neutral is near 0)."""
+    if math.isnan(value) or math.isnan(neutral):
+        return "-"
+    if abs(neutral) < 0.05:
+        return f"{value - neutral:+.2f}"
+    return f"{100 * (value - neutral) / abs(neutral):+.1f}%"
+
+
 def _fmt(v: float) -> str:
     return "-" if math.isnan(v) else f"{v:.2f}"
 
@@ -195,8 +263,16 @@ def main() -> None:
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--clips", default="", help="comma-separated name prefixes (default: all)")
     ap.add_argument("--out", type=Path, default=None, help="folder for real-speech.json/.png")
+    ap.add_argument(
+        "--emotions",
+        default="neutral",
+        help="also animate each method under these emotions at full intensity and compare them "
+        "with neutral (e.g. neutral,happy,sad,angry,surprised,fearful,disgusted)",
+    )
     args = ap.parse_args()
+    emotions = [e for e in args.emotions.split(",") if e]
     methods = [m for m in args.methods.split(",") if m]
+    scored = [m if e == "neutral" else f"{m}+{e}" for m in methods for e in emotions]
     conditions = [c for c in args.conditions.split(",") if c]
     prefixes = [p for p in args.clips.split(",") if p]
     clips = [c for c in builtin_clips() if not prefixes or c.name.startswith(tuple(prefixes))]
@@ -205,14 +281,17 @@ def main() -> None:
     head = load_head()
     noise = load_audio(NOISE_FILE) if NOISE_FILE.is_file() else None
     rows = []
-    with tqdm(total=len(clips) * len(conditions) * len(methods), desc="real speech") as bar:
+    with tqdm(total=len(clips) * len(conditions) * len(scored), desc="real speech") as bar:
         for clip in clips:
             wave = read_clip(clip)
             phones = truth_phones(clip, wave)
             for condition in conditions:
                 degraded = degrade(wave, condition, noise, seed=0)
                 animated = _animate_condition(degraded, methods, head)
-                for method in methods:
+                if emotions != ["neutral"]:
+                    found = recognize_phones(degraded, SAMPLE_RATE)
+                    _with_emotions(animated, degraded, head, emotions, found)
+                for method in scored:
                     vertices = animated[method]
                     rows.append(
                         score_clip(
@@ -228,11 +307,15 @@ def main() -> None:
                     )
                     bar.update()
     med = medians(rows)
-    print(table(rows, med, methods, conditions))
+    print(table(rows, med, scored, conditions))
+    if emotions != ["neutral"]:
+        for condition in conditions:
+            print(f"\nEmotions at full intensity against neutral ({condition}):\n")
+            print(emotion_table(med, methods, emotions, condition))
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "real-speech.json").write_text(json.dumps(to_json(rows), indent=1))
-        plot(med, methods, conditions, args.out / "real-speech.png")
+        plot(med, scored, conditions, args.out / "real-speech.png")
         print(f"wrote {args.out / 'real-speech.json'} and {args.out / 'real-speech.png'}")
 
 

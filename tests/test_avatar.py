@@ -238,3 +238,45 @@ def test_cli_avatar_errors_before_running_the_model(tmp_path, capsys):
         == 2
     )
     assert "refusing to write over an input" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("vrm", [True, False])
+def test_head_pose_turns_the_avatar_s_head_bone(tmp_path, vrm):
+    from scipy.spatial.transform import Rotation
+
+    from talkmesh.output.avatar import glb_bytes
+
+    src = make_avatar(tmp_path / ("me.vrm" if vrm else "me.glb"), vrm=vrm)
+    gltf, binary = read_glb(src)
+    if vrm:  # the humanoid's head: the neck joint (node 1) stands in for it
+        gltf["extensions"]["VRM"]["humanoid"]["humanBones"].append({"bone": "head", "node": 1})
+    else:  # a plain rig's head joint, found by its name
+        gltf["nodes"][1]["name"] = "mixamorig:Head"
+    gltf["nodes"][0]["rotation"] = [0.0, np.sin(0.2), 0.0, np.cos(0.2)]  # the hips turned
+    gltf["nodes"][1]["rotation"] = [np.sin(0.1), 0.0, 0.0, np.cos(0.1)]  # the bone's rest
+    src.write_bytes(glb_bytes(gltf, binary))
+    rng = np.random.default_rng(2)
+    pose = np.concatenate([rng.uniform(-0.2, 0.2, (T, 3)), np.zeros((T, 3))], 1)
+    out = tmp_path / ("talking.vrm" if vrm else "talking.glb")
+    animate_avatar(src, arkit_weights(), FPS, out, head_pose=pose.astype(np.float32))
+    new, new_bin = read_glb(out)
+    clip = new["animations"][-1]
+    (channel,) = [c for c in clip["channels"] if c["target"]["path"] == "rotation"]
+    assert channel["target"]["node"] == 1
+    acc = new["accessors"][clip["samplers"][channel["sampler"]]["output"]]
+    assert acc["type"] == "VEC4" and acc["count"] == T
+    view = new["bufferViews"][acc["bufferView"]]
+    got = np.frombuffer(new_bin, "<f4", 4 * T, view["byteOffset"]).reshape(T, 4)
+    # the bone's world rotation is the hips' times its own: the pose, turned to face the avatar's
+    # front (+z, or -z for VRM 0.x), must be the change of that world rotation
+    pitch, yaw, roll = pose[:, :3].T
+    turn = Rotation.from_euler("YXZ", np.stack([yaw, pitch, roll], 1))
+    if vrm:
+        flip = Rotation.from_euler("y", np.pi)
+        turn = flip * turn * flip.inv()
+    hips = Rotation.from_quat(gltf["nodes"][0]["rotation"])
+    rest = hips * Rotation.from_quat(gltf["nodes"][1]["rotation"])  # the bone's world rest
+    world = hips * Rotation.from_quat(got)
+    np.testing.assert_allclose(world.as_matrix(), (turn * rest).as_matrix(), atol=1e-5)
+    report = validate_glb(out)
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"]

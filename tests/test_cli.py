@@ -537,11 +537,13 @@ def test_ten_minute_clip_in_bounded_memory(tmp_path, model, bound_mb):
 COMMANDS = {
     "animate": (
         ["audio"],
-        "--avatar --bilabial-closure --camera --cluster --fps --head --identity --int8 "
+        "--avatar --bilabial-closure --camera --cluster --emotion --fps --head --head-motion "
+        "--identity --int8 "
         "--lip-closure --loudness-gain --model --no-bilabial-closure --no-blinks --no-lip-closure "
         "--no-pause-gate "
         "--normalize-template --output --overwrite --pause-source "
-        "--procedural-mix --quiet --seed --size --style --summary --template --text --workers",
+        "--performance --procedural-mix --quiet --seed --size --style --summary --template --text "
+        "--workers",
     ),
     "render": (["anim"], "--audio --camera --fps --labels --output --overwrite --quiet --size"),
     "export": (["anim"], "--camera --fps --output --overwrite --quiet --size"),

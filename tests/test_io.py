@@ -17,6 +17,7 @@ from talkmesh.animation import Animation
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, LIVE_LINK_COLUMNS, LIVE_LINK_NAMES, to_arkit_order
 from talkmesh.output import arkit_files, formats, morph, npy
+from talkmesh.output import gltf as gltf_module
 from talkmesh.output.formats import load_animation, load_arkit_weights, morph_rig, save_animation
 from talkmesh.output.gltf import GLB_JSON, glb_bytes
 
@@ -237,8 +238,19 @@ Z_UP_MM = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1000]])
         lambda: replace(
             arkit_animation(), colors=np.full((arkit_animation().num_vertices, 3), 0.5)
         ),
+        lambda: replace(arkit_animation(), head_pose=head_pose_of(T)),
+        lambda: replace(arkit_animation(), head_pose=head_pose_of(T), to_gltf=Z_UP_MM),
     ],
-    ids=["arkit", "pca", "residual", "one-frame", "root-node", "vertex-colours"],
+    ids=[
+        "arkit",
+        "pca",
+        "residual",
+        "one-frame",
+        "root-node",
+        "vertex-colours",
+        "head-pose",
+        "head-pose-root",
+    ],
 )
 def test_glb_passes_khronos_validator(tmp_path, make):
     (out,) = save_animation(make(), tmp_path / "talk.glb")
@@ -246,6 +258,60 @@ def test_glb_passes_khronos_validator(tmp_path, make):
     assert report["issues"]["numErrors"] == 0, report["issues"]["messages"]
     assert report["issues"]["numWarnings"] == 0, report["issues"]["messages"]
     assert report["info"]["hasMorphTargets"] and report["info"]["animationCount"] == 1
+
+
+def head_pose_of(frames: int, seed: int = 1) -> np.ndarray:
+    """(T, 6) a head pose of a few degrees and millimetres."""
+    rng = np.random.default_rng(seed)
+    return np.concatenate(
+        [rng.uniform(-0.1, 0.1, (frames, 3)), rng.uniform(-0.005, 0.005, (frames, 3))], axis=1
+    ).astype(np.float32)
+
+
+def test_head_pose_is_the_head_node_s_rotation_and_translation(tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    anim = replace(arkit_animation(), head_pose=head_pose_of(T))
+    (out,) = save_animation(anim, tmp_path / "talk.glb")
+    gltf, binary = gltf_module._parse_glb(out.read_bytes())
+    head = next(i for i, n in enumerate(gltf["nodes"]) if n.get("name") == "head")
+    assert gltf["nodes"][head]["children"] == [0] and gltf["scenes"][0]["nodes"] == [head]
+    (animation,) = gltf["animations"]
+    got = {}
+    for c in animation["channels"]:
+        if c["target"]["node"] == head:
+            sampler = animation["samplers"][c["sampler"]]
+            got[c["target"]["path"]] = gltf_module._read_accessor(gltf, binary, sampler["output"])
+    # scipy's intrinsic YXZ Euler angles are R = Ry(yaw) Rx(pitch) Rz(roll)
+    pitch, yaw, roll = anim.head_pose[:, :3].T.astype(np.float64)
+    want = Rotation.from_euler("YXZ", np.stack([yaw, pitch, roll], 1)).as_matrix()
+    np.testing.assert_allclose(Rotation.from_quat(got["rotation"]).as_matrix(), want, atol=1e-6)
+    np.testing.assert_allclose(got["translation"], anim.head_pose[:, 3:], atol=1e-7)
+
+
+def test_head_pose_round_trips_through_npz_and_fills_live_link_head_columns(tmp_path):
+    anim = replace(arkit_animation(), head_pose=head_pose_of(T))
+    (npz,) = save_animation(anim, tmp_path / "talk.npz")
+    (csv,) = save_animation(anim, tmp_path / "take.csv")
+    np.testing.assert_array_equal(load_animation(npz).head_pose, anim.head_pose)
+    lines = csv.read_text().splitlines()
+    header = lines[0].split(",")
+    rows = np.array([[float(v) for v in line.split(",")[2:]] for line in lines[1:]])
+    cols = [header.index(n) - 2 for n in ("HeadYaw", "HeadPitch", "HeadRoll")]
+    np.testing.assert_allclose(rows[:, cols], anim.head_pose[:, [1, 0, 2]], atol=1e-7)
+    assert not rows[:, [header.index("LeftEyeYaw") - 2]].any()
+
+
+def test_npz_with_a_head_pose_of_the_wrong_length_is_refused(tmp_path):
+    anim = replace(arkit_animation(), head_pose=head_pose_of(T))
+    (out,) = save_animation(anim, tmp_path / "talk.npz")
+    with np.load(out) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["head_pose"] = arrays["head_pose"][:-1]
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    with pytest.raises(TalkmeshError, match="head_pose"):
+        load_animation(bad)
 
 
 def test_glb_layout_for_threejs_and_blender(tmp_path):

@@ -165,6 +165,9 @@ def test_offsets_on_request(client, pcm):
         ("", ["x" * 70_000], CLOSE_TOO_BIG, ["65536"]),
         ("", [bytes(CHUNK), "{not json"], CLOSE_POLICY, ["JSON", '{"type": "end"}']),
         ("", ['{"type": "stop"}'], CLOSE_POLICY, ["unknown message"]),
+        ("", ['{"type": "emotion", "emotion": "glee"}'], CLOSE_POLICY, ["unknown emotion 'glee'"]),
+        ("", ['{"type": "emotion", "emotion": "sad:2"}'], CLOSE_POLICY, ["from 0 to 1"]),
+        ("", ['{"type": "emotion", "mood": "sad"}'], CLOSE_POLICY, ['"emotion": "happy:0.6"']),
         ("?model=nope", [], CLOSE_POLICY, ["unknown model 'nope'", "procedural"]),
         ("?model=/etc/passwd", [], CLOSE_POLICY, ["unknown model"]),
         ("?model=../data/models/codetalker-synth.safetensors", [], CLOSE_POLICY, ["unknown model"]),
@@ -184,6 +187,40 @@ def test_bad_input_gets_an_error_and_the_right_close_code(client, query, message
                 ws.send_bytes(m) if isinstance(m, bytes) else ws.send_text(m)
             reply = read_until_close(ws)
     assert_error(reply, code, *fragments)
+
+
+def test_an_emotion_message_changes_the_face_from_then_on(client, pcm, alone):
+    """Sad from the 15th chunk's frames on: the frames before are the neutral session's, the
+    brows rise within the onset, the lips keep the speech's opening."""
+    head = load_head()
+    with client.websocket_connect("/ws/stream?offsets=1") as ws:
+        ws.receive_json()
+        chunks = [pcm[i : i + CHUNK] for i in range(0, len(pcm), CHUNK)]
+        for k, chunk in enumerate(chunks):
+            if k == 15:
+                ws.send_json({"type": "emotion", "emotion": "sad"})
+            ws.send_bytes(chunk)
+        ws.send_json({"type": "end"})
+        reply = read_until_close(ws)
+    assert reply.code == CLOSE_NORMAL and len(reply.frames) == len(alone.frames)
+    inner = ARKIT_NAMES.index("browInnerUp")
+    moved = [
+        f.index
+        for f in reply.frames
+        if abs(f.weights[inner] - alone.frames[f.index].weights[inner]) > 1e-3
+    ]
+    assert moved and moved == list(range(moved[0], len(reply.frames)))  # from one frame on
+    assert moved[0] <= 1.5 * FPS + 6  # about when it was sent (15 chunks, the look-ahead)
+    late = reply.frames[-1]
+    assert late.weights[inner] > alone.frames[-1].weights[inner] + 0.5
+    upper, lower = head.regions.lip_pair
+    for f, g in zip(reply.frames, alone.frames):
+        plain = head.template + np.tensordot(g.weights, head.blendshapes, axes=1)
+        gap0 = np.linalg.norm(plain[upper] - plain[lower])
+        gap = np.linalg.norm(
+            (head.template + f.offsets)[upper] - (head.template + f.offsets)[lower]
+        )
+        assert abs(gap - gap0) < 3e-4 + 0.03 * gap0  # float16 offsets on the wire
 
 
 def test_bad_sessions_do_not_disturb_a_good_one(client, pcm, alone):

@@ -34,6 +34,11 @@ class Animation:
             vertices as they are and carries it as its root node, so viewers stand the head up.
         colors: optional (V, 3) sRGB vertex colours in [0, 1] (the bundled head's skin, lips,
             irises: :func:`talkmesh.face.look.head_colors`), written as a .glb's ``COLOR_0``.
+        head_pose: optional (T, 6) rigid head motion, pitch, yaw, roll (radians) and a
+            translation (the vertices' units): the vertices stay in the head's own frame, as
+            ARKit keeps the face apart from the head's transform; a vertex ``v`` is seen at
+            ``R @ v + t`` (:mod:`talkmesh.face.head_motion`). Videos, .glb head nodes, Live Link
+            head columns and .npz files carry it.
     """
 
     vertices: np.ndarray
@@ -48,6 +53,7 @@ class Animation:
     audio_file: Path | None = None
     to_gltf: np.ndarray | None = None
     colors: np.ndarray | None = None
+    head_pose: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float32)
@@ -70,6 +76,12 @@ class Animation:
                 )
             if len(self.weight_names) != self.weights.shape[1]:
                 raise TalkmeshError("weight_names must name every column of weights")
+        if self.head_pose is not None:
+            self.head_pose = np.asarray(self.head_pose, dtype=np.float32)
+            if self.head_pose.shape != (self.num_frames, 6):
+                raise TalkmeshError(
+                    f"head pose must be ({self.num_frames}, 6), got {self.head_pose.shape}"
+                )
         if self.template is not None:
             self.template = np.asarray(self.template, dtype=np.float32)
         if self.basis is not None:
@@ -93,8 +105,8 @@ class Animation:
 class AnimationBlocks:
     """An :class:`Animation` made a block of frames at a time, so that long audio never holds all
     its (T, V, 3) vertices: what every field means is as in :class:`Animation`; ``blocks`` yields
-    the consecutive frames as Animations (vertices and, when ``weight_names`` is set, weights),
-    once. File writers stream it (:func:`talkmesh.output.streaming.save_blocks`); :meth:`collect`
+    the consecutive frames as Animations (vertices and, when ``weight_names`` is set, weights;
+    their head pose when there is one), once. File writers stream it (:func:`talkmesh.output.streaming.save_blocks`); :meth:`collect`
     makes the whole Animation."""
 
     blocks: Iterator[Animation]
@@ -113,6 +125,7 @@ class AnimationBlocks:
         """All frames as one :class:`Animation` (filled in place: one copy of the vertices)."""
         vertices: np.ndarray | None = None
         weights: np.ndarray | None = None
+        poses: list[np.ndarray] = []
         t = 0
         for block in self.blocks:
             if vertices is None:
@@ -123,6 +136,8 @@ class AnimationBlocks:
             vertices[t : t + n] = block.vertices
             if weights is not None:
                 weights[t : t + n] = block.weights
+            if block.head_pose is not None:
+                poses.append(block.head_pose)
             t += n
         assert vertices is not None and t == self.num_frames, (t, self.num_frames)
         return Animation(
@@ -137,4 +152,5 @@ class AnimationBlocks:
             basis=self.basis,
             audio_file=self.audio_file,
             to_gltf=self.to_gltf,
+            head_pose=np.concatenate(poses) if poses else None,
         )

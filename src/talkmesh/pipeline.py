@@ -10,12 +10,13 @@ import numpy as np
 
 from talkmesh.animation import Animation, AnimationBlocks
 from talkmesh.audio.loading import SAMPLE_RATE
-from talkmesh.audio.phonemes import Phone, recognize_phones
+from talkmesh.audio.phonemes import Phone, recognize_phones, word_starts
 from talkmesh.audio.waveform import Waveform, open_audio
 from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, WeightFitter
 from talkmesh.face.assets import Head, load_head
+from talkmesh.face.composition import compose, compose_vertices, lip_basis, rest_gap
 from talkmesh.face.corrections import (
     BILABIAL,
     GAIN,
@@ -26,12 +27,14 @@ from talkmesh.face.corrections import (
     Corrections,
     correct_mouth_chunks,
 )
+from talkmesh.face.head_motion import NATURAL, check_amount, head_pose
 from talkmesh.face.lipsync import (
     SpeakingStyle,
     blink_gaze_weights,
     phones_to_weights,
     replace_eye_motion,
 )
+from talkmesh.face.performance import Performance, split_tags, tag_spans
 
 if TYPE_CHECKING:
     from talkmesh.models.base import MotionModel
@@ -91,6 +94,8 @@ def animate(
     loudness_gain: float = GAIN,
     bilabial_closure: bool = BILABIAL,
     pause_source: str = PAUSE_SOURCE,
+    performance: Performance | None = None,
+    head_motion: float = NATURAL,
 ) -> Animation:
     """Animate a face from speech.
 
@@ -129,29 +134,17 @@ def animate(
         bilabial_closure: learned models: shut the lips fully where the model nearly closes them
             by a /p b m/ that the phone recogniser finds.
         pause_source: learned models: the pause gate's pauses, ``vad`` or ``recognizer``.
+        performance: the emotion over the clip (:mod:`talkmesh.face.performance`), composed with
+            the speech so that the speech keeps the lips' opening
+            (:mod:`talkmesh.face.composition`); ``[happy]`` tags in ``text`` add spans to it.
+        head_motion: how much the head moves with the speech's prosody, 0 (still) to 1
+            (:mod:`talkmesh.face.head_motion`; the bundled topology only), as ``head_pose``.
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
     """
-    return animate_blocks(
-        audio,
-        head=head,
-        text=text,
-        phones=phones,
-        fps=fps,
-        seed=seed,
-        style=style,
-        model=model,
-        style_mix=style_mix,
-        blinks=blinks,
-        int8=int8,
-        pause_gate=pause_gate,
-        lip_closure=lip_closure,
-        procedural_mix=procedural_mix,
-        loudness_gain=loudness_gain,
-        bilabial_closure=bilabial_closure,
-        pause_source=pause_source,
-    ).collect()
+    options = {k: v for k, v in locals().items() if k != "audio"}  # the arguments, forwarded
+    return animate_blocks(audio, **options).collect()
 
 
 def check_fps_seed(fps: float | None, seed: int = 0) -> None:
@@ -163,11 +156,11 @@ def check_fps_seed(fps: float | None, seed: int = 0) -> None:
 
 
 def _checked_wave(
-    audio: str | Path | np.ndarray, fps: float | None, block: int
+    audio: str | Path | np.ndarray, fps: float | None, block: int, seed: int = 0
 ) -> np.ndarray | Waveform:
     """The (S,) waveform of ``audio`` once ``fps`` and ``block`` are checked (one-line errors):
     a file libsndfile reads is a :class:`Waveform`, read from the file a slice at a time."""
-    check_fps_seed(fps)
+    check_fps_seed(fps, seed)
     if block < 1:
         raise TalkmeshError(f"block must be at least 1 frame, got {block}")
     wave = open_audio(audio) if isinstance(audio, (str, Path)) else np.asarray(audio, np.float32)
@@ -196,29 +189,35 @@ def animate_blocks(
     bilabial_closure: bool = BILABIAL,
     pause_source: str = PAUSE_SOURCE,
     block: int = BLOCK,
+    performance: Performance | None = None,
+    head_motion: float = NATURAL,
 ) -> AnimationBlocks:
     """:func:`animate` ``block`` frames at a time (arguments as there; the same frames): memory
     does not grow with the audio when the model generates in chunks (the procedural animator,
     causal CodeTalker models); :func:`talkmesh.output.streaming.save_blocks` writes it. A file
     libsndfile reads is read a slice at a time (``audio`` is then a ``Waveform``)."""
-    wave = _checked_wave(audio, fps, block)
-    check_fps_seed(fps, seed)
+    wave = _checked_wave(audio, fps, block, seed)
+    check_amount(head_motion)
     source = Path(audio) if isinstance(audio, (str, Path)) else None  # videos mux its sound
     head = head or load_head()
     if model is None:  # a transcript or phones ask for the phone-driven animator
         model = "procedural" if text is not None or phones is not None else default_model()
-    _check_int8(int8, model)
+    _check_options(int8, model, text, phones)
     if model == "procedural":
         made = animate_procedural(
-            wave, head, text=text, phones=phones, fps=fps, seed=seed, style=style, block=block
+            wave,
+            head,
+            text=text,
+            phones=phones,
+            fps=fps,
+            seed=seed,
+            style=style,
+            block=block,
+            performance=performance,
+            head_motion=head_motion,
         )
         made.audio_file = source
         return made
-    if text is not None or phones is not None:
-        raise TalkmeshError(
-            f"--text and phones drive the procedural animator, not {model_name(model)}: drop "
-            "them or pass --model procedural"
-        )
     corrections = Corrections(
         pause_gate, lip_closure, procedural_mix, loudness_gain, bilabial_closure, pause_source
     )
@@ -236,8 +235,9 @@ def animate_blocks(
             chunks, frames, head, found, wave, fps, corrections, seed=seed, style=style
         )
     eyes = blink_gaze_weights(frames, fps, seed=seed, style=style) if blinks else None
+    pose = _pose(wave, frames, fps, head_motion, seed)
     return AnimationBlocks(
-        blocks=_finish_learned(chunks, head, fps, eyes),
+        blocks=_finish_learned(chunks, head, fps, eyes, _rigged_only(performance, head), pose),
         num_frames=frames,
         faces=head.faces,
         fps=fps,
@@ -263,7 +263,26 @@ def _plain_blocks(chunks, head: Head, fps: float, frames: int, wave, source) -> 
     )
 
 
-def _check_int8(int8: str | None, model) -> None:
+def _rigged_only(performance: Performance | None, head: Head) -> Performance | None:
+    """``performance`` when it adds anything (None when neutral); the emotion moves the bundled
+    blendshapes, so a face of another topology cannot take it."""
+    if performance is None or performance.is_neutral:
+        return None
+    if not head.rigged:
+        raise TalkmeshError(
+            f"--emotion moves the bundled head's blendshapes, not {head.name}'s "
+            f"{head.num_vertices} vertices: animate the bundled topology"
+        )
+    return performance
+
+
+def _check_options(int8: str | None, model, text: str | None, phones) -> None:
+    """One-line errors for options the model cannot take."""
+    if model != "procedural" and (text is not None or phones is not None):
+        raise TalkmeshError(
+            f"--text and phones drive the procedural animator, not {model_name(model)}: drop "
+            "them or pass --model procedural"
+        )
     if int8 is not None and int8 not in INT8_MODES:
         raise TalkmeshError(f"--int8 {int8}: use one of {', '.join(INT8_MODES)}")
     if model == "procedural" and int8 is not None:
@@ -275,10 +294,13 @@ def _finish_learned(
     head: Head,
     fps: float,
     eyes: np.ndarray | None,
+    performance: Performance | None = None,
+    pose: np.ndarray | None = None,
 ) -> Iterator[Animation]:
     """A learned model's vertices (their mouth corrected), a chunk at a time, made into
-    :func:`animate`'s frames: ARKit weights fitted (so ARKit exports work for learned models) and
-    the model's own eye motion replaced by procedural ``eyes``."""
+    :func:`animate`'s frames: ARKit weights fitted (so ARKit exports work for learned models),
+    the model's own eye motion replaced by procedural ``eyes`` and the ``performance``'s emotion
+    composed in as blendshape offsets; ``pose`` (T, 6) is the head's motion."""
     fitter = WeightFitter(head.blendshapes)
     basis = head.blendshapes.reshape(len(ARKIT_NAMES), -1)
     t = 0
@@ -287,6 +309,12 @@ def _finish_learned(
         weights = fitter(np.asarray(verts, np.float64) - head.template.astype(np.float64))
         if eyes is not None:
             replace_eye_motion(verts, weights, eyes[t : t + n], basis)
+        if performance is not None:
+            emotion = performance.weights((t + np.arange(n)) / fps)
+            rest = rest_gap(head.template, head.regions.lip_pair)
+            weights = compose_vertices(
+                verts, weights, emotion, head.blendshapes, head.regions.lip_pair, rest
+            )
         yield Animation(
             vertices=verts,
             faces=head.faces,
@@ -295,6 +323,7 @@ def _finish_learned(
             weight_names=list(ARKIT_NAMES),
             template=head.template,
             basis=head.blendshapes,
+            head_pose=None if pose is None else pose[t : t + n],
         )
         t += n
 
@@ -309,6 +338,8 @@ def animate_procedural(
     seed: int,
     style: SpeakingStyle | None,
     block: int = BLOCK,
+    performance: Performance | None = None,
+    head_motion: float = NATURAL,
 ) -> AnimationBlocks:
     """The phone-driven animator on ``head`` (arguments as in :func:`animate_blocks`): the weight
     curves (T, 52) at once, the vertices a block at a time."""
@@ -318,12 +349,20 @@ def animate_procedural(
             f"the procedural animator drives the bundled head's topology, not {head.name}'s "
             f"{head.num_vertices} vertices: pass a learned model of this topology (--model)"
         )
+    text, tags = split_tags(text) if text else (text, [])
     if phones is None:
         phones = recognize_phones(wave, SAMPLE_RATE, text=text)
     num_frames = num_frames_for(len(wave), SAMPLE_RATE, fps)
     weights = phones_to_weights(
         phones, num_frames, fps, audio=wave, sr=SAMPLE_RATE, style=style, seed=seed
     )
+    if tags:
+        spans = tag_spans(tags, word_starts(phones, text), len(wave) / SAMPLE_RATE)
+        performance = (performance or Performance()).with_spans(spans)
+    performance = _rigged_only(performance, head)
+    if performance is not None:
+        weights = _compose_weights(weights, performance.weights(np.arange(num_frames) / fps), head)
+    pose = _pose(wave, num_frames, fps, head_motion, seed)
 
     def blocks() -> Iterator[Animation]:
         for t in range(0, num_frames, block):
@@ -334,6 +373,7 @@ def animate_procedural(
                 fps=fps,
                 weights=w,
                 weight_names=list(ARKIT_NAMES),
+                head_pose=None if pose is None else pose[t : t + block],
             )
 
     return AnimationBlocks(
@@ -347,6 +387,19 @@ def animate_procedural(
         template=head.template,
         basis=head.blendshapes,
     )
+
+
+def _pose(wave, frames: int, fps: float, amount: float, seed: int) -> np.ndarray | None:
+    """(T, 6) head motion of the bundled head, None when still (``amount`` 0)."""
+    return head_pose(wave, frames, fps, amount=amount, seed=seed) if amount > 0 else None
+
+
+def _compose_weights(weights: np.ndarray, emotion: np.ndarray, head: Head) -> np.ndarray:
+    """The procedural animator's (T, 52) ``weights`` with the (T, 52) ``emotion`` composed in."""
+    upper, lower = head.regions.lip_pair
+    basis = lip_basis(head.blendshapes, head.regions.lip_pair)
+    lips = (head.template[upper] - head.template[lower]).astype(np.float64) + weights @ basis
+    return compose(weights, emotion, lips, basis, rest_gap(head.template, head.regions.lip_pair))
 
 
 def parse_style(text: str | None) -> dict[str, float] | None:

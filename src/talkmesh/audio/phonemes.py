@@ -165,6 +165,32 @@ def transcript_words(text: str) -> list[str]:
     return _WORD.findall(text.lower().replace("\u2019", "'"))
 
 
+def word_phones(phones: list[Phone], text: str) -> list[list[Phone]]:
+    """The phones of each word of ``text`` (:func:`transcript_words`) in ``phones`` forced onto
+    it: the words' phones counted off the dictionary's first pronunciations (a word aligned with
+    another pronunciation shifts the words after it by the difference, a phone or two). Words
+    past the last phone get none."""
+    words = transcript_words(text)
+    if not words:
+        return []
+    aligner = _decoder(align=True)
+    spoken = [p for p in phones if p.label != SILENCE]
+    out, k = [], 0
+    for w in words:
+        pron = aligner.lookup_word(w)
+        n = len(pron.split()) if pron else 1
+        out.append(spoken[k : k + n])
+        k += n
+    return out
+
+
+def word_starts(phones: list[Phone], text: str) -> list[float]:
+    """The start (s) of each word of ``text`` in ``phones`` (:func:`word_phones`); words past the
+    last phone start at its end."""
+    end = phones[-1].end if phones else 0.0
+    return [w[0].start if w else end for w in word_phones(phones, text)]
+
+
 def _decoder(align: bool, search: AllphoneSearch = ALLPHONE, wide: bool = False) -> Decoder:
     """A PocketSphinx decoder for forced alignment (with the dictionary; ``wide``: with beams of
     ``WIDE_ALIGN_BEAM``) or phone recognition (with ``search``'s settings)."""

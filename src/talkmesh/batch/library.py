@@ -21,6 +21,8 @@ from typing import NamedTuple
 from talkmesh.audio.loading import SOUNDFILE_EXTENSIONS, audio_duration
 from talkmesh.errors import TalkmeshError, os_error_message
 from talkmesh.face.corrections import BILABIAL, GAIN, LIP_CLOSURE, MIX, PAUSE_SOURCE
+from talkmesh.face.head_motion import NATURAL
+from talkmesh.face.performance import Performance
 from talkmesh.output import VIDEO_SIZE
 
 OK, SKIPPED, FAILED = "ok", "skipped", "failed"
@@ -53,6 +55,8 @@ class AnimateSettings:
     loudness_gain: float = GAIN
     bilabial_closure: bool = BILABIAL
     pause_source: str = PAUSE_SOURCE
+    performance: Performance | None = field(default=None, hash=False)  # None: neutral
+    head_motion: float = NATURAL  # 0: the head still
     int8: str | None = None
     size: int = VIDEO_SIZE
     camera: str = "front"
@@ -132,6 +136,8 @@ class Animator:
                 bilabial_closure=s.bilabial_closure,
                 pause_source=s.pause_source,
                 int8=self.int8,
+                performance=s.performance,
+                head_motion=s.head_motion,
             )
             # .npz and .npy stream as frames are made; the other formats get the whole animation
             rigged = [
@@ -177,7 +183,7 @@ def write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
     from talkmesh.output.avatar import animate_avatar
 
     weights = to_arkit_order(anim.weights, anim.weight_names)
-    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite)
+    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite, head_pose=anim.head_pose)
 
 
 def _failed(job: Job, start: float, message: str) -> Row:

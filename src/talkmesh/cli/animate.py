@@ -33,6 +33,7 @@ from talkmesh.face.corrections import (
     PAUSE_SOURCE,
     PAUSE_SOURCES,
 )
+from talkmesh.face.head_motion import NATURAL, check_amount
 from talkmesh.output import output_name, write_animation
 
 
@@ -79,8 +80,11 @@ def add_animate(sub: Subparsers) -> None:
         "outputs are copies of it with the speech as one animation clip",
     )
     a.add_argument(
-        "--text", help="transcript of the speech (forced alignment instead of recognition)"
+        "--text",
+        help="transcript of the speech (forced alignment instead of recognition); [happy] or "
+        "[sad:0.5] tags before a word set the emotion from there on",
     )
+    _add_performance(a)
     a.add_argument("--seed", type=int, default=0, help="seed of blinks and other free motion")
     a.add_argument("--fps", type=float, help="frames per second (default: the model's own)")
     a.add_argument(
@@ -107,6 +111,40 @@ def add_animate(sub: Subparsers) -> None:
     add_batch_options(a)
     add_output_options(a)
     a.set_defaults(func=cmd_animate)
+
+
+def _add_performance(a) -> None:
+    """The options of the emotion (talkmesh.face.performance)."""
+    a.add_argument(
+        "--emotion",
+        metavar="MIX",
+        help="the emotion of the whole clip: neutral happy sad angry surprised fearful disgusted, "
+        "with intensities 0 to 1 and mixes, e.g. happy:0.6,surprised:0.2 (default neutral)",
+    )
+    a.add_argument(
+        "--head-motion",
+        type=float,
+        default=NATURAL,
+        metavar="AMOUNT",
+        help="how much the head nods, turns and tilts with the speech's prosody, 0 (still) to 1 "
+        f"(lively); default {NATURAL:g}, a natural amount (the bundled head's topology)",
+    )
+    a.add_argument(
+        "--performance",
+        metavar="JSON",
+        help="an emotion timeline: a JSON list of spans {start, end, emotion, intensity, onset, "
+        "offset} (seconds; docs/guide/performance.md)",
+    )
+
+
+def performance_from(args: argparse.Namespace):
+    """``--emotion`` and ``--performance`` as a :class:`Performance` (None: neutral)."""
+    from talkmesh.face.performance import Performance, parse_emotion, read_performance
+
+    base = parse_emotion(args.emotion) if args.emotion else {}
+    if args.performance:
+        return read_performance(args.performance, base)
+    return Performance(base) if base else None
 
 
 def _add_corrections(a) -> None:
@@ -192,6 +230,12 @@ def cmd_animate(args: argparse.Namespace) -> int:
     from talkmesh.pipeline import check_fps_seed, parse_style
 
     check_fps_seed(args.fps, args.seed)  # refused before any file is looked at
+    if args.text:
+        from talkmesh.face.performance import split_tags
+
+        split_tags(args.text)  # a bad tag is refused before any file is looked at
+    performance_from(args)
+    check_amount(args.head_motion)
     style_mix = parse_style(args.style)
     sources = [Path(a) for a in args.audio]
     library = any(is_batch_source(p) for p in sources)
@@ -355,6 +399,8 @@ def animate_settings(args: argparse.Namespace, *, triangles: bool = True):
         loudness_gain=args.loudness_gain,
         bilabial_closure=args.bilabial_closure,
         pause_source=args.pause_source,
+        performance=performance_from(args),
+        head_motion=args.head_motion,
         int8=args.int8,
         size=args.size,
         camera=args.camera,

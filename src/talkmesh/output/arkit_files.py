@@ -72,13 +72,18 @@ def arkit_weights_of(anim: Animation, path: Path) -> np.ndarray:
 def export_live_link_csv(anim: Animation, path: Path) -> None:
     """A Live Link Face take: ``Timecode,BlendShapeCount,EyeBlinkLeft,...,RightEyeRoll``.
 
-    Timecodes are ``HH:MM:SS:FF.mmm`` with FF counted at the animation's fps; head and eye
-    rotations are zero.
+    Timecodes are ``HH:MM:SS:FF.mmm`` with FF counted at the animation's fps; the head's
+    rotations are its ``head_pose`` in radians (HeadYaw, HeadPitch, HeadRoll; zero without one,
+    :mod:`talkmesh.face.head_motion` gives the signs), the eyes' rotations are zero (the eyes move
+    by the eyeLook blendshapes).
     """
     weights = arkit_weights_of(anim, path)
     columns = [arkit_index(n) for n in LIVE_LINK_BLENDSHAPES]
     values = np.zeros((anim.num_frames, len(LIVE_LINK_COLUMNS)), dtype=np.float64)
     values[:, : len(columns)] = weights[:, columns]
+    if anim.head_pose is not None:
+        head = len(columns) + np.arange(3)  # HeadYaw, HeadPitch, HeadRoll
+        values[:, head] = anim.head_pose[:, [1, 0, 2]]
     row_format = "%s," + str(len(LIVE_LINK_COLUMNS)) + ",%.8f" * len(LIVE_LINK_COLUMNS) + "\n"
     lines = ["Timecode,BlendShapeCount," + ",".join(LIVE_LINK_COLUMNS) + "\n"]
     lines += [row_format % (timecode(t, anim.fps), *row) for t, row in enumerate(values.tolist())]

@@ -36,6 +36,7 @@ from talkmesh.face.arkit_names import (
     viseme_channel,
     visemes_from_arkit,
 )
+from talkmesh.output.avatar_head import head_node, head_rotations
 
 AVATAR_SUFFIXES = (".glb", ".vrm")
 CLIP_NAME = "talk"
@@ -265,10 +266,16 @@ def _unique_clip_name(gltf: dict, name: str) -> str:
 
 
 def add_clip(
-    gltf: dict, binary: bytes, binding: AvatarBinding, weights: np.ndarray, fps: float
+    gltf: dict,
+    binary: bytes,
+    binding: AvatarBinding,
+    weights: np.ndarray,
+    fps: float,
+    head_pose: np.ndarray | None = None,
 ) -> tuple[dict, bytes]:
-    """A copy of ``gltf`` with one LINEAR clip of ``weights`` (T, 52) at ``fps``, and the binary
-    chunk with its keyframes appended (the existing bytes unchanged)."""
+    """A copy of ``gltf`` with one LINEAR clip of ``weights`` (T, 52) at ``fps`` (and, with a
+    (T, 6) ``head_pose``, its head bone's rotation: :mod:`talkmesh.output.avatar_head`), and the
+    binary chunk with its keyframes appended (the existing bytes unchanged)."""
     weights = np.asarray(weights, np.float32)
     assert weights.ndim == 2 and weights.shape[1] == NUM_ARKIT, weights.shape
     if not len(weights):
@@ -283,15 +290,15 @@ def add_clip(
     views, accessors = list(gltf.get("bufferViews") or []), list(gltf.get("accessors") or [])
     data = bytearray(binary)
 
-    def add(array: np.ndarray, bounds: bool) -> int:
+    def add(array: np.ndarray, bounds: bool, kind: str = SCALAR, width: int = 1) -> int:
         data.extend(b"\0" * (-len(data) % 4))
         views.append({"buffer": 0, "byteOffset": len(data), "byteLength": array.nbytes})
         data.extend(array.astype("<f4").tobytes())
         accessor = {
             "bufferView": len(views) - 1,
             "componentType": FLOAT,
-            "count": int(array.size),
-            "type": SCALAR,
+            "count": int(array.size) // width,
+            "type": kind,
         }
         if bounds:  # required for animation inputs
             accessor["min"], accessor["max"] = [float(array.min())], [float(array.max())]
@@ -308,6 +315,13 @@ def add_clip(
             channels.append(
                 {"sampler": len(samplers) - 1, "target": {"node": node, "path": "weights"}}
             )
+    head = head_node(gltf) if head_pose is not None else None
+    if head is not None:
+        values = add(head_rotations(gltf, head, head_pose).ravel(), False, "VEC4", 4)
+        samplers.append({"input": times, "output": values, "interpolation": "LINEAR"})
+        channels.append(
+            {"sampler": len(samplers) - 1, "target": {"node": head, "path": "rotation"}}
+        )
     clip = {
         "name": _unique_clip_name(gltf, CLIP_NAME),
         "samplers": samplers,
@@ -327,9 +341,11 @@ def animate_avatar(
     output: str | Path,
     *,
     overwrite: bool = False,
+    head_pose: np.ndarray | None = None,
 ) -> AvatarBinding:
     """Write a copy of ``avatar`` (.glb/.vrm) with a clip of ``weights`` (T, 52, ARKit order) at
-    ``fps`` to ``output`` (.glb/.vrm); returns what it drove. Atomic: a failed write leaves
+    ``fps`` (and the head bone turned by a (T, 6) ``head_pose``) to ``output`` (.glb/.vrm);
+    returns what it drove. Atomic: a failed write leaves
     nothing, and an existing ``output`` is replaced only with ``overwrite``."""
     avatar, output = Path(avatar), Path(output)
     if output.suffix.lower() not in AVATAR_SUFFIXES:
@@ -342,7 +358,7 @@ def animate_avatar(
         raise TalkmeshError(f"fps must be positive, got {fps}")
     gltf, binary = read_glb(avatar)
     binding = bind_avatar(gltf, str(avatar))
-    new_gltf, new_binary = add_clip(gltf, binary, binding, weights, fps)
+    new_gltf, new_binary = add_clip(gltf, binary, binding, weights, fps, head_pose)
     _write_atomic(output, glb_bytes(new_gltf, new_binary), overwrite)
     return binding
 

@@ -14,6 +14,7 @@ from talkmesh.animation import Animation
 from talkmesh.constants import MOTION_FPS
 from talkmesh.face.arkit import ARKIT_NAMES, arkit_index
 from talkmesh.face.geometry import vertex_normals
+from talkmesh.face.head_motion import quaternions
 from talkmesh.output.files import finite
 from talkmesh.output.morph import MorphRig, morph_rig
 
@@ -115,11 +116,7 @@ def export_glb(anim: Animation, path: Path) -> None:
         "output": buf.add(rig.weights.ravel(), "SCALAR"),
         "interpolation": "LINEAR",
     }
-    nodes: list[dict] = [{"name": "face", "mesh": 0}]
-    if anim.to_gltf is not None and not np.allclose(anim.to_gltf, np.eye(4)):
-        # the user's frame (units, up-axis) to glTF's, as the root: the vertices stay as given
-        matrix = np.asarray(anim.to_gltf, np.float64)
-        nodes.append({"name": "root", "children": [0], "matrix": matrix.T.ravel().tolist()})
+    nodes, samplers, channels = _nodes(anim, buf, sampler)
     gltf = {
         "asset": {"version": "2.0", "generator": "talkmesh"},
         "scene": 0,
@@ -147,8 +144,8 @@ def export_glb(anim: Animation, path: Path) -> None:
             {
                 "name": "talk",
                 "extras": {"fps": float(anim.fps)},  # for one-frame files, whose times cannot tell
-                "samplers": [sampler],
-                "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+                "samplers": samplers,
+                "channels": channels,
             }
         ],
         "buffers": [{"byteLength": buf.size}],
@@ -156,6 +153,34 @@ def export_glb(anim: Animation, path: Path) -> None:
         "accessors": buf.accessors,
     }
     write_glb(path, gltf, buf)
+
+
+def _nodes(anim: Animation, buf: _GlbBuffer, sampler: dict) -> tuple[list, list, list]:
+    """The scene's nodes (the mesh first, the scene's root last) and the animation's samplers and
+    channels: the morph weights, and the head pose on a parent node when there is one."""
+    nodes: list[dict] = [{"name": "face", "mesh": 0}]
+    samplers, channels = [sampler], [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]
+    if anim.head_pose is not None:  # the head's motion: a parent node rotating and moving
+        nodes.append({"name": "head", "children": [0]})
+        _head_channels(buf, anim.head_pose, sampler["input"], len(nodes) - 1, samplers, channels)
+    if anim.to_gltf is not None and not np.allclose(anim.to_gltf, np.eye(4)):
+        # the user's frame (units, up-axis) to glTF's, as the root: the vertices stay as given
+        matrix = np.asarray(anim.to_gltf, np.float64)
+        child = len(nodes) - 1
+        nodes.append({"name": "root", "children": [child], "matrix": matrix.T.ravel().tolist()})
+    return nodes, samplers, channels
+
+
+def _head_channels(
+    buf: _GlbBuffer, pose: np.ndarray, times: int, node: int, samplers: list, channels: list
+) -> None:
+    """The (T, 6) head pose as LINEAR rotation (unit quaternions) and translation samplers of
+    ``node``, keyed at the accessor ``times``."""
+    quats = quaternions(pose[:, :3]).astype(np.float32)
+    for path, values, kind in (("rotation", quats, "VEC4"), ("translation", pose[:, 3:], "VEC3")):
+        output = buf.add(np.ascontiguousarray(values, np.float32), kind)
+        samplers.append({"input": times, "output": output, "interpolation": "LINEAR"})
+        channels.append({"sampler": len(samplers) - 1, "target": {"node": node, "path": path}})
 
 
 def write_glb(path: Path, gltf: dict, binary: _GlbBuffer) -> None:

@@ -113,6 +113,7 @@ class NpzWriter:
         self.weights = tempfile.TemporaryFile()
         self.weight_columns: int | None = None
         self.weight_names = list(header.weight_names)
+        self.poses: list[np.ndarray] = []  # (t, 6) head poses: 2.6 MB an hour, kept in memory
         self.zip = zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
         arrays: dict[str, np.ndarray] = {
             "format_version": np.int64(NPZ_FORMAT_VERSION),
@@ -164,6 +165,8 @@ class NpzWriter:
         if block.weights is not None and self.weight_names:
             self.weight_columns = block.weights.shape[1]
             self.weights.write(np.ascontiguousarray(block.weights, "<f4").tobytes())
+        if block.head_pose is not None:
+            self.poses.append(block.head_pose)
         self.done += block.num_frames
 
     def close(self) -> None:
@@ -176,6 +179,8 @@ class NpzWriter:
             if self.weight_columns is not None:
                 self._put_weights()
                 self._put("weight_names", np.array(self.weight_names, dtype=np.str_))
+            if self.poses:
+                self._put("head_pose", np.concatenate(self.poses).astype("<f4"))
         finally:
             self.weights.close()
             self.zip.close()
@@ -232,6 +237,9 @@ def import_npz(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
     if motion != "vertices":
         vertices += np.asarray(d["template"], np.float32)
     weights = d.get("weights")
+    pose = d.get("head_pose")
+    if pose is not None and pose.shape != (len(vertices), 6):
+        raise TalkmeshError(f"{path}: head_pose is {pose.shape}, not ({len(vertices)}, 6)")
     stored_fps = float(d["fps"])
     if fps is None and not 0 < stored_fps < float("inf"):  # NaN fails too
         raise TalkmeshError(f"{path}: its frame rate is {stored_fps:g}: pass --fps")
@@ -245,6 +253,7 @@ def import_npz(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
         weight_names=[str(n) for n in d.get("weight_names", [])],
         template=d.get("template"),
         basis=d.get("basis"),
+        head_pose=None if pose is None else finite(pose.astype(np.float32), "head_pose"),
     )
 
 

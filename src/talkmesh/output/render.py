@@ -22,6 +22,7 @@ from talkmesh.animation import Animation
 from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.geometry import winding_sign
+from talkmesh.face.head_motion import pose_vertices
 from talkmesh.output.labels import TextOverlay, import_pil
 from talkmesh.output.media import VIDEO_SIZE, VIDEO_SUFFIXES, video_size
 from talkmesh.output.raster import Renderer, create_context, head_vertex_colors
@@ -41,6 +42,13 @@ __all__ = [
 ]
 
 SHEET_GUTTER = 4  # pixels between contact sheet cells
+
+
+def posed(anim: Animation, t: int) -> np.ndarray:
+    """(V, 3) vertices of frame ``t`` where the head is: moved by its ``head_pose``, if any."""
+    if anim.head_pose is None:
+        return anim.vertices[t]
+    return pose_vertices(anim.vertices[t : t + 1], anim.head_pose[t : t + 1])[0]
 
 
 def _renderer_for(
@@ -97,7 +105,7 @@ def render_video(
     size, inputs = video_size(size), list(inputs)
     check_output(path, VIDEO_SUFFIXES, inputs)
     with _renderer_for(anim, size, vertex_colors, camera=camera) as renderer:
-        frames = (renderer.draw(v) for v in anim.vertices)
+        frames = (renderer.draw(posed(anim, t)) for t in range(anim.num_frames))
         return write_video(
             frames,
             anim.num_frames,
@@ -162,7 +170,7 @@ def render_side_by_side(
                 for j, (anim, renderer) in enumerate(zip(anims, renderers, strict=True)):
                     t = min(round(i * anim.fps / fps), anim.num_frames - 1)
                     panel = canvas[:, j * width : (j + 1) * width]
-                    panel[:] = renderer.draw(anim.vertices[t])
+                    panel[:] = renderer.draw(posed(anim, t))
                     overlays[j].draw(panel)
                 yield canvas
 
@@ -215,7 +223,7 @@ def contact_sheet(
         for k, t in enumerate(picks):
             y, x = SHEET_GUTTER + (k // cols) * step, SHEET_GUTTER + (k % cols) * step
             cell = sheet[y : y + size, x : x + size]
-            cell[:] = renderer.draw(anim.vertices[t], image)
+            cell[:] = renderer.draw(posed(anim, t), image)
             TextOverlay(f"{t / anim.fps:.2f} s", size, size, top=False).draw(cell)
     with atomic_output(path, (".png",), inputs) as tmp:
         Image.fromarray(sheet).save(tmp, format="PNG")

@@ -21,7 +21,11 @@ vertex offsets of every frame as well as its weights. Clients never name files o
 
    * binary: raw mono 16 kHz PCM, signed 16-bit little-endian, any length up to the message limit
      (an odd number of bytes is an error);
-   * text ``{"type": "end"}``: the end of the audio; the server flushes the remaining frames.
+   * text ``{"type": "end"}``: the end of the audio; the server flushes the remaining frames;
+   * text ``{"type": "emotion", "emotion": "happy:0.6,surprised:0.2"}``: the face's emotion
+     from the next frame sent on, blended in over 0.3 s (``neutral`` returns to none;
+     :mod:`talkmesh.serve.emotion`); an unknown emotion or an intensity outside 0 to 1 is an
+     error.
 
 3. Server -> client, one binary message per frame, all little-endian::
 
@@ -45,11 +49,15 @@ vertex offsets of every frame as well as its weights. Clients never name files o
 
 from __future__ import annotations
 
+import json
 import struct
 
 import numpy as np
 
+from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
+from talkmesh.face.performance import Mix
+from talkmesh.serve.emotion import parse_emotion_message
 from talkmesh.serve.stream import StreamFrame
 
 FRAME_MAGIC = b"TMF1"
@@ -93,3 +101,27 @@ def decode_frame(data: bytes) -> StreamFrame:
     elif len(data) != end:
         raise ValueError(f"frame message of {len(data)} bytes, expected {end}")
     return StreamFrame(index, time, weights, offsets)
+
+
+def parse_text(text: str | None) -> Mix | None:
+    """A text message: None for the end message, the mix of an emotion message
+    (``TalkmeshError`` saying what is wrong for anything else)."""
+    try:
+        message = json.loads(text or "")
+    except ValueError:
+        raise TalkmeshError(
+            'text messages must be JSON: send {"type": "end"} to end the audio'
+        ) from None
+    except RecursionError:  # '[' x 30000: a protocol error, not a bug
+        raise TalkmeshError(
+            'text messages are {"type": "end"}, not JSON nested thousands deep'
+        ) from None
+    kind = message.get("type") if isinstance(message, dict) else None
+    if kind == "end":
+        return None
+    if kind == "emotion":
+        return parse_emotion_message(message)
+    raise TalkmeshError(
+        f'unknown message {str(message)[:80]}: the text messages are {{"type": "end"}} and '
+        '{"type": "emotion", "emotion": "happy:0.6"}'
+    )

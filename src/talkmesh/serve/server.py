@@ -39,7 +39,6 @@ session. Procedural sessions are computed in ``--workers`` processes (:mod:`talk
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import signal
@@ -64,6 +63,7 @@ from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.assets import load_head
 from talkmesh.serve import limits as lim
 from talkmesh.serve.batching import DEFAULT_BATCH_WAIT_MS, Scheduler, Work, frames_of
+from talkmesh.serve.emotion import LiveEmotion
 from talkmesh.serve.files import RenderError, animate_file, audio_suffix, neutral_head_glb
 from talkmesh.serve.limits import JobQueue, QueueFull
 from talkmesh.serve.protocol import (
@@ -74,6 +74,7 @@ from talkmesh.serve.protocol import (
     CLOSE_POLICY,
     CLOSE_TOO_BIG,
     encode_frame,
+    parse_text,
 )
 from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, open_stream
 from talkmesh.serve.workers import WorkerLost, WorkerPool, default_workers
@@ -306,16 +307,16 @@ class Service:
             "names": list(stream.names),
         }
         await ws.send_json(hello)
-        work = self.scheduler.join(stream)
+        work, emotion = self.scheduler.join(stream), LiveEmotion(self.head)
         failure: Exception | None = None
         try:
             async with anyio.create_task_group() as tasks:
-                tasks.start_soon(self._receive_loop, ws, work)
+                tasks.start_soon(self._receive_loop, ws, work, emotion)
                 try:  # errors leave the task group as themselves, not as a group
                     sent = 0
                     async for frames in frames_of(work):
                         for frame in frames:
-                            await ws.send_bytes(encode_frame(frame))
+                            await ws.send_bytes(encode_frame(emotion.apply(frame)))
                         sent += len(frames)
                     await ws.send_json({"type": "end", "frames": sent})
                     await ws.close(CLOSE_NORMAL)
@@ -327,7 +328,7 @@ class Service:
         if failure is not None:
             raise failure
 
-    async def _receive_loop(self, ws: WebSocket, work: Work) -> None:
+    async def _receive_loop(self, ws: WebSocket, work: Work, emotion: LiveEmotion) -> None:
         """A session's audio into the scheduler until its end message; what ends the session
         early (bad input, silence, the client gone) goes into its frames' queue instead."""
         timeout = self.limits.first_message_timeout  # a silent client frees its slot soon
@@ -335,14 +336,17 @@ class Service:
             while True:
                 pcm = await self._receive_audio(ws, timeout)
                 timeout = self.limits.idle_timeout
+                if isinstance(pcm, dict):  # the emotion of the frames sent from now on
+                    emotion.set(pcm)
+                    continue
                 await self.scheduler.submit(work, pcm)
                 if pcm is None:
                     return
         except Exception as e:
             work.send.send_nowait(e)
 
-    async def _receive_audio(self, ws: WebSocket, timeout: float) -> np.ndarray | None:
-        """The next message: (S,) float32 audio, or None for the end message.
+    async def _receive_audio(self, ws: WebSocket, timeout: float) -> np.ndarray | dict | None:
+        """The next message: (S,) float32 audio, an emotion message's mix, or None for the end.
 
         Raises:
             ClientError: the message breaks the protocol, or none came for ``timeout`` seconds.
@@ -368,8 +372,7 @@ class Service:
                 f"message of {size} bytes is over the limit of {limit}: send shorter chunks",
             )
         if data is None:
-            _parse_end(text)
-            return None
+            return _parse_text(text)  # None: the end; a dict: an emotion message's mix
         if len(data) % 2:
             raise ClientError(
                 CLOSE_POLICY,
@@ -523,22 +526,12 @@ async def _close(ws: WebSocket, code: int, message: str | None) -> None:
         pass
 
 
-def _parse_end(text: str | None) -> None:
+def _parse_text(text: str | None):
+    """None for the end message, a mix for an emotion message, else a ClientError."""
     try:
-        message = json.loads(text or "")
-    except ValueError:
-        raise ClientError(
-            CLOSE_POLICY, 'text messages must be JSON: send {"type": "end"} to end the audio'
-        ) from None
-    except RecursionError:  # '[' x 30000: a protocol error, not a bug
-        raise ClientError(
-            CLOSE_POLICY, 'text messages are {"type": "end"}, not JSON nested thousands deep'
-        ) from None
-    if not isinstance(message, dict) or message.get("type") != "end":
-        raise ClientError(
-            CLOSE_POLICY,
-            f'unknown message {str(message)[:80]}: the only text message is {{"type": "end"}}',
-        )
+        return parse_text(text)
+    except TalkmeshError as e:
+        raise ClientError(CLOSE_POLICY, str(e)) from None
 
 
 def _error(status: int, message: str) -> JSONResponse:
