@@ -9,7 +9,13 @@ import pytest
 import torch
 
 from talkmesh.errors import TalkmeshError
-from talkmesh.training.lip_gap import LipGap, lip_gap_loss, lip_gap_pairs
+from talkmesh.training.lip_gap import (
+    CodeChoice,
+    LipGap,
+    code_cross_entropy,
+    lip_gap_loss,
+    lip_gap_pairs,
+)
 from talkmesh.training.trainer import StepOutput, TrainConfig
 
 XS = np.arange(5) * 2.0  # five columns 2 apart: the region is 8 wide, candidates 0.64 apart
@@ -66,13 +72,40 @@ def test_the_term_adds_to_the_task_loss_and_needs_predicted_motion():
     batch = SimpleNamespace(vertices=truth, templates=template, motion_mask=None)
     term = LipGap(np.array([[7, 12]]), 8.0, weight=0.1)
     out = StepOutput(torch.tensor(1.0), {"motion": 1.0}, torch.zeros(1, 2, 45))
-    loss, logs = term.add(out, batch, "codetalker-stage2")
+    loss, logs = term.add(out.loss, out.logs, out, batch, "codetalker-stage2")
     assert float(loss) == pytest.approx(1.0 + 0.1 * 6.25**2 / 2)
     assert logs["lip_gap"] == pytest.approx(6.25**2 / 2) and logs["motion"] == 1.0
     with pytest.raises(TalkmeshError, match="no lip-gap loss"):
-        term.add(StepOutput(torch.tensor(1.0), {}), batch, "meshtalk-prior")
+        term.add(torch.tensor(1.0), {}, StepOutput(torch.tensor(1.0), {}), batch, "meshtalk-prior")
 
 
 def test_a_negative_weight_is_refused():
     with pytest.raises(ValueError, match="lip_gap_weight"):
         TrainConfig(lip_gap_weight=-1.0)
+    with pytest.raises(ValueError, match="code_ce_weight"):
+        TrainConfig(code_ce_weight=-0.5)
+
+
+def test_code_choice_rewards_the_nearest_true_code_and_needs_codes():
+    codebook = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    codes = torch.tensor([[[1]]])  # (B, T, H)
+    on_it = torch.tensor([[[[1.0, 0.0]]]])
+    between = torch.tensor([[[[0.5, 0.0]]]])  # as near code 0 as code 1: the average's code
+    assert float(code_cross_entropy(on_it, codes, codebook)) < float(
+        code_cross_entropy(between, codes, codebook)
+    )
+    # the softmax cross-entropy of the negative squared distances, in units of the squared
+    # distance between neighbouring codes (1 here)
+    logits = -torch.tensor([1.0, 0.0, 2.0])
+    assert float(code_cross_entropy(on_it * 3, codes, codebook * 3)) == pytest.approx(
+        float(code_cross_entropy(on_it, codes, codebook))
+    )
+    want = float(-torch.log_softmax(logits, 0)[1])
+    assert float(code_cross_entropy(on_it, codes, codebook)) == pytest.approx(want)
+    term = CodeChoice(0.5)
+    out = StepOutput(torch.tensor(2.0), {}, None, (on_it, codes, codebook))
+    batch = SimpleNamespace(motion_mask=None)
+    loss, logs = term.add(out.loss, out.logs, out, batch, "codetalker-finetune")
+    assert float(loss) == pytest.approx(2.0 + 0.5 * want) and logs["code_ce"] == pytest.approx(want)
+    with pytest.raises(TalkmeshError, match="queries no codebook"):
+        term.add(out.loss, {}, StepOutput(torch.tensor(1.0), {}), batch, "voca")

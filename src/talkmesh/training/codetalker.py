@@ -122,6 +122,7 @@ def _step_stage2(net: CodeTalker, batch: TorchBatch) -> StepOutput:
         out.loss,
         {"feature": float(out.feature_loss.detach()), "motion": float(out.motion_loss.detach())},
         out.motion,
+        (out.features, out.target_codes, net.vqvae.quantizer.codebook),
     )
 
 

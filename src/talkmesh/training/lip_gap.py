@@ -12,6 +12,14 @@ vertex error region) close together on the template whose distance changes the m
 training motion: the lips facing each other across the mouth, which part and meet as it speaks.
 
 ``train.lip_gap_weight`` in a recipe turns it on (0, the papers' loss, by default).
+
+:class:`CodeChoice` (``train.code_ce_weight``) is the other term kept here: a model that queries a
+codebook (CodeTalker's stage 2) regresses its features onto the true code's (Eq. 6), so where the
+speech leaves two codes equally likely (the lips shut or just apart) it lands between them, on a
+code for the average. The cross-entropy of the codes, with the negative squared distances to
+every code as logits (in units of the codebook's typical squared distance between neighbouring
+codes, so that the term does not depend on the codebook's scale), rewards picking the likely code
+instead.
 """
 
 from __future__ import annotations
@@ -97,8 +105,8 @@ class LipGap:
         print(f"lip-gap loss on {len(pairs)} vertex pairs (weight {weight})")
         return cls(pairs, width, weight)
 
-    def add(self, out, batch, task: str) -> tuple[torch.Tensor, dict[str, float]]:
-        """A task's StepOutput ``out`` on ``batch`` -> (its loss plus this term, its logs)."""
+    def add(self, loss, logs, out, batch, task: str) -> tuple[torch.Tensor, dict[str, float]]:
+        """(``loss`` plus this term, ``logs`` with it) for a task's StepOutput ``out``."""
         if out.motion is None:
             raise TalkmeshError(f"task {task} has no lip-gap loss: set train.lip_gap_weight to 0")
         gap = lip_gap_loss(
@@ -109,4 +117,49 @@ class LipGap:
             self.width,
             batch.motion_mask,
         )
-        return out.loss + self.weight * gap, {**out.logs, "lip_gap": float(gap.detach())}
+        return loss + self.weight * gap, {**logs, "lip_gap": float(gap.detach())}
+
+
+class CodeChoice:
+    """``weight`` x the cross-entropy of the true codes under logits -|feature - code|^2."""
+
+    def __init__(self, weight: float) -> None:
+        self.weight = weight
+
+    def add(self, loss, logs, out, batch, task: str) -> tuple[torch.Tensor, dict[str, float]]:
+        if out.codes is None:
+            raise TalkmeshError(f"task {task} queries no codebook: set train.code_ce_weight to 0")
+        features, codes, codebook = out.codes
+        ce = code_cross_entropy(features, codes, codebook, batch.motion_mask)
+        return loss + self.weight * ce, {**logs, "code_ce": float(ce.detach())}
+
+
+def code_cross_entropy(
+    features: torch.Tensor,
+    codes: torch.Tensor,
+    codebook: torch.Tensor,
+    mask: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """features (B, T, H, C), codes (B, T, H), codebook (K, C), mask (B, T) -> mean CE."""
+    flat = features.reshape(-1, features.shape[-1])
+    between = torch.cdist(codebook.detach(), codebook.detach()).pow(2)
+    between.fill_diagonal_(float("inf"))
+    unit = between.min(1).values.median().clamp(min=1e-12)  # neighbouring codes' distance
+    dist = flat.pow(2).sum(1, keepdim=True) - 2 * flat @ codebook.t() + codebook.pow(2).sum(1)[None]
+    logits = -dist / unit
+    ce = torch.nn.functional.cross_entropy(logits, codes.reshape(-1), reduction="none")
+    ce = ce.view(codes.shape).mean(-1)  # (B, T)
+    if mask is None:
+        return ce.mean()
+    w = mask.to(ce.dtype)
+    return (ce * w).sum() / w.sum().clamp(min=1)
+
+
+def optional_terms(train, dataset, info) -> list:
+    """The terms a recipe's ``train`` section turns on, for its training ``dataset``."""
+    terms: list = []
+    if train.lip_gap_weight > 0:
+        terms.append(LipGap.from_data(dataset, info.regions, train.lip_gap_weight))
+    if train.code_ce_weight > 0:
+        terms.append(CodeChoice(train.code_ce_weight))
+    return terms

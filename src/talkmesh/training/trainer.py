@@ -89,6 +89,7 @@ class TrainConfig:
     num_nodes: int = 1
     grad_clip: float = 0.0
     lip_gap_weight: float = 0.0  # the lip-gap loss (talkmesh.training.lip_gap); 0: the paper's
+    code_ce_weight: float = 0.0  # cross-entropy on the codes (training.lip_gap.CodeChoice); 0: off
     log_every: int = 10  # steps between log rows
     val_every: int = 1  # epochs between validation runs
     out_dir: str = "runs/train"
@@ -101,8 +102,8 @@ class TrainConfig:
             raise ValueError("train.epochs must be at least 1")
         if self.devices < 1 or self.num_nodes < 1:
             raise ValueError("train.devices and train.num_nodes must be at least 1")
-        if not self.lip_gap_weight >= 0:
-            raise ValueError("train.lip_gap_weight must be >= 0")
+        if not (self.lip_gap_weight >= 0 and self.code_ce_weight >= 0):
+            raise ValueError("train.lip_gap_weight and train.code_ce_weight must be >= 0")
         if self.lr_step_size < 0 or not 0 < self.lr_gamma <= 1:
             raise ValueError("train.lr_step_size must be >= 0 and train.lr_gamma in (0, 1]")
 
@@ -188,11 +189,14 @@ def load_recipes(path: str | Path, overrides: list[str] = ()) -> list[tuple[str,
 
 class StepOutput(NamedTuple):
     """What a task's step returns: the loss to minimise, scalar diagnostics to log and, from
-    tasks that predict motion, the predicted offsets (B, T, V*3) (the lip-gap loss reads them)."""
+    tasks that predict motion, the predicted offsets (B, T, V*3) (the lip-gap loss reads them)
+    and, from tasks that predict codes, (features (B, T, H, C), true codes (B, T, H), codebook
+    (K, C)) (the code cross-entropy reads them)."""
 
     loss: Any  # () tensor
     logs: dict[str, float]
     motion: Any = None
+    codes: Any = None
 
 
 class TorchBatch(NamedTuple):
@@ -400,13 +404,14 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
             super().__init__()
             self.model = task.build(recipe.model, info, init)
             self.recorded: list[str] = []
-            self.lip_gap: Any = None  # a lip_gap.LipGap when train.lip_gap_weight > 0
+            self.terms: list = []  # training.lip_gap's optional terms the recipe turns on
 
         def _loss(self, batch: TorchBatch) -> tuple[Any, dict[str, float]]:
             out = task.step(self.model, batch)
-            if self.lip_gap is None:
-                return out.loss, out.logs
-            return self.lip_gap.add(out, batch, recipe.task)
+            loss, logs = out.loss, out.logs
+            for term in self.terms:
+                loss, logs = term.add(loss, logs, out, batch, recipe.task)
+            return loss, logs
 
         def training_step(self, batch: TorchBatch, batch_idx: int):
             loss, logs = self._loss(batch)
@@ -651,10 +656,9 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     task = task_spec(recipe.task)
     if task.prepare is not None and not resume:  # a resumed run restores them from the checkpoint
         task.prepare(system.model, train_set)
-    if recipe.train.lip_gap_weight > 0:
-        from talkmesh.training.lip_gap import LipGap
+    from talkmesh.training.lip_gap import optional_terms
 
-        system.lip_gap = LipGap.from_data(train_set, info.regions, recipe.train.lip_gap_weight)
+    system.terms = optional_terms(recipe.train, train_set, info)
 
     train_loader, val_loader = _loaders(recipe, train_set)
     trainer = _lightning_trainer(L, recipe, out, progress)

@@ -167,6 +167,8 @@ class Stage2Output(NamedTuple):
     loss: Tensor  # () Eq. 6
     feature_loss: Tensor
     motion_loss: Tensor
+    features: Tensor | None = None  # (B, T, H, C) the predicted features, before quantisation
+    target_codes: Tensor | None = None  # (B, T, H) the codes the VQ-VAE gives the true motion
 
 
 class CodeTalker(MotionModel):
@@ -360,7 +362,8 @@ class CodeTalker(MotionModel):
         B, T = vertices.shape[:2]
         motion = (vertices - templates[:, None]).flatten(2)
         with torch.no_grad():
-            target = self.vqvae.encode(motion, motion_mask).z_q  # (B, T, H, C)
+            encoded = self.vqvae.encode(motion, motion_mask)
+            target = encoded.z_q  # (B, T, H, C)
         # validation speakers outside the training set get the mean style (as in generation)
         seen = styles.clamp(min=0)
         style = torch.where(
@@ -404,7 +407,7 @@ class CodeTalker(MotionModel):
         m_loss = (((pred - motion) / scale).pow(2) * w).sum() / (w.sum() * motion.shape[-1]).clamp(
             min=1
         )
-        return Stage2Output(pred, f_loss + m_loss, f_loss, m_loss)
+        return Stage2Output(pred, f_loss + m_loss, f_loss, m_loss, feats, encoded.codes)
 
     # -- generation -----------------------------------------------------------------------------
 
