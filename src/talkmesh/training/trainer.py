@@ -188,10 +188,8 @@ def load_recipes(path: str | Path, overrides: list[str] = ()) -> list[tuple[str,
 
 
 class StepOutput(NamedTuple):
-    """What a task's step returns: the loss to minimise, scalar diagnostics to log and, from
-    tasks that predict motion, the predicted offsets (B, T, V*3) (the lip-gap loss reads them)
-    and, from tasks that predict codes, (features (B, T, H, C), true codes (B, T, H), codebook
-    (K, C)) (the code cross-entropy reads them)."""
+    """A task step's loss to minimise and scalars to log; for training.lip_gap's terms, predicted
+    offsets (B, T, V*3) and (features (B, T, H, C), true codes (B, T, H), codebook (K, C))."""
 
     loss: Any  # () tensor
     logs: dict[str, float]
@@ -404,7 +402,7 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
             super().__init__()
             self.model = task.build(recipe.model, info, init)
             self.recorded: list[str] = []
-            self.terms: list = []  # training.lip_gap's optional terms the recipe turns on
+            self.terms: list = []  # the optional terms of training.lip_gap
 
         def _loss(self, batch: TorchBatch) -> tuple[Any, dict[str, float]]:
             out = task.step(self.model, batch)
