@@ -536,7 +536,8 @@ def cmd_rig(args: argparse.Namespace) -> int:
         raise TalkmeshError(
             message if args.mesh in message else f"{args.mesh}: {message}"
         ) from None
-    save_animation(rig.neutral_animation(), out, overwrite=args.overwrite)
+    # no clip: a one-key still clip would be the first one viewers play
+    save_animation(rig.neutral_animation(), out, format="rig.glb", overwrite=args.overwrite)
     save_registration(args.mesh, rig)  # `animate --head` on the same file reads it back
     if not args.quiet:
         parts = ", ".join(f"{n} {k}" for k, n in rig.parts.items()) or "none"

@@ -2,13 +2,16 @@
 
 ``animate_avatar("my.glb", weights, fps, "talking.glb")`` finds every mesh whose morph targets
 carry ARKit names (in any of the spellings :mod:`talkmesh.face.arkit_names` knows: head, teeth,
-tongue and beard meshes that share names move together), and appends ONE animation, ``talk``,
-with a ``weights`` channel per node of those meshes. Avatars without ARKit mouth shapes but with
-Oculus visemes (``viseme_aa``...) get their visemes driven through the documented ARKit -> viseme
-map instead; their ARKit-named shapes (blinks) are still driven.
+tongue and beard meshes that share names move together), and writes ONE animation, ``talk``,
+with a ``weights`` channel per node of those meshes, as the FIRST clip (viewers that play a
+file's first clip, three.js examples, model-viewer, Blender's first action, play the speech); a
+clip of the avatar named ``talk`` (an earlier run's) is replaced, the other clips follow it.
+Avatars without ARKit mouth shapes but with Oculus visemes (``viseme_aa``...) get their visemes
+driven through the documented ARKit -> viseme map instead; their ARKit-named shapes (blinks) are
+still driven.
 
 Nothing else changes: the JSON of every node, mesh, skin, material, texture, image, extension
-(VRM included) and existing animation is kept as it was, and the binary chunk is kept byte for
+(VRM included) and other animation is kept as it was, and the binary chunk is kept byte for
 byte, with the clip's keyframes appended after it. Units and up-axis are the avatar's, since no
 geometry is touched. Input and output are binary glTF (``.glb``, or ``.vrm``, which is a .glb with
 the VRM extension); morph target names are read from ``mesh.extras.targetNames`` (three.js,
@@ -86,12 +89,14 @@ class AvatarBinding:
         channels: the ARKit names at least one mesh has.
         missing: the ARKit names no mesh has.
         visemes: the Oculus visemes driven (only when no mesh has ARKit mouth shapes).
+        clips: the names of the avatar's own animations (``talk`` among them is replaced).
     """
 
     meshes: tuple[MeshBinding, ...]
     channels: tuple[str, ...]
     missing: tuple[str, ...]
     visemes: tuple[str, ...]
+    clips: tuple[str, ...] = ()
 
     def summary(self) -> str:
         """One line for the user: what moves and which ARKit channels the avatar lacks."""
@@ -101,6 +106,12 @@ class AvatarBinding:
         if self.missing:
             shown = ", ".join(self.missing[:6]) + (", ..." if len(self.missing) > 6 else "")
             line += f"; lacks {len(self.missing)}: {shown}"
+        kept = [c for c in self.clips if c != CLIP_NAME]
+        if CLIP_NAME in self.clips:
+            line += f"; the speech replaces its clip '{CLIP_NAME}'"
+        if kept:
+            shown = ", ".join(kept[:3]) + (", ..." if len(kept) > 3 else "")
+            line += f"; its other clips follow the speech clip ({shown})"
         return line
 
 
@@ -211,6 +222,7 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
     for key in ("meshes", "nodes", "buffers", "bufferViews", "accessors", "animations"):
         if not all(isinstance(item, dict) for item in _list(gltf, key)):
             raise ValueError(f"an item of '{key}' is not an object")
+    animations = _list(gltf, "animations")
     candidates: list[tuple[int, str, tuple[int, ...], int, np.ndarray, np.ndarray, np.ndarray]] = []
     nodes_of: dict[int, list[int]] = {}
     for i, n in enumerate(_list(gltf, "nodes")):
@@ -254,21 +266,16 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
         channels=tuple(n for i, n in enumerate(ARKIT_NAMES) if i in found),
         missing=tuple(n for i, n in enumerate(ARKIT_NAMES) if i not in found),
         visemes=tuple(VISEMES[i] for i in driven_visemes),
+        clips=tuple(str(a.get("name") or f"animation {i}") for i, a in enumerate(animations)),
     )
-
-
-def _unique_clip_name(gltf: dict, name: str) -> str:
-    taken = {a.get("name") for a in gltf.get("animations") or []}
-    if name not in taken:
-        return name
-    return next(f"{name}_{k}" for k in range(2, len(taken) + 3) if f"{name}_{k}" not in taken)
 
 
 def add_clip(
     gltf: dict, binary: bytes, binding: AvatarBinding, weights: np.ndarray, fps: float
 ) -> tuple[dict, bytes]:
-    """A copy of ``gltf`` with one LINEAR clip of ``weights`` (T, 52) at ``fps``, and the binary
-    chunk with its keyframes appended (the existing bytes unchanged)."""
+    """A copy of ``gltf`` with one LINEAR clip of ``weights`` (T, 52) at ``fps`` as its first
+    animation (replacing one named ``talk``, the others after it), and the binary chunk with its
+    keyframes appended (the existing bytes unchanged; a replaced clip's keys stay unused)."""
     weights = np.asarray(weights, np.float32)
     assert weights.ndim == 2 and weights.shape[1] == NUM_ARKIT, weights.shape
     if not len(weights):
@@ -309,12 +316,13 @@ def add_clip(
                 {"sampler": len(samplers) - 1, "target": {"node": node, "path": "weights"}}
             )
     clip = {
-        "name": _unique_clip_name(gltf, CLIP_NAME),
+        "name": CLIP_NAME,
         "samplers": samplers,
         "channels": channels,
         "extras": {"fps": float(fps)},
     }
-    out["animations"] = [*(gltf.get("animations") or []), clip]
+    others = [a for a in gltf.get("animations") or [] if a.get("name") != CLIP_NAME]
+    out["animations"] = [clip, *others]
     out["bufferViews"], out["accessors"] = views, accessors
     out["buffers"] = [{**(buffers[0] if buffers else {}), "byteLength": len(data)}, *buffers[1:]]
     return out, bytes(data)

@@ -78,11 +78,12 @@ class _GlbBuffer:
         return len(self.accessors) - 1
 
 
-def export_glb(anim: Animation, path: Path) -> None:
+def export_glb(anim: Animation, path: Path, *, clip: bool = True) -> None:
     """Binary glTF 2.0: one mesh with morph targets and a LINEAR ``weights`` animation.
 
     Target names are in ``mesh.extras.targetNames`` (three.js and Blender read them); normals are
-    those of the neutral face.
+    those of the neutral face. ``clip`` False writes the rigged mesh alone, without an animation
+    (``talkmesh rig``: viewers that play a file's first clip would play a still one).
     """
     rig = morph_rig(anim)
     buf = _GlbBuffer()
@@ -109,12 +110,6 @@ def export_glb(anim: Animation, path: Path) -> None:
     primitive["targets"] = [
         {"POSITION": buf.add(t, "VEC3", target=ARRAY_BUFFER, bounds=True)} for t in rig.targets
     ]
-    times = (np.arange(anim.num_frames, dtype=np.float64) / anim.fps).astype(np.float32)
-    sampler = {
-        "input": buf.add(times, "SCALAR", bounds=True),
-        "output": buf.add(rig.weights.ravel(), "SCALAR"),
-        "interpolation": "LINEAR",
-    }
     nodes: list[dict] = [{"name": "face", "mesh": 0}]
     if anim.to_gltf is not None and not np.allclose(anim.to_gltf, np.eye(4)):
         # the user's frame (units, up-axis) to glTF's, as the root: the vertices stay as given
@@ -143,19 +138,39 @@ def export_glb(anim: Animation, path: Path) -> None:
                 },
             }
         ],
-        "animations": [
-            {
-                "name": "talk",
-                "extras": {"fps": float(anim.fps)},  # for one-frame files, whose times cannot tell
-                "samplers": [sampler],
-                "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
-            }
-        ],
-        "buffers": [{"byteLength": buf.size}],
-        "bufferViews": buf.views,
-        "accessors": buf.accessors,
     }
+    if clip:
+        gltf["animations"] = [_weights_clip(anim, rig, buf)]
+    gltf.update(
+        {
+            "buffers": [{"byteLength": buf.size}],
+            "bufferViews": buf.views,
+            "accessors": buf.accessors,
+        }
+    )
     write_glb(path, gltf, buf)
+
+
+def _weights_clip(anim: Animation, rig: MorphRig, buf: _GlbBuffer) -> dict:
+    """The ``talk`` animation: the rig's (T, K) weights on node 0, a key per frame."""
+    times = (np.arange(anim.num_frames, dtype=np.float64) / anim.fps).astype(np.float32)
+    sampler = {
+        "input": buf.add(times, "SCALAR", bounds=True),
+        "output": buf.add(rig.weights.ravel(), "SCALAR"),
+        "interpolation": "LINEAR",
+    }
+    return {
+        "name": "talk",
+        "extras": {"fps": float(anim.fps)},  # for one-frame files, whose times cannot tell
+        "samplers": [sampler],
+        "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+    }
+
+
+def export_rig_glb(anim: Animation, path: Path) -> None:
+    """:func:`export_glb` without an animation: a rigged mesh (``NAME.rig.glb``, or
+    ``format="rig.glb"``) whose morph targets an avatar clip or a player drives."""
+    export_glb(anim, path, clip=False)
 
 
 def write_glb(path: Path, gltf: dict, binary: _GlbBuffer) -> None:
