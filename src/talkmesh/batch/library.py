@@ -110,7 +110,7 @@ class Animator:
     def __call__(self, job: Job) -> Row:
         from talkmesh.output import VIDEO_SUFFIXES, write_animation
         from talkmesh.output.avatar import AVATAR_SUFFIXES
-        from talkmesh.output.streaming import save_blocks
+        from talkmesh.output.streaming import WEIGHT_SUFFIXES, save_blocks
         from talkmesh.pipeline import animate_blocks
 
         s = self.settings
@@ -146,6 +146,10 @@ class Animator:
                 if self.rig is not None and p.suffix.lower() in VIDEO_SUFFIXES
             ]
             plain = [p for p in job.outputs if p not in rigged and p not in videos]
+            if not self.head.rigged and (
+                rigged or any(p.suffix.lower() in WEIGHT_SUFFIXES for p in plain)
+            ):
+                anim = self._solver().solve_blocks(anim)  # ARKit weights of another topology
             if self.rig is not None:
                 anim = self.rig.carry_blocks(anim, self.head.template)
             whole = save_blocks(
@@ -169,6 +173,13 @@ class Animator:
             return _failed(job, start, f"internal error: {type(e).__name__}: {e}")
         seconds = time.perf_counter() - start
         return Row(str(job.audio), anim.num_frames / anim.fps, anim.num_frames, seconds, OK)
+
+    def _solver(self):
+        """The ARKit solve of the template's topology (rigged once per mesh and process)."""
+        from talkmesh.face.solve import solver_for_mesh
+
+        name = f"{self.settings.template} ({self.head.name})"
+        return solver_for_mesh(self.head.template, self.head.faces, name)
 
 
 def write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:

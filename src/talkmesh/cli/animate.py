@@ -309,19 +309,34 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
             f"{load_head().num_vertices}: the procedural animator and the bundled models "
             "animate the bundled topology; pass --model FILE.safetensors of this topology"
         )
-    weight_files = [p for ps in outputs for p in ps if p.suffix.lower() in (".csv", ".json")]
-    if weight_files or avatar is not None:
-        what = weight_files[0] if weight_files else f"--avatar {avatar}"
-        raise TalkmeshError(
-            f"{what}: ARKit weights need the bundled head's topology, not {head.name}'s "
-            f"{head.num_vertices} vertices: write .npz, .npy, .glb, .obj or a video"
-        )
-    if not args.quiet:
+    if needs_arkit(outputs, avatar):  # rigged now (once per mesh, then saved): fails here
+        import time
+
+        from talkmesh.face.solve import solver_for_mesh
+
+        start = time.perf_counter()
+        solver_for_mesh(head.template, head.faces, f"{args.template} ({head.name})")
+        if not args.quiet:
+            print(
+                f"template {head.name}: {head.num_vertices} vertices, not the bundled topology: "
+                "ARKit weights solved from the model's motion through the 52 shapes rigged "
+                f"onto it ({time.perf_counter() - start:.1f} s; the registration is saved)"
+            )
+    elif not args.quiet:
         print(
             f"template {head.name}: {head.num_vertices} vertices, {len(head.faces)} triangles "
             "(not the bundled topology: the model's motion as it is, no ARKit weights)"
         )
     return head
+
+
+def needs_arkit(outputs: list[list[Path]], avatar: Path | None) -> bool:
+    """Whether any output needs ARKit weights (.csv, .json, an avatar's copy)."""
+    from talkmesh.output.avatar import AVATAR_SUFFIXES
+    from talkmesh.output.streaming import WEIGHT_SUFFIXES
+
+    suffixes = WEIGHT_SUFFIXES + (AVATAR_SUFFIXES if avatar is not None else ())
+    return any(p.suffix.lower() in suffixes for paths in outputs for p in paths)
 
 
 VERTEX_ONLY = (".npy", ".npz")  # outputs that need no triangles (they store them when known)
