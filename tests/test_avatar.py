@@ -17,6 +17,7 @@ from talkmesh.cli import main
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.arkit_names import VISEMES, arkit_channel, viseme_channel, visemes_from_arkit
+from talkmesh.face.visemes import oculus_visemes
 from talkmesh.output.avatar import animate_avatar, bind_avatar, read_glb
 
 T, FPS = 45, 30.0
@@ -138,13 +139,15 @@ def test_viseme_fallback_when_no_arkit_mouth_shapes(tmp_path):
     src = make_avatar(tmp_path / "rpm.glb", visemes=True)
     weights = arkit_weights()
     binding = animate_avatar(src, weights, FPS, tmp_path / "out.glb")
-    assert binding.visemes == ("PP", "TH", "aa", "O", "U")
+    assert binding.visemes == ("sil", "PP", "TH", "aa", "O", "U")
     assert binding.channels == ("eyeBlinkLeft", "eyeBlinkRight")
-    assert "Oculus visemes" in binding.summary() and "\n" not in binding.summary()
+    assert "6 of 15 Oculus visemes" in binding.summary() and "\n" not in binding.summary()
+    assert "lacks visemes FF, DD, kk, CH, SS, nn, RR, E, I: export all 15" in binding.summary()
     gltf, binary = read_glb(tmp_path / "out.glb")
     head = clip_values(gltf, binary, 2)  # sil PP aa O U eyeBlinkLeft eyeBlinkRight
     visemes = visemes_from_arkit(weights)
-    np.testing.assert_array_equal(head[:, 0], 0)  # silence stays at rest
+    others = np.delete(oculus_visemes(weights, FPS), 0, axis=1).max(1)
+    np.testing.assert_allclose(head[:, 0], 1 - others, atol=1e-6)  # silence: the mouth at rest
     np.testing.assert_allclose(head[:, 2], visemes[:, VISEMES.index("aa")])
     np.testing.assert_allclose(head[:, 2], weights[:, ARKIT_NAMES.index("jawOpen")])
     np.testing.assert_array_equal(head[:, 5], weights[:, ARKIT_NAMES.index("eyeBlinkLeft")])

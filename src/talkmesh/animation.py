@@ -34,6 +34,9 @@ class Animation:
             vertices as they are and carries it as its root node, so viewers stand the head up.
         colors: optional (V, 3) sRGB vertex colours in [0, 1] (the bundled head's skin, lips,
             irises: :func:`talkmesh.face.look.head_colors`), written as a .glb's ``COLOR_0``.
+        phones: optional timed phones ``(ARPAbet label, start s, end s)`` the motion was made
+            from (the procedural animator's recognised or aligned phones): viseme exports drive
+            the tongue visemes from them.
     """
 
     vertices: np.ndarray
@@ -48,6 +51,7 @@ class Animation:
     audio_file: Path | None = None
     to_gltf: np.ndarray | None = None
     colors: np.ndarray | None = None
+    phones: list[tuple[str, float, float]] | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float32)
@@ -108,6 +112,7 @@ class AnimationBlocks:
     basis: np.ndarray | None = None
     audio_file: Path | None = None
     to_gltf: np.ndarray | None = None
+    phones: list[tuple[str, float, float]] | None = None
 
     def collect(self) -> Animation:
         """All frames as one :class:`Animation` (filled in place: one copy of the vertices)."""
@@ -137,4 +142,5 @@ class AnimationBlocks:
             basis=self.basis,
             audio_file=self.audio_file,
             to_gltf=self.to_gltf,
+            phones=self.phones,
         )

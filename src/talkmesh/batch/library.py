@@ -188,7 +188,7 @@ def write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
     from talkmesh.output.avatar import animate_avatar
 
     weights = to_arkit_order(anim.weights, anim.weight_names)
-    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite)
+    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite, phones=anim.phones)
 
 
 def _failed(job: Job, start: float, message: str) -> Row:

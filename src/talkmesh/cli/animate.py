@@ -48,7 +48,8 @@ def add_animate(sub: Subparsers) -> None:
         "-o",
         "--output",
         action="append",
-        help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv .json); "
+        help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv .json, "
+        ".visemes.json: Oculus and Azure visemes); "
         "repeat for several; {stem} is the input name (default {stem}.mp4); a folder (out/, or "
         "a name without an extension: out) takes {stem}.mp4 for each input, mirroring the "
         "subfolders of an input folder",

@@ -152,6 +152,7 @@ class ArkitSolver:
             template=anim.template,
             audio_file=anim.audio_file,
             to_gltf=anim.to_gltf,
+            phones=anim.phones,
         )
 
 

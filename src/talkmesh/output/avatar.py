@@ -6,9 +6,10 @@ tongue and beard meshes that share names move together), and writes ONE animatio
 with a ``weights`` channel per node of those meshes, as the FIRST clip (viewers that play a
 file's first clip, three.js examples, model-viewer, Blender's first action, play the speech); a
 clip of the avatar named ``talk`` (an earlier run's) is replaced, the other clips follow it.
-Avatars without ARKit mouth shapes but with Oculus visemes (``viseme_aa``...) get their visemes
-driven through the documented ARKit -> viseme map instead; their ARKit-named shapes (blinks) are
-still driven.
+Avatars without ARKit mouth shapes but with Oculus visemes (``viseme_aa``...) get all 15 visemes
+driven instead (:func:`talkmesh.face.visemes.oculus_visemes`: lips and jaw through the documented
+ARKit -> viseme map, the tongue visemes from the phones when the motion was made from phones,
+else from the motion); their ARKit-named shapes (blinks) are still driven.
 
 Nothing else changes: the JSON of every node, mesh, skin, material, texture, image, extension
 (VRM included) and other animation is kept as it was, and the binary chunk is kept byte for
@@ -31,20 +32,14 @@ import numpy as np
 
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, NUM_ARKIT
-from talkmesh.face.arkit_names import (
-    MOUTH_CHANNELS,
-    VISEME_FROM_ARKIT,
-    VISEMES,
-    arkit_channel,
-    viseme_channel,
-    visemes_from_arkit,
-)
+from talkmesh.face.arkit_names import MOUTH_CHANNELS, VISEMES, arkit_channel, viseme_channel
+from talkmesh.face.visemes import oculus_visemes
 
 AVATAR_SUFFIXES = (".glb", ".vrm")
 CLIP_NAME = "talk"
 GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942  # glTF 2.0 spec, 4.4
 FLOAT, SCALAR = 5126, "SCALAR"
-_MAPPED_VISEMES = [VISEMES.index(v) for v in VISEME_FROM_ARKIT]
+OPENING_VISEMES = ("aa", "E", "I", "O", "U")  # a viseme avatar needs one of these to talk
 
 
 @dataclass(frozen=True)
@@ -102,7 +97,12 @@ class AvatarBinding:
         """One line for the user: what moves and which ARKit channels the avatar lacks."""
         line = f"drives {len(self.channels)} of {NUM_ARKIT} ARKit channels on {_mesh_names(self)}"
         if self.visemes:
-            line += f" and {len(self.visemes)} Oculus visemes (no ARKit mouth shapes)"
+            line += (
+                f" and {len(self.visemes)} of {len(VISEMES)} Oculus visemes (no ARKit mouth shapes)"
+            )
+            lacking = [v for v in VISEMES if v not in self.visemes]
+            if lacking:
+                line += f"; lacks visemes {', '.join(lacking)}: export all 15 to drive them"
         if self.missing:
             shown = ", ".join(self.missing[:6]) + (", ..." if len(self.missing) > 6 else "")
             line += f"; lacks {len(self.missing)}: {shown}"
@@ -243,7 +243,6 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
             raise ValueError(f"mesh {m}'s weights are not {num_targets} numbers")
         arkit = np.array([arkit_channel(n) for n in names], np.int64)
         visemes = np.array([viseme_channel(n) for n in names], np.int64)
-        visemes[~np.isin(visemes, _MAPPED_VISEMES)] = -1  # tongue-only visemes keep their rest
         arkit[visemes >= 0] = -1  # ``viseme_O`` is a viseme, not an ARKit suffix
         name = str(mesh.get("name") or f"mesh {m}")
         candidates.append((m, name, nodes, num_targets, arkit, visemes, rest))
@@ -255,6 +254,11 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
         if (arkit >= 0).any() or (visemes >= 0).any():
             meshes.append(MeshBinding(m, name, nodes, k, arkit, visemes, rest))
     driven_visemes = sorted({int(i) for b in meshes for i in b.visemes if i >= 0})
+    if driven_visemes and not {VISEMES[i] for i in driven_visemes} & set(OPENING_VISEMES):
+        raise TalkmeshError(
+            f"{source} has Oculus visemes but none that opens the mouth (viseme_aa, viseme_E, "
+            "viseme_I, viseme_O, viseme_U): export the full set of 15, or ARKit blendshapes"
+        )
     if not meshes:
         raise TalkmeshError(
             f"{source} has no morph targets with ARKit names (jawOpen, eyeBlinkLeft, ...) or "
@@ -271,7 +275,12 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
 
 
 def add_clip(
-    gltf: dict, binary: bytes, binding: AvatarBinding, weights: np.ndarray, fps: float
+    gltf: dict,
+    binary: bytes,
+    binding: AvatarBinding,
+    weights: np.ndarray,
+    fps: float,
+    phones: list[tuple[str, float, float]] | None = None,
 ) -> tuple[dict, bytes]:
     """A copy of ``gltf`` with one LINEAR clip of ``weights`` (T, 52) at ``fps`` as its first
     animation (replacing one named ``talk``, the others after it), and the binary chunk with its
@@ -305,7 +314,7 @@ def add_clip(
         accessors.append(accessor)
         return len(accessors) - 1
 
-    visemes = visemes_from_arkit(weights) if binding.visemes else None
+    visemes = oculus_visemes(weights, fps, phones) if binding.visemes else None
     times = add((np.arange(len(weights), dtype=np.float64) / fps).astype(np.float32), True)
     samplers, channels = [], []
     for mesh in binding.meshes:
@@ -335,9 +344,11 @@ def animate_avatar(
     output: str | Path,
     *,
     overwrite: bool = False,
+    phones: list[tuple[str, float, float]] | None = None,
 ) -> AvatarBinding:
     """Write a copy of ``avatar`` (.glb/.vrm) with a clip of ``weights`` (T, 52, ARKit order) at
-    ``fps`` to ``output`` (.glb/.vrm); returns what it drove. Atomic: a failed write leaves
+    ``fps`` to ``output`` (.glb/.vrm); returns what it drove. ``phones`` (label, start s, end s)
+    drive a viseme avatar's tongue visemes. Atomic: a failed write leaves
     nothing, and an existing ``output`` is replaced only with ``overwrite``."""
     avatar, output = Path(avatar), Path(output)
     if output.suffix.lower() not in AVATAR_SUFFIXES:
@@ -350,7 +361,7 @@ def animate_avatar(
         raise TalkmeshError(f"fps must be positive, got {fps}")
     gltf, binary = read_glb(avatar)
     binding = bind_avatar(gltf, str(avatar))
-    new_gltf, new_binary = add_clip(gltf, binary, binding, weights, fps)
+    new_gltf, new_binary = add_clip(gltf, binary, binding, weights, fps, phones)
     _write_atomic(output, glb_bytes(new_gltf, new_binary), overwrite)
     return binding
 

@@ -22,6 +22,8 @@ suffix     save    load    contents
                            (``talkmesh rig``).
 ``.csv``   yes     yes*    ARKit weights as a Live Link Face take (61 values per frame).
 ``.json``  yes     yes*    ARKit weights: ``{"fps", "names", "frames": [[52 floats], ...]}``.
+                           ``NAME.visemes.json``: the 15 Oculus visemes per frame and Azure's 22
+                           viseme ids as timed events (:mod:`.viseme_files`); save only.
 =========  ======  ======  =====================================================================
 
 \\* Weight files load with :func:`load_arkit_weights`; :func:`load_animation` plays them on the
@@ -67,6 +69,7 @@ from talkmesh.output.npy import (
     import_npz,
 )
 from talkmesh.output.obj import export_obj, obj_frame_path
+from talkmesh.output.viseme_files import export_visemes_json
 
 __all__ = [
     "EXPORTERS",
@@ -175,6 +178,7 @@ EXPORTERS: dict[str, Exporter] = {
     ".json": export_arkit_json,
     ".weights.npz": export_npz_weights,  # NAME.weights.npz: a compound suffix
     ".rig.glb": export_rig_glb,  # NAME.rig.glb or format="rig.glb": no animation clip
+    ".visemes.json": export_visemes_json,  # 15 Oculus visemes per frame, Azure's viseme events
 }
 
 IMPORTERS: dict[str, Importer] = {
