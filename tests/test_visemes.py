@@ -163,3 +163,93 @@ def test_visemes_json_of_vertices_only_is_refused(tmp_path):
     with pytest.raises(TalkmeshError, match="no ARKit weights"):
         save_animation(anim, tmp_path / "x.visemes.json")
     assert not (tmp_path / "x.visemes.json").exists()
+
+
+# --- VRM expressions -------------------------------------------------------------------------
+
+VROID = ["Fcl_MTH_A", "Fcl_MTH_I", "Fcl_MTH_U", "Fcl_MTH_E", "Fcl_MTH_O", "Fcl_EYE_Close"]
+HEAD_NODE = 2  # the test avatar's head mesh (0) sits on node 2
+
+
+def vroid(tmp_path, version: str, groups: bool = True):
+    """A VRoid-like avatar: the head's morph targets named as VRoid names them (no ARKit or
+    viseme names anywhere), the mouth and blink presets bound to them in VRM ``version``."""
+    from talkmesh.output.avatar import glb_bytes
+
+    src = make_avatar(tmp_path / "base.vrm", vrm=True, head_names=VROID)
+    gltf, binary = read_glb(src)
+    for mesh in gltf["meshes"][1:]:  # teeth and tongue: names no rule knows
+        for holder in (
+            mesh.get("extras") or {},
+            *(p.get("extras") or {} for p in mesh["primitives"]),
+        ):
+            if "targetNames" in holder:
+                holder["targetNames"] = [f"Custom_{k}" for k in range(len(holder["targetNames"]))]
+    presets = {"aa": 0, "ih": 1, "ou": 2, "ee": 3, "oh": 4, "blink": 5} if groups else {}
+    if version == "0.x":
+        names0 = {"aa": "a", "ih": "i", "ou": "u", "ee": "e", "oh": "o", "blink": "blink"}
+        gltf["extensions"]["VRM"]["blendShapeMaster"]["blendShapeGroups"] = [
+            {"name": p, "presetName": names0[p], "binds": [{"mesh": 0, "index": i, "weight": 100}]}
+            for p, i in presets.items()
+        ]
+    else:
+        gltf["extensions"] = {
+            "VRMC_vrm": {
+                "specVersion": "1.0",
+                "meta": {
+                    "name": "Test avatar",
+                    "authors": ["talkmesh tests"],
+                    "licenseUrl": "https://vrm.dev/licenses/1.0/",
+                },
+                "humanoid": {"humanBones": {"hips": {"node": 0}, "neck": {"node": 1}}},
+                "expressions": {
+                    "preset": {
+                        p: {"morphTargetBinds": [{"node": HEAD_NODE, "index": i, "weight": 1.0}]}
+                        for p, i in presets.items()
+                    }
+                },
+            }
+        }
+        gltf["extensionsUsed"] = ["VRMC_vrm"]
+    path = tmp_path / f"vroid-{version}.vrm"
+    path.write_bytes(glb_bytes(gltf, binary))
+    return path
+
+
+@pytest.mark.parametrize("version", ["0.x", "1.0"])
+def test_vrm_expression_presets_are_driven_when_there_are_no_arkit_shapes(tmp_path, version):
+    from test_avatar import arkit_weights
+    from test_io import validate_glb
+
+    weights = arkit_weights()
+    out = tmp_path / "talking.vrm"
+    binding = animate_avatar(vroid(tmp_path, version), weights, FPS, out)
+    assert binding.vrm == version and binding.expressions == ("aa", "ih", "ou", "ee", "oh", "blink")
+    assert f"VRM {version} expressions aa ih ou ee oh blink" in binding.summary()
+    head = clip_values(*read_glb(out), HEAD_NODE)
+    visemes = oculus_visemes(weights, FPS)
+    for k, viseme in enumerate(("aa", "I", "U", "E", "O")):
+        np.testing.assert_allclose(head[:, k], visemes[:, column(viseme)], atol=1e-6)
+    blink = np.minimum(
+        weights[:, ARKIT_NAMES.index("eyeBlinkLeft")],
+        weights[:, ARKIT_NAMES.index("eyeBlinkRight")],
+    )
+    np.testing.assert_allclose(head[:, 5], blink, atol=1e-6)
+    assert head[:, 0].max() - head[:, 0].min() > 0.5  # the mouth moves
+    assert validate_glb(out)["issues"]["numErrors"] == 0
+
+
+def test_an_avatar_with_arkit_shapes_and_vrm_presets_uses_arkit(tmp_path):
+    from test_avatar import arkit_weights
+
+    avatar = make_avatar(tmp_path / "both.vrm", vrm=True)  # preset "a" bound to jawOpen as well
+    binding = animate_avatar(avatar, arkit_weights(), FPS, tmp_path / "o.vrm")
+    assert binding.expressions == () and "jawOpen" in binding.channels
+
+
+@pytest.mark.parametrize("version", ["0.x", "1.0"])
+def test_a_vrm_without_mouth_expressions_or_shapes_is_one_line(tmp_path, version):
+    avatar = vroid(tmp_path, version, groups=False)
+    with pytest.raises(TalkmeshError, match=f"a VRM {version} without mouth expressions") as e:
+        bind_avatar(read_glb(avatar)[0], str(avatar))
+    assert "\n" not in str(e.value)

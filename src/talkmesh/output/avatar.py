@@ -9,7 +9,9 @@ clip of the avatar named ``talk`` (an earlier run's) is replaced, the other clip
 Avatars without ARKit mouth shapes but with Oculus visemes (``viseme_aa``...) get all 15 visemes
 driven instead (:func:`talkmesh.face.visemes.oculus_visemes`: lips and jaw through the documented
 ARKit -> viseme map, the tongue visemes from the phones when the motion was made from phones,
-else from the motion); their ARKit-named shapes (blinks) are still driven.
+else from the motion); their ARKit-named shapes (blinks) are still driven. A VRM avatar without
+ARKit mouth shapes but with the VRM mouth presets gets its presets driven instead, through the
+morph targets the VRM extension binds to them (:mod:`talkmesh.output.vrm`).
 
 Nothing else changes: the JSON of every node, mesh, skin, material, texture, image, extension
 (VRM included) and other animation is kept as it was, and the binary chunk is kept byte for
@@ -34,6 +36,7 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, NUM_ARKIT
 from talkmesh.face.arkit_names import MOUTH_CHANNELS, VISEMES, arkit_channel, viseme_channel
 from talkmesh.face.visemes import oculus_visemes
+from talkmesh.output.vrm import preset_weights, read_expressions, target_matrix
 
 AVATAR_SUFFIXES = (".glb", ".vrm")
 CLIP_NAME = "talk"
@@ -54,6 +57,7 @@ class MeshBinding:
         arkit: (K,) index into ``ARKIT_NAMES`` per target, -1 where none.
         visemes: (K,) index into ``VISEMES`` per target, -1 where none or not used.
         rest: (K,) the mesh's default weights (kept by targets that follow nothing).
+        presets: (P, K) the VRM expression presets' bind weights on its targets, or None.
     """
 
     mesh: int
@@ -63,16 +67,32 @@ class MeshBinding:
     arkit: np.ndarray
     visemes: np.ndarray
     rest: np.ndarray
+    presets: np.ndarray | None = None
 
-    def weights(self, arkit: np.ndarray, visemes: np.ndarray | None) -> np.ndarray:
-        """(T, 52) ARKit and (T, 15) viseme weights -> (T, K) weights of this mesh's targets."""
+    def weights(
+        self, arkit: np.ndarray, visemes: np.ndarray | None, presets: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(T, 52) ARKit, (T, 15) viseme and (T, P) VRM preset weights -> (T, K) weights of this
+        mesh's targets."""
         out = np.repeat(self.rest[None].astype(np.float32), len(arkit), axis=0)
         driven = self.arkit >= 0
         out[:, driven] = arkit[:, self.arkit[driven]]
         if visemes is not None:
             driven = self.visemes >= 0
             out[:, driven] = visemes[:, self.visemes[driven]]
+        if presets is not None and self.presets is not None:
+            driven = self.presets.any(axis=0)
+            out[:, driven] = np.clip(presets @ self.presets, 0.0, 1.0)[:, driven]
         return out
+
+    @property
+    def driven(self) -> bool:
+        """Whether anything drives one of its targets."""
+        return bool(
+            (self.arkit >= 0).any()
+            or (self.visemes >= 0).any()
+            or (self.presets is not None and self.presets.any())
+        )
 
 
 @dataclass(frozen=True)
@@ -85,6 +105,8 @@ class AvatarBinding:
         missing: the ARKit names no mesh has.
         visemes: the Oculus visemes driven (only when no mesh has ARKit mouth shapes).
         clips: the names of the avatar's own animations (``talk`` among them is replaced).
+        expressions: the VRM presets driven (only when no mesh has ARKit mouth shapes).
+        vrm: the VRM version the presets were read from ("0.x", "1.0"; "" for none).
     """
 
     meshes: tuple[MeshBinding, ...]
@@ -92,10 +114,15 @@ class AvatarBinding:
     missing: tuple[str, ...]
     visemes: tuple[str, ...]
     clips: tuple[str, ...] = ()
+    expressions: tuple[str, ...] = ()
+    vrm: str = ""
 
     def summary(self) -> str:
         """One line for the user: what moves and which ARKit channels the avatar lacks."""
         line = f"drives {len(self.channels)} of {NUM_ARKIT} ARKit channels on {_mesh_names(self)}"
+        if self.expressions:
+            shown = " ".join(self.expressions)
+            line += f" and VRM {self.vrm} expressions {shown} (no ARKit mouth shapes)"
         if self.visemes:
             line += (
                 f" and {len(self.visemes)} of {len(VISEMES)} Oculus visemes (no ARKit mouth shapes)"
@@ -233,8 +260,10 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
         primitives = _list(mesh, "primitives")
         num_targets = len(_list(primitives[0], "targets")) if primitives else 0
         names = _target_names(mesh)
-        if not num_targets or len(names) != num_targets:
+        if not num_targets:
             continue
+        if len(names) != num_targets:  # no names (VRM presets bind targets by index)
+            names = [""] * num_targets
         nodes = tuple(nodes_of.get(m, ()))
         if not nodes:
             continue
@@ -247,17 +276,28 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
         name = str(mesh.get("name") or f"mesh {m}")
         candidates.append((m, name, nodes, num_targets, arkit, visemes, rest))
     found = {int(i) for c in candidates for i in c[4] if i >= 0}
-    use_visemes = not any(ARKIT_NAMES.index(n) in found for n in MOUTH_CHANNELS)
+    no_arkit_mouth = not any(ARKIT_NAMES.index(n) in found for n in MOUTH_CHANNELS)
+    expressions = read_expressions(gltf)
+    use_vrm = no_arkit_mouth and expressions is not None and bool(expressions.mouth)
+    use_visemes = no_arkit_mouth and not use_vrm
     meshes = []
     for m, name, nodes, k, arkit, visemes, rest in candidates:
         visemes = visemes if use_visemes else np.full(k, -1, np.int64)
-        if (arkit >= 0).any() or (visemes >= 0).any():
-            meshes.append(MeshBinding(m, name, nodes, k, arkit, visemes, rest))
+        presets = target_matrix(expressions, m, k) if use_vrm else None
+        binding = MeshBinding(m, name, nodes, k, arkit, visemes, rest, presets)
+        if binding.driven:
+            meshes.append(binding)
     driven_visemes = sorted({int(i) for b in meshes for i in b.visemes if i >= 0})
     if driven_visemes and not {VISEMES[i] for i in driven_visemes} & set(OPENING_VISEMES):
         raise TalkmeshError(
             f"{source} has Oculus visemes but none that opens the mouth (viseme_aa, viseme_E, "
             "viseme_I, viseme_O, viseme_U): export the full set of 15, or ARKit blendshapes"
+        )
+    if not meshes and expressions is not None:
+        raise TalkmeshError(
+            f"{source}: a VRM {expressions.version} without mouth expressions (aa ih ou ee oh "
+            "bound to morph targets), ARKit mouth shapes or Oculus visemes: add the mouth presets "
+            "(VRoid Studio, UniVRM) or export it with ARKit blendshapes (perfect sync)"
         )
     if not meshes:
         raise TalkmeshError(
@@ -271,6 +311,8 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
         missing=tuple(n for i, n in enumerate(ARKIT_NAMES) if i not in found),
         visemes=tuple(VISEMES[i] for i in driven_visemes),
         clips=tuple(str(a.get("name") or f"animation {i}") for i, a in enumerate(animations)),
+        expressions=expressions.names if use_vrm else (),
+        vrm=expressions.version if use_vrm else "",
     )
 
 
@@ -315,10 +357,11 @@ def add_clip(
         return len(accessors) - 1
 
     visemes = oculus_visemes(weights, fps, phones) if binding.visemes else None
+    presets = preset_weights(weights, fps, binding.expressions) if binding.expressions else None
     times = add((np.arange(len(weights), dtype=np.float64) / fps).astype(np.float32), True)
     samplers, channels = [], []
     for mesh in binding.meshes:
-        values = add(mesh.weights(weights, visemes).ravel(), False)
+        values = add(mesh.weights(weights, visemes, presets).ravel(), False)
         samplers.append({"input": times, "output": values, "interpolation": "LINEAR"})
         for node in mesh.nodes:
             channels.append(
