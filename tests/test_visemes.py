@@ -169,6 +169,11 @@ def test_visemes_json_of_vertices_only_is_refused(tmp_path):
 
 VROID = ["Fcl_MTH_A", "Fcl_MTH_I", "Fcl_MTH_U", "Fcl_MTH_E", "Fcl_MTH_O", "Fcl_EYE_Close"]
 HEAD_NODE = 2  # the test avatar's head mesh (0) sits on node 2
+REQUIRED_BONES = (
+    "spine", "head", "leftUpperLeg", "leftLowerLeg", "leftFoot", "rightUpperLeg", "rightLowerLeg",
+    "rightFoot", "leftUpperArm", "leftLowerArm", "leftHand", "rightUpperArm", "rightLowerArm",
+    "rightHand",
+)  # fmt: skip
 
 
 def vroid(tmp_path, version: str, groups: bool = True):
@@ -185,8 +190,16 @@ def vroid(tmp_path, version: str, groups: bool = True):
         ):
             if "targetNames" in holder:
                 holder["targetNames"] = [f"Custom_{k}" for k in range(len(holder["targetNames"]))]
+    bones = {"hips": 0, "neck": 1}  # the rest of the bones a VRM requires, as empty nodes
+    for bone in REQUIRED_BONES:
+        gltf["nodes"].append({"name": bone})
+        bones[bone] = len(gltf["nodes"]) - 1
+        gltf["nodes"][0].setdefault("children", []).append(bones[bone])
     presets = {"aa": 0, "ih": 1, "ou": 2, "ee": 3, "oh": 4, "blink": 5} if groups else {}
     if version == "0.x":
+        gltf["extensions"]["VRM"]["humanoid"]["humanBones"] = [
+            {"bone": b, "node": n} for b, n in bones.items()
+        ]
         names0 = {"aa": "a", "ih": "i", "ou": "u", "ee": "e", "oh": "o", "blink": "blink"}
         gltf["extensions"]["VRM"]["blendShapeMaster"]["blendShapeGroups"] = [
             {"name": p, "presetName": names0[p], "binds": [{"mesh": 0, "index": i, "weight": 100}]}
@@ -201,7 +214,7 @@ def vroid(tmp_path, version: str, groups: bool = True):
                     "authors": ["talkmesh tests"],
                     "licenseUrl": "https://vrm.dev/licenses/1.0/",
                 },
-                "humanoid": {"humanBones": {"hips": {"node": 0}, "neck": {"node": 1}}},
+                "humanoid": {"humanBones": {b: {"node": n} for b, n in bones.items()}},
                 "expressions": {
                     "preset": {
                         p: {"morphTargetBinds": [{"node": HEAD_NODE, "index": i, "weight": 1.0}]}
