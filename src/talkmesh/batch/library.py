@@ -70,7 +70,9 @@ class Job(NamedTuple):
 
 class Row(NamedTuple):
     """One line of the summary: the speech file, its length (s), the frames written, the wall
-    time it took (s), ``ok`` / ``skipped`` (outputs already there) / ``failed``, and the error."""
+    time it took (s), ``ok`` / ``skipped`` (outputs already there) / ``failed``, and the error;
+    ``note`` is said on the terminal only (the share of the motion ARKit weights solved from
+    another topology miss)."""
 
     file: str
     duration: float | None
@@ -78,6 +80,7 @@ class Row(NamedTuple):
     seconds: float
     status: str
     error: str = ""
+    note: str = ""
 
 
 class Animator:
@@ -108,6 +111,7 @@ class Animator:
             self.model, self.int8 = (net.int8_copy(s.int8) if s.int8 else net), None
 
     def __call__(self, job: Job) -> Row:
+        from talkmesh.face.solve import Residual
         from talkmesh.output import VIDEO_SUFFIXES, write_animation
         from talkmesh.output.avatar import AVATAR_SUFFIXES
         from talkmesh.output.streaming import WEIGHT_SUFFIXES, save_blocks
@@ -146,10 +150,12 @@ class Animator:
                 if self.rig is not None and p.suffix.lower() in VIDEO_SUFFIXES
             ]
             plain = [p for p in job.outputs if p not in rigged and p not in videos]
+            residual = None
             if not self.head.rigged and (
                 rigged or any(p.suffix.lower() in WEIGHT_SUFFIXES for p in plain)
             ):
-                anim = self._solver().solve_blocks(anim)  # ARKit weights of another topology
+                residual = Residual()  # ARKit weights of another topology, solved
+                anim = self._solver().solve_blocks(anim, residual)
             if self.rig is not None:
                 anim = self.rig.carry_blocks(anim, self.head.template)
             whole = save_blocks(
@@ -172,7 +178,10 @@ class Animator:
         except Exception as e:  # a bug on one file must not stop a library of thousands
             return _failed(job, start, f"internal error: {type(e).__name__}: {e}")
         seconds = time.perf_counter() - start
-        return Row(str(job.audio), anim.num_frames / anim.fps, anim.num_frames, seconds, OK)
+        note = "" if residual is None else f"ARKit weights miss {residual.share:.1%} of the motion"
+        return Row(
+            str(job.audio), anim.num_frames / anim.fps, anim.num_frames, seconds, OK, "", note
+        )
 
     def _solver(self):
         """The ARKit solve of the template's topology (rigged once per mesh and process)."""

@@ -232,7 +232,8 @@ def cmd_animate(args: argparse.Namespace) -> int:
         bar.update()
         if row.status == "ok" and not args.quiet:
             names = ", ".join(output_name(p, row.frames) for p in written[row.file])
-            tqdm.write(f"wrote {names} ({row.frames} frames, {row.duration:.2f} s)")
+            note = f"; {row.note}" if row.note else ""
+            tqdm.write(f"wrote {names} ({row.frames} frames, {row.duration:.2f} s{note})")
 
     try:
         with exit_on_sigterm():  # `timeout`, systemd, `docker stop`: the workers stop too
