@@ -92,6 +92,7 @@ class ArkitSolver:
         smooth = self.smooth * (gram + np.diag(OWN * np.diag(gram) + RIDGE * scale))
         self._factors.update(
             basis=basis,
+            gram=gram,
             lip=lip,
             lips=lips,
             scale=scale,
@@ -109,12 +110,15 @@ class ArkitSolver:
         assert offsets.ndim == 3 and offsets.shape[1:] == self.template.shape, offsets.shape
         flat = offsets.reshape(len(offsets), -1)
         upper, lower = self.lip_pair
+        projection = flat @ f["basis"].T  # (T, 52): all the solve needs of the vertices
         lip_motion = offsets[:, lower] - offsets[:, upper]
-        target = flat @ f["basis"].T + f["lips"] * lip_motion @ f["lip"].T
+        target = projection + f["lips"] * lip_motion @ f["lip"].T
         w = _bounded_smooth(target, f, previous, self.iterations)
-        missed = flat - w @ f["basis"]
+        # |d - w B|^2 = |d|^2 - 2 w.(B d) + w G w, without a (T, 3V) array of what is missed
         total = float(np.einsum("ij,ij->", flat, flat))
-        share = float(np.einsum("ij,ij->", missed, missed)) / total if total > 0 else 0.0
+        gram = f["gram"]
+        missed = total - 2 * float(np.sum(w * projection)) + float(np.sum((w @ gram) * w))
+        share = max(missed, 0.0) / total if total > 0 else 0.0
         return Solved(w.astype(np.float32), share)
 
     def solve_blocks(self, anim: AnimationBlocks, residual: Residual | None = None):
