@@ -376,10 +376,11 @@ def test_weight_files_use_arkit_order_whatever_the_column_order(tmp_path):
     )
 
 
-@pytest.mark.parametrize("suffix", [".csv", ".json"])
+@pytest.mark.parametrize("suffix", [".csv", ".json", ".visemes.json"])
 def test_weight_formats_need_weights(tmp_path, suffix):
-    with pytest.raises(TalkmeshError, match="no ARKit weights"):
+    with pytest.raises(TalkmeshError, match="no ARKit weights") as e:
         save_animation(vertex_animation(), tmp_path / f"talk{suffix}")
+    assert str(e.value).startswith(f"talk{suffix}: ")  # not the temporary it was written to
     assert not list(tmp_path.iterdir())
 
 

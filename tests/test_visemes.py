@@ -266,3 +266,19 @@ def test_a_vrm_without_mouth_expressions_or_shapes_is_one_line(tmp_path, version
     with pytest.raises(TalkmeshError, match=f"a VRM {version} without mouth expressions") as e:
         bind_avatar(read_glb(avatar)[0], str(avatar))
     assert "\n" not in str(e.value)
+
+
+def test_azure_events_from_a_partly_open_mouth_are_its_shape_not_silence():
+    w = np.zeros((6, 52), np.float32)
+    w[2:, ARKIT_NAMES.index("jawOpen")] = 0.3  # sil is 0.7 there, but the mouth is open
+    assert [i for _, i in azure_events(oculus_visemes(w, FPS), FPS)] == [0, 2]
+
+
+def test_a_vrm_whose_presets_bind_a_missing_node_is_one_line(tmp_path):
+    gltf = read_glb(vroid(tmp_path, "1.0"))[0]
+    gltf["extensions"]["VRMC_vrm"]["expressions"]["preset"]["aa"]["morphTargetBinds"][0]["node"] = (
+        999
+    )
+    with pytest.raises(TalkmeshError, match="does not follow the glTF 2.0 schema") as e:
+        bind_avatar(gltf, "broken.vrm")
+    assert "\n" not in str(e.value)

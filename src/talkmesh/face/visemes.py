@@ -30,6 +30,7 @@ RAMP = 0.04  # s: a phone's viseme rises and falls over this either side of its 
 NARROW = (0.03, 0.15, 0.35)  # jawOpen: a consonant's small opening starts, peaks and ends
 MOTION_SHARE = 0.6  # the most a viseme read from the motion alone reaches (it is a guess)
 TICKS_PER_S = 10_000_000  # the Speech SDK's audio offsets are in 100 ns ticks
+SPEAKING = 0.1  # without phones, a frame whose visemes all stay under this is silence (id 0)
 
 # ARPAbet (CMU, no stress) -> Oculus viseme (the OVR LipSync reference's phoneme examples).
 OCULUS_FROM_PHONE: dict[str, str] = {
@@ -151,7 +152,8 @@ def azure_events(
 ) -> list[tuple[int, int]]:
     """``(audioOffset in 100 ns ticks, visemeId)`` events as Azure's Speech SDK sends them: one at
     each phone's start (consecutive equal ids merged) where there are ``phones``, else one where
-    the frames' strongest Oculus viseme (``visemes`` (T, 15)) changes and holds ``min_frames``."""
+    the frames' strongest Oculus viseme other than ``sil`` (``visemes`` (T, 15); silence where
+    all stay under ``SPEAKING``) changes and holds ``min_frames``."""
     events: list[tuple[int, int]] = []
 
     def add(seconds: float, viseme_id: int) -> None:
@@ -162,7 +164,11 @@ def azure_events(
         for label, start, _ in sorted(phones, key=lambda p: p[1]):
             add(start, AZURE_FROM_PHONE.get(str(label).upper(), 0))
         return events
-    strongest = np.argmax(np.asarray(visemes), axis=1)
+    visemes = np.asarray(visemes)
+    sil = VISEMES.index("sil")
+    others = np.delete(visemes, sil, axis=1)  # the mouth's strongest shape, silence if none
+    strongest = np.delete(np.arange(len(VISEMES)), sil)[np.argmax(others, axis=1)]
+    strongest[others.max(axis=1) < SPEAKING] = sil
     ids = np.array([AZURE_FROM_OCULUS[VISEMES[i]] for i in strongest], np.int64)
     t = 0
     while t < len(ids):
