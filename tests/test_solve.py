@@ -144,13 +144,13 @@ def test_a_topology_that_cannot_be_rigged_is_one_line():
         solver_for_mesh(v, np.zeros((0, 3), np.int64), "points.npy")
 
 
-def fake_rig(vertices, faces) -> Rig:
-    """A rig of the 24-vertex grid the imported fixture models move: every shape a smooth field
-    (the registration itself is tested in test_rig.py; here the wiring)."""
+def fake_rig(vertices, faces, size: float = 0.002) -> Rig:
+    """A rig of the small meshes the fixture models move: every shape a smooth field of about
+    ``size`` (the registration itself is tested in test_rig.py; here the wiring)."""
     v = np.asarray(vertices, np.float32)
     rng = np.random.default_rng(0)
-    shapes = rng.normal(0, 0.002, (52, 1, 3)) * (1 + v[None, :, :1]) + rng.normal(
-        0, 0.001, (52, len(v), 3)
+    shapes = rng.normal(0, size, (52, 1, 3)) * (1 + v[None, :, :1]) + rng.normal(
+        0, size / 2, (52, len(v), 3)
     )
     return Rig(
         v,
@@ -216,3 +216,33 @@ def test_cli_tiny_model_on_a_remeshed_head_drives_an_avatar(tmp_path, capsys, mo
     assert list((tmp_path / "cache" / "rigs").glob("*.npz"))  # the registration is saved
     gltf, _ = read_glb(tmp_path / "talk.vrm")
     assert [a["name"] for a in gltf["animations"]][0] == "talk"
+
+
+def test_a_model_stream_of_another_topology_gets_solved_arkit_weights(
+    monkeypatch, tiny_stream_model
+):
+    """The stream's ARKit channel on a model's own topology (was refused: "the face's blendshapes
+    are not the 52 ARKit shapes"): chunk by chunk, the weights of the solve on the whole clip."""
+    from talkmesh.face.assets import plain_head
+    from talkmesh.serve.stream import open_stream, push_together
+
+    # the untrained tiny model moves its face by about 0.5: shapes of that size
+    monkeypatch.setattr(rig_files, "rig_mesh", lambda v, f: fake_rig(v, f, size=0.3))
+    rng = np.random.default_rng(0)
+    v = rng.normal(0, 0.05, (20, 3))
+    head = plain_head(v, np.array([[0, 1, 2], [2, 3, 4]]), "mine")
+    path = tiny_stream_model()
+    audio = rng.normal(0, 0.1, 24_000).astype(np.float32)
+    stream = open_stream(path, head=head, offsets=True)
+    frames = [f for i in range(0, len(audio), 1600) for f in stream.push(audio[i : i + 1600])]
+    frames += stream.flush()
+    weights = np.stack([f.weights for f in frames])
+    offsets = np.stack([f.offsets for f in frames])
+    assert weights.shape == (len(frames), 52) and weights.min() >= 0 and weights.max() <= 1
+    assert weights.std(0).max() > 0
+    whole = solver_for_mesh(v, head.faces).solve(offsets).weights
+    assert np.abs(weights - whole).max() < 0.05  # chunks continue one another
+    together = push_together([(open_stream(path, head=head), [audio], True)])[0]
+    np.testing.assert_allclose(np.stack([f.weights for f in together]), whole, atol=0.05)
+    with pytest.raises(TalkmeshError, match="procedural animator streams the bundled head"):
+        open_stream("procedural", head=head)
