@@ -157,8 +157,11 @@ def _mesh(
     return mesh
 
 
-def make_avatar(path: Path, *, vrm: bool = False, visemes: bool = False) -> Path:
-    """Write a test avatar to ``path`` (.glb, or .vrm with the VRM 0.x extension)."""
+def make_avatar(
+    path: Path, *, vrm: bool = False, visemes: bool = False, head_names: list[str] | None = None
+) -> Path:
+    """Write a test avatar to ``path`` (.glb, or .vrm with the VRM 0.x extension); ``head_names``
+    replaces the head's morph target names (``visemes``: the viseme avatar's teeth and tongue)."""
     b = _Builder()
     image = b.view(png_bytes())
     names = (
@@ -166,6 +169,8 @@ def make_avatar(path: Path, *, vrm: bool = False, visemes: bool = False) -> Path
         if visemes
         else [HEAD_NAMES, TEETH_NAMES, TONGUE_NAMES]
     )
+    if head_names is not None:
+        names[0] = head_names
     meshes = [
         _mesh(
             b, "Head", (0, 1.6, 0), (0.16, 0.22, 0.18), names[0], skinned=True, material=0, uv=True

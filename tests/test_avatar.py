@@ -17,6 +17,7 @@ from talkmesh.cli import main
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.arkit_names import VISEMES, arkit_channel, viseme_channel, visemes_from_arkit
+from talkmesh.face.visemes import oculus_visemes
 from talkmesh.output.avatar import animate_avatar, bind_avatar, read_glb
 
 T, FPS = 45, 30.0
@@ -36,8 +37,8 @@ def accessor(gltf: dict, binary: bytes, index: int) -> np.ndarray:
 
 
 def clip_values(gltf: dict, binary: bytes, node: int) -> np.ndarray:
-    """(T, K) weights the new clip gives ``node``."""
-    clip = gltf["animations"][-1]
+    """(T, K) weights the new clip (the first) gives ``node``."""
+    clip = gltf["animations"][0]
     (channel,) = [c for c in clip["channels"] if c["target"]["node"] == node]
     sampler = clip["samplers"][channel["sampler"]]
     times = accessor(gltf, binary, sampler["input"])
@@ -100,9 +101,10 @@ def test_clip_written_into_a_copy_leaves_everything_else_byte_identical(tmp_path
     assert set(new) == set(old)
     for key in set(old) - set(APPENDED):
         assert json.dumps(new[key], sort_keys=True) == json.dumps(old[key], sort_keys=True), key
-    for key in ("animations", "accessors", "bufferViews"):
+    for key in ("accessors", "bufferViews"):
         assert new[key][: len(old[key])] == old[key], key
-    assert new["animations"][0]["name"] == "Idle" and len(new["animations"]) == 2
+    # The speech is the first clip (the one viewers play); the avatar's own clips follow it.
+    assert new["animations"][1:] == old["animations"] and old["animations"][0]["name"] == "Idle"
     # The binary chunk is kept byte for byte (every buffer view: vertices, skin, texture...).
     assert new_bin[: len(old_bin)] == old_bin
     for view in old["bufferViews"]:
@@ -110,7 +112,7 @@ def test_clip_written_into_a_copy_leaves_everything_else_byte_identical(tmp_path
         assert new_bin[start:end] == old_bin[start:end]
 
     # One clip: a channel for each node of the three meshes with ARKit names, none for the hat.
-    clip = new["animations"][-1]
+    clip = new["animations"][0]
     assert clip["name"] == "talk"
     assert sorted(c["target"]["node"] for c in clip["channels"]) == [2, 3, 4]
     assert {m.name for m in binding.meshes} == {"Head", "Teeth", "Tongue"}
@@ -137,26 +139,37 @@ def test_viseme_fallback_when_no_arkit_mouth_shapes(tmp_path):
     src = make_avatar(tmp_path / "rpm.glb", visemes=True)
     weights = arkit_weights()
     binding = animate_avatar(src, weights, FPS, tmp_path / "out.glb")
-    assert binding.visemes == ("PP", "TH", "aa", "O", "U")
+    assert binding.visemes == ("sil", "PP", "TH", "aa", "O", "U")
     assert binding.channels == ("eyeBlinkLeft", "eyeBlinkRight")
-    assert "Oculus visemes" in binding.summary() and "\n" not in binding.summary()
+    assert "6 of 15 Oculus visemes" in binding.summary() and "\n" not in binding.summary()
+    assert "lacks visemes FF, DD, kk, CH, SS, nn, RR, E, I: export all 15" in binding.summary()
     gltf, binary = read_glb(tmp_path / "out.glb")
     head = clip_values(gltf, binary, 2)  # sil PP aa O U eyeBlinkLeft eyeBlinkRight
     visemes = visemes_from_arkit(weights)
-    np.testing.assert_array_equal(head[:, 0], 0)  # silence stays at rest
+    others = np.delete(oculus_visemes(weights, FPS), 0, axis=1).max(1)
+    np.testing.assert_allclose(head[:, 0], 1 - others, atol=1e-6)  # silence: the mouth at rest
     np.testing.assert_allclose(head[:, 2], visemes[:, VISEMES.index("aa")])
     np.testing.assert_allclose(head[:, 2], weights[:, ARKIT_NAMES.index("jawOpen")])
     np.testing.assert_array_equal(head[:, 5], weights[:, ARKIT_NAMES.index("eyeBlinkLeft")])
     assert validate_glb(tmp_path / "out.glb")["issues"]["numErrors"] == 0
 
 
-def test_second_run_gets_its_own_clip_name(tmp_path):
-    first = animate_avatar(
-        make_avatar(tmp_path / "a.glb"), arkit_weights(), FPS, tmp_path / "b.glb"
-    )
-    animate_avatar(tmp_path / "b.glb", arkit_weights(seed=1), FPS, tmp_path / "c.glb")
-    names = [a["name"] for a in read_glb(tmp_path / "c.glb")[0]["animations"]]
-    assert names == ["Idle", "talk", "talk_2"] and first.meshes
+def test_second_run_replaces_the_talk_clip_and_keeps_the_others_after_it(tmp_path):
+    """A copy animated again: one speech clip, the new one, first; the avatar's Idle after it."""
+    animate_avatar(make_avatar(tmp_path / "a.glb"), arkit_weights(), FPS, tmp_path / "b.glb")
+    binding = animate_avatar(tmp_path / "b.glb", arkit_weights(seed=1), FPS, tmp_path / "c.glb")
+    assert binding.clips == ("talk", "Idle")
+    assert "replaces its clip 'talk'" in binding.summary() and "(Idle)" in binding.summary()
+    gltf, binary = read_glb(tmp_path / "c.glb")
+    assert [a["name"] for a in gltf["animations"]] == ["talk", "Idle"]
+    jaw = arkit_weights(seed=1)[:, ARKIT_NAMES.index("jawOpen")]
+    np.testing.assert_array_equal(clip_values(gltf, binary, 2)[:, 0], jaw)  # the second run's
+    # read back by a third-party parser too: pygltflib sees the speech clip first
+    import pygltflib
+
+    parsed = pygltflib.GLTF2().load(str(tmp_path / "c.glb"))
+    assert [a.name for a in parsed.animations] == ["talk", "Idle"]
+    assert validate_glb(tmp_path / "c.glb")["issues"]["numErrors"] == 0
 
 
 def test_bad_avatars_and_outputs_give_one_line_errors(tmp_path):

@@ -172,6 +172,27 @@ def test_glb_round_trip_with_arkit_basis(tmp_path):
     np.testing.assert_array_equal(back.faces, anim.faces)
 
 
+def test_rig_glb_has_the_targets_and_no_animation(tmp_path):
+    """NAME.rig.glb (what `talkmesh rig` writes): the morph targets alone, no still clip for a
+    viewer to play first; it reads back as the neutral face with its ARKit basis."""
+    anim = arkit_animation()
+    one = Animation(
+        anim.vertices[:1] * 0 + anim.template,
+        anim.faces,
+        anim.fps,
+        weights=np.zeros((1, 52), np.float32),
+        weight_names=list(ARKIT_NAMES),
+        template=anim.template,
+        basis=anim.basis,
+    )
+    (out,) = save_animation(one, tmp_path / "head.rig.glb")
+    assert "animations" not in glb_json(out)
+    back = load_animation(out)
+    np.testing.assert_allclose(back.basis, anim.basis, atol=1e-7)
+    np.testing.assert_allclose(back.vertices[0], anim.template, atol=1e-6)
+    assert validate_glb(out)["issues"]["numErrors"] == 0
+
+
 def test_glb_round_trip_with_pca_targets(tmp_path):
     anim = vertex_animation()
     (out,) = save_animation(anim, tmp_path / "talk.glb")
@@ -421,10 +442,11 @@ def test_weight_files_use_arkit_order_whatever_the_column_order(tmp_path):
     )
 
 
-@pytest.mark.parametrize("suffix", [".csv", ".json"])
+@pytest.mark.parametrize("suffix", [".csv", ".json", ".visemes.json"])
 def test_weight_formats_need_weights(tmp_path, suffix):
-    with pytest.raises(TalkmeshError, match="no ARKit weights"):
+    with pytest.raises(TalkmeshError, match="no ARKit weights") as e:
         save_animation(vertex_animation(), tmp_path / f"talk{suffix}")
+    assert str(e.value).startswith(f"talk{suffix}: ")  # not the temporary it was written to
     assert not list(tmp_path.iterdir())
 
 

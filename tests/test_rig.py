@@ -221,9 +221,11 @@ def test_cli_rig_then_animate_as_avatar(tmp_path, capsys, monkeypatch):
     np.testing.assert_allclose(saved.blendshapes[jaw], 1000 * head.blendshapes[jaw], atol=1e-3)
     gltf, _ = read_glb(tmp_path / "me.glb")
     assert gltf["meshes"][0]["extras"]["targetNames"] == list(ARKIT_NAMES)
+    assert "animations" not in gltf  # no still placeholder clip for viewers to play first
     weights = np.zeros((10, 52), np.float32)
     binding = animate_avatar(tmp_path / "me.glb", weights, 30.0, tmp_path / "talk.glb")
-    assert not binding.missing
+    assert not binding.missing and binding.clips == ()
+    assert [a["name"] for a in read_glb(tmp_path / "talk.glb")[0]["animations"]] == ["talk"]
     (tmp_path / "bad.obj").write_text("not a mesh\n")
     assert main(["rig", str(tmp_path / "bad.obj"), "-o", str(tmp_path / "b.glb")]) == 2
     assert "bad.obj" in capsys.readouterr().err and not (tmp_path / "b.glb").exists()

@@ -208,7 +208,7 @@ def imported(tmp_path: Path, family: str, dataset: str) -> Path:
     return out
 
 
-def test_animate_an_imported_vocaset_model_on_templates_pkl(tmp_path):
+def test_animate_an_imported_vocaset_model_on_templates_pkl(tmp_path, capsys):
     """The official fixture models animate 24 vertices: the VOCASET layout at that size."""
     from talkmesh.models.release import load_model
 
@@ -241,8 +241,11 @@ def test_animate_an_imported_vocaset_model_on_templates_pkl(tmp_path):
     assert np.array_equal(first.faces, faces)
     np.testing.assert_allclose(first.vertices, exact[0], atol=1e-5)
     assert outs[4].stat().st_size > 1000
-    # ARKit weights need the bundled topology: refused before the model runs
+    # ARKit weights are solved through the 52 shapes rigged onto the topology (test_solve.py):
+    # a sheet of 24 vertices cannot be rigged, which is one line before the model runs
     assert main(argv + ["-o", str(tmp_path / "w.csv")]) == 2
+    assert "cannot be rigged onto it" in capsys.readouterr().err
+    assert not (tmp_path / "w.csv").exists()
 
 
 def test_animate_an_imported_biwi_model_at_its_own_rate_unless_fps(tmp_path, capsys):

@@ -39,6 +39,9 @@ class Animation:
             ARKit keeps the face apart from the head's transform; a vertex ``v`` is seen at
             ``R @ v + t`` (:mod:`talkmesh.face.head_motion`). Videos, .glb head nodes, Live Link
             head columns and .npz files carry it.
+        phones: optional timed phones ``(ARPAbet label, start s, end s)`` the motion was made
+            from (the procedural animator's recognised or aligned phones): viseme exports drive
+            the tongue visemes from them.
     """
 
     vertices: np.ndarray
@@ -54,6 +57,7 @@ class Animation:
     to_gltf: np.ndarray | None = None
     colors: np.ndarray | None = None
     head_pose: np.ndarray | None = None
+    phones: list[tuple[str, float, float]] | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float32)
@@ -120,6 +124,7 @@ class AnimationBlocks:
     basis: np.ndarray | None = None
     audio_file: Path | None = None
     to_gltf: np.ndarray | None = None
+    phones: list[tuple[str, float, float]] | None = None
 
     def collect(self) -> Animation:
         """All frames as one :class:`Animation` (filled in place: one copy of the vertices)."""
@@ -153,4 +158,5 @@ class AnimationBlocks:
             audio_file=self.audio_file,
             to_gltf=self.to_gltf,
             head_pose=np.concatenate(poses) if poses else None,
+            phones=self.phones,
         )

@@ -386,6 +386,7 @@ def animate_procedural(
         weight_names=list(ARKIT_NAMES),
         template=head.template,
         basis=head.blendshapes,
+        phones=[(str(p[0]), float(p[1]), float(p[2])) for p in phones],
     )
 
 

@@ -74,7 +74,9 @@ class Job(NamedTuple):
 
 class Row(NamedTuple):
     """One line of the summary: the speech file, its length (s), the frames written, the wall
-    time it took (s), ``ok`` / ``skipped`` (outputs already there) / ``failed``, and the error."""
+    time it took (s), ``ok`` / ``skipped`` (outputs already there) / ``failed``, and the error;
+    ``note`` is said on the terminal only (the share of the motion ARKit weights solved from
+    another topology miss)."""
 
     file: str
     duration: float | None
@@ -82,6 +84,7 @@ class Row(NamedTuple):
     seconds: float
     status: str
     error: str = ""
+    note: str = ""
 
 
 class Animator:
@@ -112,9 +115,10 @@ class Animator:
             self.model, self.int8 = (net.int8_copy(s.int8) if s.int8 else net), None
 
     def __call__(self, job: Job) -> Row:
+        from talkmesh.face.solve import Residual
         from talkmesh.output import VIDEO_SUFFIXES, write_animation
         from talkmesh.output.avatar import AVATAR_SUFFIXES
-        from talkmesh.output.streaming import save_blocks
+        from talkmesh.output.streaming import WEIGHT_SUFFIXES, save_blocks
         from talkmesh.pipeline import animate_blocks
 
         s = self.settings
@@ -152,6 +156,12 @@ class Animator:
                 if self.rig is not None and p.suffix.lower() in VIDEO_SUFFIXES
             ]
             plain = [p for p in job.outputs if p not in rigged and p not in videos]
+            residual = None
+            if not self.head.rigged and (
+                rigged or any(p.suffix.lower() in WEIGHT_SUFFIXES for p in plain)
+            ):
+                residual = Residual()  # ARKit weights of another topology, solved
+                anim = self._solver().solve_blocks(anim, residual)
             if self.rig is not None:
                 anim = self.rig.carry_blocks(anim, self.head.template)
             whole = save_blocks(
@@ -174,7 +184,17 @@ class Animator:
         except Exception as e:  # a bug on one file must not stop a library of thousands
             return _failed(job, start, f"internal error: {type(e).__name__}: {e}")
         seconds = time.perf_counter() - start
-        return Row(str(job.audio), anim.num_frames / anim.fps, anim.num_frames, seconds, OK)
+        note = "" if residual is None else f"ARKit weights miss {residual.share:.1%} of the motion"
+        return Row(
+            str(job.audio), anim.num_frames / anim.fps, anim.num_frames, seconds, OK, "", note
+        )
+
+    def _solver(self):
+        """The ARKit solve of the template's topology (rigged once per mesh and process)."""
+        from talkmesh.face.solve import solver_for_mesh
+
+        name = f"{self.settings.template} ({self.head.name})"
+        return solver_for_mesh(self.head.template, self.head.faces, name)
 
 
 def write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
@@ -183,7 +203,15 @@ def write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
     from talkmesh.output.avatar import animate_avatar
 
     weights = to_arkit_order(anim.weights, anim.weight_names)
-    animate_avatar(avatar, weights, anim.fps, path, overwrite=overwrite, head_pose=anim.head_pose)
+    animate_avatar(
+        avatar,
+        weights,
+        anim.fps,
+        path,
+        overwrite=overwrite,
+        head_pose=anim.head_pose,
+        phones=anim.phones,
+    )
 
 
 def _failed(job: Job, start: float, message: str) -> Row:

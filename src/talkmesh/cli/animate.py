@@ -49,7 +49,8 @@ def add_animate(sub: Subparsers) -> None:
         "-o",
         "--output",
         action="append",
-        help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv .json); "
+        help="output file; the extension picks the format (.mp4 .glb .npy .npz .obj .csv .json, "
+        ".visemes.json: Oculus and Azure visemes); "
         "repeat for several; {stem} is the input name (default {stem}.mp4); a folder (out/, or "
         "a name without an extension: out) takes {stem}.mp4 for each input, mirroring the "
         "subfolders of an input folder",
@@ -275,7 +276,8 @@ def cmd_animate(args: argparse.Namespace) -> int:
         bar.update()
         if row.status == "ok" and not args.quiet:
             names = ", ".join(output_name(p, row.frames) for p in written[row.file])
-            tqdm.write(f"wrote {names} ({row.frames} frames, {row.duration:.2f} s)")
+            note = f"; {row.note}" if row.note else ""
+            tqdm.write(f"wrote {names} ({row.frames} frames, {row.duration:.2f} s{note})")
 
     try:
         with exit_on_sigterm():  # `timeout`, systemd, `docker stop`: the workers stop too
@@ -353,19 +355,34 @@ def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar
             f"{load_head().num_vertices}: the procedural animator and the bundled models "
             "animate the bundled topology; pass --model FILE.safetensors of this topology"
         )
-    weight_files = [p for ps in outputs for p in ps if p.suffix.lower() in (".csv", ".json")]
-    if weight_files or avatar is not None:
-        what = weight_files[0] if weight_files else f"--avatar {avatar}"
-        raise TalkmeshError(
-            f"{what}: ARKit weights need the bundled head's topology, not {head.name}'s "
-            f"{head.num_vertices} vertices: write .npz, .npy, .glb, .obj or a video"
-        )
-    if not args.quiet:
+    if needs_arkit(outputs, avatar):  # rigged now (once per mesh, then saved): fails here
+        import time
+
+        from talkmesh.face.solve import solver_for_mesh
+
+        start = time.perf_counter()
+        solver_for_mesh(head.template, head.faces, f"{args.template} ({head.name})")
+        if not args.quiet:
+            print(
+                f"template {head.name}: {head.num_vertices} vertices, not the bundled topology: "
+                "ARKit weights solved from the model's motion through the 52 shapes rigged "
+                f"onto it ({time.perf_counter() - start:.1f} s; the registration is saved)"
+            )
+    elif not args.quiet:
         print(
             f"template {head.name}: {head.num_vertices} vertices, {len(head.faces)} triangles "
             "(not the bundled topology: the model's motion as it is, no ARKit weights)"
         )
     return head
+
+
+def needs_arkit(outputs: list[list[Path]], avatar: Path | None) -> bool:
+    """Whether any output needs ARKit weights (.csv, .json, an avatar's copy)."""
+    from talkmesh.output.avatar import AVATAR_SUFFIXES
+    from talkmesh.output.streaming import WEIGHT_SUFFIXES
+
+    suffixes = WEIGHT_SUFFIXES + (AVATAR_SUFFIXES if avatar is not None else ())
+    return any(p.suffix.lower() in suffixes for paths in outputs for p in paths)
 
 
 VERTEX_ONLY = (".npy", ".npz")  # outputs that need no triangles (they store them when known)
@@ -582,7 +599,8 @@ def cmd_rig(args: argparse.Namespace) -> int:
         raise TalkmeshError(
             message if args.mesh in message else f"{args.mesh}: {message}"
         ) from None
-    save_animation(rig.neutral_animation(), out, overwrite=args.overwrite)
+    # no clip: a one-key still clip would be the first one viewers play
+    save_animation(rig.neutral_animation(), out, format="rig.glb", overwrite=args.overwrite)
     save_registration(args.mesh, rig)  # `animate --head` on the same file reads it back
     if not args.quiet:
         parts = ", ".join(f"{n} {k}" for k, n in rig.parts.items()) or "none"

@@ -227,6 +227,7 @@ class Rig:
             template=self.vertices,
             audio_file=anim.audio_file,
             to_gltf=self.to_gltf(),
+            phones=anim.phones,
         )
 
     def facing(self, anim: Animation) -> Animation:

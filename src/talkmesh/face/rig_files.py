@@ -3,6 +3,7 @@ from the user cache (:mod:`talkmesh.face.rig_cache`) by ``talkmesh animate --hea
 
 from __future__ import annotations
 
+import hashlib
 from functools import lru_cache
 from pathlib import Path
 
@@ -51,8 +52,29 @@ def load_rig(path: str | Path) -> Rig:
 @lru_cache(maxsize=2)
 def _rig_file(path: str, mtime: float) -> Rig:
     vertices, faces = load_mesh(path)
+    return _registered(vertices, faces, rig_cache.file_digest(path), path)
+
+
+def rig_mesh(vertices: np.ndarray, faces: np.ndarray) -> Rig:
+    """:func:`load_rig` for a mesh given as arrays (a learned model's template, which may come
+    from no mesh file of its own): saved by the SHA-256 of its vertices' and triangles' bytes."""
+    vertices = np.ascontiguousarray(vertices, np.float32)
+    faces = np.ascontiguousarray(faces, np.int64)
+    digest = hashlib.sha256(b"mesh" + vertices.tobytes() + faces.tobytes()).hexdigest()
+    return _rig_arrays(digest, vertices.tobytes(), faces.tobytes(), len(vertices))
+
+
+@lru_cache(maxsize=2)
+def _rig_arrays(digest: str, vertices: bytes, faces: bytes, count: int) -> Rig:
+    v = np.frombuffer(vertices, np.float32).reshape(count, 3).astype(np.float64)
+    return _registered(v, np.frombuffer(faces, np.int64).reshape(-1, 3), digest, "")
+
+
+def _registered(vertices: np.ndarray, faces: np.ndarray, digest: str, path: str) -> Rig:
+    """The closest-point Rig of a mesh: its saved registration read back, or registered now and
+    saved under ``digest``."""
     head = load_head()
-    digest, head_id = rig_cache.file_digest(path), _head_id(head)
+    head_id = _head_id(head)
     saved = rig_cache.load(digest, head_id, len(vertices), head.num_vertices)
     if saved is not None:
         arrays, landmarks = saved
@@ -61,7 +83,9 @@ def _rig_file(path: str, mtime: float) -> Rig:
         rig = rig_head(vertices, faces, head, method="closest")
     except TalkmeshError as e:
         message = str(e)
-        raise TalkmeshError(message if path in message else f"{path}: {message}") from None
+        raise TalkmeshError(
+            message if not path or path in message else f"{path}: {message}"
+        ) from None
     rig_cache.save(digest, head_id, _correspondence(rig), rig.landmarks)
     return rig
 

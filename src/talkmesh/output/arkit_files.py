@@ -63,7 +63,7 @@ def arkit_weights_of(anim: Animation, path: Path) -> np.ndarray:
     """(T, 52) weights of ``anim`` in ARKit order, or a TalkmeshError saying it has none."""
     if anim.weights is None:
         raise TalkmeshError(
-            f"{path}: the animation has no ARKit weights (only vertices); "
+            f"{path.name}: the animation has no ARKit weights (only vertices); "
             "save it as .glb, .npz, .npy or .obj instead"
         )
     return to_arkit_order(anim.weights, anim.weight_names)

@@ -2,13 +2,19 @@
 
 ``animate_avatar("my.glb", weights, fps, "talking.glb")`` finds every mesh whose morph targets
 carry ARKit names (in any of the spellings :mod:`talkmesh.face.arkit_names` knows: head, teeth,
-tongue and beard meshes that share names move together), and appends ONE animation, ``talk``,
-with a ``weights`` channel per node of those meshes. Avatars without ARKit mouth shapes but with
-Oculus visemes (``viseme_aa``...) get their visemes driven through the documented ARKit -> viseme
-map instead; their ARKit-named shapes (blinks) are still driven.
+tongue and beard meshes that share names move together), and writes ONE animation, ``talk``,
+with a ``weights`` channel per node of those meshes, as the FIRST clip (viewers that play a
+file's first clip, three.js examples, model-viewer, Blender's first action, play the speech); a
+clip of the avatar named ``talk`` (an earlier run's) is replaced, the other clips follow it.
+Avatars without ARKit mouth shapes but with Oculus visemes (``viseme_aa``...) get all 15 visemes
+driven instead (:func:`talkmesh.face.visemes.oculus_visemes`: lips and jaw through the documented
+ARKit -> viseme map, the tongue visemes from the phones when the motion was made from phones,
+else from the motion); their ARKit-named shapes (blinks) are still driven. A VRM avatar without
+ARKit mouth shapes but with the VRM mouth presets gets its presets driven instead, through the
+morph targets the VRM extension binds to them (:mod:`talkmesh.output.vrm`).
 
 Nothing else changes: the JSON of every node, mesh, skin, material, texture, image, extension
-(VRM included) and existing animation is kept as it was, and the binary chunk is kept byte for
+(VRM included) and other animation is kept as it was, and the binary chunk is kept byte for
 byte, with the clip's keyframes appended after it. Units and up-axis are the avatar's, since no
 geometry is touched. Input and output are binary glTF (``.glb``, or ``.vrm``, which is a .glb with
 the VRM extension); morph target names are read from ``mesh.extras.targetNames`` (three.js,
@@ -30,19 +36,19 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.face.arkit import ARKIT_NAMES, NUM_ARKIT
 from talkmesh.face.arkit_names import (
     MOUTH_CHANNELS,
-    VISEME_FROM_ARKIT,
     VISEMES,
     arkit_channel,
     viseme_channel,
-    visemes_from_arkit,
 )
+from talkmesh.face.visemes import oculus_visemes
 from talkmesh.output.avatar_head import head_node, head_rotations
+from talkmesh.output.vrm import preset_weights, read_expressions, target_matrix
 
 AVATAR_SUFFIXES = (".glb", ".vrm")
 CLIP_NAME = "talk"
 GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942  # glTF 2.0 spec, 4.4
 FLOAT, SCALAR = 5126, "SCALAR"
-_MAPPED_VISEMES = [VISEMES.index(v) for v in VISEME_FROM_ARKIT]
+OPENING_VISEMES = ("aa", "E", "I", "O", "U")  # a viseme avatar needs one of these to talk
 
 
 @dataclass(frozen=True)
@@ -57,6 +63,7 @@ class MeshBinding:
         arkit: (K,) index into ``ARKIT_NAMES`` per target, -1 where none.
         visemes: (K,) index into ``VISEMES`` per target, -1 where none or not used.
         rest: (K,) the mesh's default weights (kept by targets that follow nothing).
+        presets: (P, K) the VRM expression presets' bind weights on its targets, or None.
     """
 
     mesh: int
@@ -66,16 +73,32 @@ class MeshBinding:
     arkit: np.ndarray
     visemes: np.ndarray
     rest: np.ndarray
+    presets: np.ndarray | None = None
 
-    def weights(self, arkit: np.ndarray, visemes: np.ndarray | None) -> np.ndarray:
-        """(T, 52) ARKit and (T, 15) viseme weights -> (T, K) weights of this mesh's targets."""
+    def weights(
+        self, arkit: np.ndarray, visemes: np.ndarray | None, presets: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(T, 52) ARKit, (T, 15) viseme and (T, P) VRM preset weights -> (T, K) weights of this
+        mesh's targets."""
         out = np.repeat(self.rest[None].astype(np.float32), len(arkit), axis=0)
         driven = self.arkit >= 0
         out[:, driven] = arkit[:, self.arkit[driven]]
         if visemes is not None:
             driven = self.visemes >= 0
             out[:, driven] = visemes[:, self.visemes[driven]]
+        if presets is not None and self.presets is not None:
+            driven = self.presets.any(axis=0)
+            out[:, driven] = np.clip(presets @ self.presets, 0.0, 1.0)[:, driven]
         return out
+
+    @property
+    def driven(self) -> bool:
+        """Whether anything drives one of its targets."""
+        return bool(
+            (self.arkit >= 0).any()
+            or (self.visemes >= 0).any()
+            or (self.presets is not None and self.presets.any())
+        )
 
 
 @dataclass(frozen=True)
@@ -87,21 +110,41 @@ class AvatarBinding:
         channels: the ARKit names at least one mesh has.
         missing: the ARKit names no mesh has.
         visemes: the Oculus visemes driven (only when no mesh has ARKit mouth shapes).
+        clips: the names of the avatar's own animations (``talk`` among them is replaced).
+        expressions: the VRM presets driven (only when no mesh has ARKit mouth shapes).
+        vrm: the VRM version the presets were read from ("0.x", "1.0"; "" for none).
     """
 
     meshes: tuple[MeshBinding, ...]
     channels: tuple[str, ...]
     missing: tuple[str, ...]
     visemes: tuple[str, ...]
+    clips: tuple[str, ...] = ()
+    expressions: tuple[str, ...] = ()
+    vrm: str = ""
 
     def summary(self) -> str:
         """One line for the user: what moves and which ARKit channels the avatar lacks."""
         line = f"drives {len(self.channels)} of {NUM_ARKIT} ARKit channels on {_mesh_names(self)}"
+        if self.expressions:
+            shown = " ".join(self.expressions)
+            line += f" and VRM {self.vrm} expressions {shown} (no ARKit mouth shapes)"
         if self.visemes:
-            line += f" and {len(self.visemes)} Oculus visemes (no ARKit mouth shapes)"
+            line += (
+                f" and {len(self.visemes)} of {len(VISEMES)} Oculus visemes (no ARKit mouth shapes)"
+            )
+            lacking = [v for v in VISEMES if v not in self.visemes]
+            if lacking:
+                line += f"; lacks visemes {', '.join(lacking)}: export all 15 to drive them"
         if self.missing:
             shown = ", ".join(self.missing[:6]) + (", ..." if len(self.missing) > 6 else "")
             line += f"; lacks {len(self.missing)}: {shown}"
+        kept = [c for c in self.clips if c != CLIP_NAME]
+        if CLIP_NAME in self.clips:
+            line += f"; the speech replaces its clip '{CLIP_NAME}'"
+        if kept:
+            shown = ", ".join(kept[:3]) + (", ..." if len(kept) > 3 else "")
+            line += f"; its other clips follow the speech clip ({shown})"
         return line
 
 
@@ -212,6 +255,7 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
     for key in ("meshes", "nodes", "buffers", "bufferViews", "accessors", "animations"):
         if not all(isinstance(item, dict) for item in _list(gltf, key)):
             raise ValueError(f"an item of '{key}' is not an object")
+    animations = _list(gltf, "animations")
     candidates: list[tuple[int, str, tuple[int, ...], int, np.ndarray, np.ndarray, np.ndarray]] = []
     nodes_of: dict[int, list[int]] = {}
     for i, n in enumerate(_list(gltf, "nodes")):
@@ -222,8 +266,10 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
         primitives = _list(mesh, "primitives")
         num_targets = len(_list(primitives[0], "targets")) if primitives else 0
         names = _target_names(mesh)
-        if not num_targets or len(names) != num_targets:
+        if not num_targets:
             continue
+        if len(names) != num_targets:  # no names (VRM presets bind targets by index)
+            names = [""] * num_targets
         nodes = tuple(nodes_of.get(m, ()))
         if not nodes:
             continue
@@ -232,18 +278,33 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
             raise ValueError(f"mesh {m}'s weights are not {num_targets} numbers")
         arkit = np.array([arkit_channel(n) for n in names], np.int64)
         visemes = np.array([viseme_channel(n) for n in names], np.int64)
-        visemes[~np.isin(visemes, _MAPPED_VISEMES)] = -1  # tongue-only visemes keep their rest
         arkit[visemes >= 0] = -1  # ``viseme_O`` is a viseme, not an ARKit suffix
         name = str(mesh.get("name") or f"mesh {m}")
         candidates.append((m, name, nodes, num_targets, arkit, visemes, rest))
     found = {int(i) for c in candidates for i in c[4] if i >= 0}
-    use_visemes = not any(ARKIT_NAMES.index(n) in found for n in MOUTH_CHANNELS)
+    no_arkit_mouth = not any(ARKIT_NAMES.index(n) in found for n in MOUTH_CHANNELS)
+    expressions = read_expressions(gltf)
+    use_vrm = no_arkit_mouth and expressions is not None and bool(expressions.mouth)
+    use_visemes = no_arkit_mouth and not use_vrm
     meshes = []
     for m, name, nodes, k, arkit, visemes, rest in candidates:
         visemes = visemes if use_visemes else np.full(k, -1, np.int64)
-        if (arkit >= 0).any() or (visemes >= 0).any():
-            meshes.append(MeshBinding(m, name, nodes, k, arkit, visemes, rest))
+        presets = target_matrix(expressions, m, k) if use_vrm else None
+        binding = MeshBinding(m, name, nodes, k, arkit, visemes, rest, presets)
+        if binding.driven:
+            meshes.append(binding)
     driven_visemes = sorted({int(i) for b in meshes for i in b.visemes if i >= 0})
+    if driven_visemes and not {VISEMES[i] for i in driven_visemes} & set(OPENING_VISEMES):
+        raise TalkmeshError(
+            f"{source} has Oculus visemes but none that opens the mouth (viseme_aa, viseme_E, "
+            "viseme_I, viseme_O, viseme_U): export the full set of 15, or ARKit blendshapes"
+        )
+    if not meshes and expressions is not None:
+        raise TalkmeshError(
+            f"{source}: a VRM {expressions.version} without mouth expressions (aa ih ou ee oh "
+            "bound to morph targets), ARKit mouth shapes or Oculus visemes: add the mouth presets "
+            "(VRoid Studio, UniVRM) or export it with ARKit blendshapes (perfect sync)"
+        )
     if not meshes:
         raise TalkmeshError(
             f"{source} has no morph targets with ARKit names (jawOpen, eyeBlinkLeft, ...) or "
@@ -255,14 +316,10 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
         channels=tuple(n for i, n in enumerate(ARKIT_NAMES) if i in found),
         missing=tuple(n for i, n in enumerate(ARKIT_NAMES) if i not in found),
         visemes=tuple(VISEMES[i] for i in driven_visemes),
+        clips=tuple(str(a.get("name") or f"animation {i}") for i, a in enumerate(animations)),
+        expressions=expressions.names if use_vrm else (),
+        vrm=expressions.version if use_vrm else "",
     )
-
-
-def _unique_clip_name(gltf: dict, name: str) -> str:
-    taken = {a.get("name") for a in gltf.get("animations") or []}
-    if name not in taken:
-        return name
-    return next(f"{name}_{k}" for k in range(2, len(taken) + 3) if f"{name}_{k}" not in taken)
 
 
 def add_clip(
@@ -272,10 +329,12 @@ def add_clip(
     weights: np.ndarray,
     fps: float,
     head_pose: np.ndarray | None = None,
+    phones: list[tuple[str, float, float]] | None = None,
 ) -> tuple[dict, bytes]:
-    """A copy of ``gltf`` with one LINEAR clip of ``weights`` (T, 52) at ``fps`` (and, with a
-    (T, 6) ``head_pose``, its head bone's rotation: :mod:`talkmesh.output.avatar_head`), and the
-    binary chunk with its keyframes appended (the existing bytes unchanged)."""
+    """A copy of ``gltf`` with one LINEAR clip of ``weights`` (T, 52) at ``fps`` as its first
+    animation (replacing one named ``talk``, the others after it; with a (T, 6) ``head_pose``, its
+    head bone's rotation too: :mod:`talkmesh.output.avatar_head`), and the binary chunk with its
+    keyframes appended (the existing bytes unchanged; a replaced clip's keys stay unused)."""
     weights = np.asarray(weights, np.float32)
     assert weights.ndim == 2 and weights.shape[1] == NUM_ARKIT, weights.shape
     if not len(weights):
@@ -305,11 +364,12 @@ def add_clip(
         accessors.append(accessor)
         return len(accessors) - 1
 
-    visemes = visemes_from_arkit(weights) if binding.visemes else None
+    visemes = oculus_visemes(weights, fps, phones) if binding.visemes else None
+    presets = preset_weights(weights, fps, binding.expressions) if binding.expressions else None
     times = add((np.arange(len(weights), dtype=np.float64) / fps).astype(np.float32), True)
     samplers, channels = [], []
     for mesh in binding.meshes:
-        values = add(mesh.weights(weights, visemes).ravel(), False)
+        values = add(mesh.weights(weights, visemes, presets).ravel(), False)
         samplers.append({"input": times, "output": values, "interpolation": "LINEAR"})
         for node in mesh.nodes:
             channels.append(
@@ -323,12 +383,13 @@ def add_clip(
             {"sampler": len(samplers) - 1, "target": {"node": head, "path": "rotation"}}
         )
     clip = {
-        "name": _unique_clip_name(gltf, CLIP_NAME),
+        "name": CLIP_NAME,
         "samplers": samplers,
         "channels": channels,
         "extras": {"fps": float(fps)},
     }
-    out["animations"] = [*(gltf.get("animations") or []), clip]
+    others = [a for a in gltf.get("animations") or [] if a.get("name") != CLIP_NAME]
+    out["animations"] = [clip, *others]
     out["bufferViews"], out["accessors"] = views, accessors
     out["buffers"] = [{**(buffers[0] if buffers else {}), "byteLength": len(data)}, *buffers[1:]]
     return out, bytes(data)
@@ -342,10 +403,12 @@ def animate_avatar(
     *,
     overwrite: bool = False,
     head_pose: np.ndarray | None = None,
+    phones: list[tuple[str, float, float]] | None = None,
 ) -> AvatarBinding:
     """Write a copy of ``avatar`` (.glb/.vrm) with a clip of ``weights`` (T, 52, ARKit order) at
     ``fps`` (and the head bone turned by a (T, 6) ``head_pose``) to ``output`` (.glb/.vrm);
-    returns what it drove. Atomic: a failed write leaves
+    returns what it drove. ``phones`` (label, start s, end s) drive a viseme avatar's tongue
+    visemes. Atomic: a failed write leaves
     nothing, and an existing ``output`` is replaced only with ``overwrite``."""
     avatar, output = Path(avatar), Path(output)
     if output.suffix.lower() not in AVATAR_SUFFIXES:
@@ -358,7 +421,9 @@ def animate_avatar(
         raise TalkmeshError(f"fps must be positive, got {fps}")
     gltf, binary = read_glb(avatar)
     binding = bind_avatar(gltf, str(avatar))
-    new_gltf, new_binary = add_clip(gltf, binary, binding, weights, fps, head_pose)
+    new_gltf, new_binary = add_clip(
+        gltf, binary, binding, weights, fps, head_pose=head_pose, phones=phones
+    )
     _write_atomic(output, glb_bytes(new_gltf, new_binary), overwrite)
     return binding
 

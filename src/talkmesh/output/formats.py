@@ -18,8 +18,12 @@ suffix     save    load    contents
                            a directory (``out/``, with ``format="obj"``) gets ``frame_00000.obj``...
 ``.glb``   yes     yes     binary glTF 2.0: one mesh whose morph targets are the ARKit blendshapes
                            (or a PCA basis of the motion) and one animation of their weights.
+                           ``NAME.rig.glb``: the mesh and targets alone, no animation
+                           (``talkmesh rig``).
 ``.csv``   yes     yes*    ARKit weights as a Live Link Face take (61 values per frame).
 ``.json``  yes     yes*    ARKit weights: ``{"fps", "names", "frames": [[52 floats], ...]}``.
+                           ``NAME.visemes.json``: the 15 Oculus visemes per frame and Azure's 22
+                           viseme ids as timed events (:mod:`.viseme_files`); save only.
 =========  ======  ======  =====================================================================
 
 \\* Weight files load with :func:`load_arkit_weights`; :func:`load_animation` plays them on the
@@ -55,7 +59,7 @@ from talkmesh.output.arkit_files import (
 )
 from talkmesh.output.atomic import temp_prefix
 from talkmesh.output.files import check_readable, exists_error, file_extension, move_file, reading
-from talkmesh.output.gltf import export_glb, import_glb
+from talkmesh.output.gltf import export_glb, export_rig_glb, import_glb
 from talkmesh.output.morph import MorphRig, morph_rig, principal_components
 from talkmesh.output.npy import (
     export_npy,
@@ -65,6 +69,7 @@ from talkmesh.output.npy import (
     import_npz,
 )
 from talkmesh.output.obj import export_obj, obj_frame_path
+from talkmesh.output.viseme_files import export_visemes_json
 
 __all__ = [
     "EXPORTERS",
@@ -172,6 +177,8 @@ EXPORTERS: dict[str, Exporter] = {
     ".csv": export_live_link_csv,
     ".json": export_arkit_json,
     ".weights.npz": export_npz_weights,  # NAME.weights.npz: a compound suffix
+    ".rig.glb": export_rig_glb,  # NAME.rig.glb or format="rig.glb": no animation clip
+    ".visemes.json": export_visemes_json,  # 15 Oculus visemes per frame, Azure's viseme events
 }
 
 IMPORTERS: dict[str, Importer] = {

@@ -79,11 +79,12 @@ class _GlbBuffer:
         return len(self.accessors) - 1
 
 
-def export_glb(anim: Animation, path: Path) -> None:
+def export_glb(anim: Animation, path: Path, *, clip: bool = True) -> None:
     """Binary glTF 2.0: one mesh with morph targets and a LINEAR ``weights`` animation.
 
     Target names are in ``mesh.extras.targetNames`` (three.js and Blender read them); normals are
-    those of the neutral face.
+    those of the neutral face. ``clip`` False writes the rigged mesh alone, without an animation
+    (``talkmesh rig``: viewers that play a file's first clip would play a still one).
     """
     rig = morph_rig(anim)
     buf = _GlbBuffer()
@@ -110,12 +111,7 @@ def export_glb(anim: Animation, path: Path) -> None:
     primitive["targets"] = [
         {"POSITION": buf.add(t, "VEC3", target=ARRAY_BUFFER, bounds=True)} for t in rig.targets
     ]
-    times = (np.arange(anim.num_frames, dtype=np.float64) / anim.fps).astype(np.float32)
-    sampler = {
-        "input": buf.add(times, "SCALAR", bounds=True),
-        "output": buf.add(rig.weights.ravel(), "SCALAR"),
-        "interpolation": "LINEAR",
-    }
+    sampler = _weights_sampler(anim, rig, buf) if clip else None
     nodes, samplers, channels = _nodes(anim, buf, sampler)
     gltf = {
         "asset": {"version": "2.0", "generator": "talkmesh"},
@@ -140,29 +136,49 @@ def export_glb(anim: Animation, path: Path) -> None:
                 },
             }
         ],
-        "animations": [
+    }
+    if clip:
+        gltf["animations"] = [
             {
                 "name": "talk",
                 "extras": {"fps": float(anim.fps)},  # for one-frame files, whose times cannot tell
                 "samplers": samplers,
                 "channels": channels,
             }
-        ],
-        "buffers": [{"byteLength": buf.size}],
-        "bufferViews": buf.views,
-        "accessors": buf.accessors,
-    }
+        ]
+    gltf.update(
+        {
+            "buffers": [{"byteLength": buf.size}],
+            "bufferViews": buf.views,
+            "accessors": buf.accessors,
+        }
+    )
     write_glb(path, gltf, buf)
 
 
-def _nodes(anim: Animation, buf: _GlbBuffer, sampler: dict) -> tuple[list, list, list]:
-    """The scene's nodes (the mesh first, the scene's root last) and the animation's samplers and
-    channels: the morph weights, and the head pose on a parent node when there is one."""
+def _weights_sampler(anim: Animation, rig: MorphRig, buf: _GlbBuffer) -> dict:
+    """The rig's (T, K) weights as a LINEAR sampler, a key per frame."""
+    times = (np.arange(anim.num_frames, dtype=np.float64) / anim.fps).astype(np.float32)
+    return {
+        "input": buf.add(times, "SCALAR", bounds=True),
+        "output": buf.add(rig.weights.ravel(), "SCALAR"),
+        "interpolation": "LINEAR",
+    }
+
+
+def _nodes(anim: Animation, buf: _GlbBuffer, sampler: dict | None) -> tuple[list, list, list]:
+    """The scene's nodes (the mesh first, the scene's root last) and the ``talk`` animation's
+    samplers and channels (none without a ``sampler``): the morph weights, and the head pose on a
+    parent node when there is one."""
     nodes: list[dict] = [{"name": "face", "mesh": 0}]
-    samplers, channels = [sampler], [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]
-    if anim.head_pose is not None:  # the head's motion: a parent node rotating and moving
-        nodes.append({"name": "head", "children": [0]})
-        _head_channels(buf, anim.head_pose, sampler["input"], len(nodes) - 1, samplers, channels)
+    samplers: list = []
+    channels: list = []
+    if sampler is not None:
+        samplers.append(sampler)
+        channels.append({"sampler": 0, "target": {"node": 0, "path": "weights"}})
+        if anim.head_pose is not None:  # the head's motion: a parent node rotating and moving
+            nodes.append({"name": "head", "children": [0]})
+            _head_channels(buf, anim.head_pose, sampler["input"], 1, samplers, channels)
     if anim.to_gltf is not None and not np.allclose(anim.to_gltf, np.eye(4)):
         # the user's frame (units, up-axis) to glTF's, as the root: the vertices stay as given
         matrix = np.asarray(anim.to_gltf, np.float64)
@@ -181,6 +197,12 @@ def _head_channels(
         output = buf.add(np.ascontiguousarray(values, np.float32), kind)
         samplers.append({"input": times, "output": output, "interpolation": "LINEAR"})
         channels.append({"sampler": len(samplers) - 1, "target": {"node": node, "path": path}})
+
+
+def export_rig_glb(anim: Animation, path: Path) -> None:
+    """:func:`export_glb` without an animation: a rigged mesh (``NAME.rig.glb``, or
+    ``format="rig.glb"``) whose morph targets an avatar clip or a player drives."""
+    export_glb(anim, path, clip=False)
 
 
 def write_glb(path: Path, gltf: dict, binary: _GlbBuffer) -> None:

@@ -102,6 +102,7 @@ def save_blocks(
             fps=anim.fps,
             weights=np.concatenate(weights),
             weight_names=anim.weight_names,
+            phones=anim.phones,
         )
         for p in weighted:
             write_animation(whole or curves, p, overwrite=overwrite, size=size, camera=camera)

@@ -17,7 +17,10 @@ Two animators stream:
 * a learned model's release that streams (:meth:`talkmesh.models.base.MotionModel.open_frame_stream`;
   today a streaming CodeTalker, ``configs/codetalker_stream.yaml``: causal VQ decoder, mel speech
   encoder with a runtime look-ahead): one frame per step with key/value caches, exactly what
-  ``generate`` computes offline.
+  ``generate`` computes offline. On the model's own topology (``head`` a face of another topology
+  than the bundled head's), its ARKit weights are solved from its motion as offline
+  (:mod:`talkmesh.face.solve`, the face rigged once per mesh), each push continuing the last
+  frame, and its eye motion is its own.
 """
 
 from __future__ import annotations
@@ -96,8 +99,10 @@ class Streamer:
         self.samples = 0  # audio received so far
         self.next_frame = 0
         self.closed = False
-        self.basis = np.ascontiguousarray(
-            head.blendshapes.reshape(len(ARKIT_NAMES), -1), np.float32
+        self.basis = (  # None on another topology (a model's own): weights are solved there
+            None
+            if head.blendshapes is None
+            else np.ascontiguousarray(head.blendshapes.reshape(len(ARKIT_NAMES), -1), np.float32)
         )
 
     def push(self, pcm: np.ndarray) -> list[StreamFrame]:
@@ -348,7 +353,10 @@ class ModelStreamer(Streamer):
                 f"{path} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
             )
         super().__init__(self.stream.fps, self.stream.lookahead_ms, head, offsets)
-        self.fitter = _weight_fitter(head)
+        if head.rigged:
+            self.fitter = _weight_fitter(head)
+        else:  # the model's own topology: its weights solved, its eyes its own (as offline)
+            self.fitter, blinks = _SolvingFitter(head), False
         self.blinks = UpperFace(self.fps, seed, SpeakingStyle(), EYES) if blinks else None
         self.buffer = np.zeros(0, np.float32)
         self.buffer_start = 0  # stream sample of buffer[0]
@@ -362,7 +370,8 @@ class ModelStreamer(Streamer):
     def _frames(self, start: int, end: int, final: bool) -> tuple[np.ndarray, np.ndarray | None]:
         motion = np.stack([self.stream.frame(*self._request(t)[1:]) for t in range(start, end)])
         weights = self.fitter(motion)
-        replace_eye_motion(motion, weights, self._eyes(start, end, weights), self.basis)
+        if self.basis is not None:
+            replace_eye_motion(motion, weights, self._eyes(start, end, weights), self.basis)
         return self._finish(start, end, motion, weights)
 
     def _eyes(self, start: int, end: int, weights: np.ndarray) -> np.ndarray:
@@ -441,7 +450,7 @@ def _model_frames(streamers: list[ModelStreamer], due: list[range]) -> list[list
     first = streamers[0]
     # without vertex offsets to send, the model gives only the frames' projections onto the
     # blendshapes, all the weight fit needs (and cheaper than the V * 3 coordinates)
-    basis = None if any(s.offsets for s in streamers) else first.fitter.basis
+    basis = None if any(s.offsets for s in streamers) or first.basis is None else first.fitter.basis
     rows: list[list[np.ndarray]] = [[] for _ in streamers]
     for k in range(max(map(len, due))):
         active = [j for j, frames in enumerate(due) if k < len(frames)]
@@ -454,7 +463,9 @@ def _model_frames(streamers: list[ModelStreamer], due: list[range]) -> list[list
     eyes = np.concatenate(
         [s._eyes(r.start, r.stop, w) for s, r, w in zip(streamers, due, np.split(weights, cuts))]
     )
-    if basis is None:
+    if first.basis is None:  # another topology: the model's own eyes, nothing replaced
+        pass
+    elif basis is None:
         replace_eye_motion(stacked, weights, eyes, first.basis)
     else:  # what replace_eye_motion does to the weights
         weights[:, EYES] = eyes[:, EYES]
@@ -471,6 +482,26 @@ def _model_frames(streamers: list[ModelStreamer], due: list[range]) -> list[list
 
 
 _FITTERS: dict[int, tuple[Head, WeightFitter]] = {}
+
+
+class _SolvingFitter:
+    """The weight fit of one stream on another topology than the bundled head's: the bounded,
+    smooth solve of :mod:`talkmesh.face.solve` (the face rigged once per mesh), each call
+    continuing from the last frame of the one before. One per stream (it keeps that frame)."""
+
+    def __init__(self, head: Head) -> None:
+        from talkmesh.face.solve import solver_for_mesh
+
+        self.solver = solver_for_mesh(head.template, head.faces, head.name)
+        self.previous: np.ndarray | None = None
+
+    def __call__(self, motion: np.ndarray) -> np.ndarray:
+        """(T, V * 3) offsets -> (T, 52) weights."""
+        offsets = np.asarray(motion).reshape(len(motion), -1, 3)
+        weights = self.solver.solve(offsets, self.previous).weights
+        if len(weights):
+            self.previous = weights[-1].astype(np.float64)
+        return weights
 
 
 def _weight_fitter(head: Head) -> WeightFitter:
@@ -525,9 +556,14 @@ def open_stream(
             f"look-ahead {lookahead:g} ms is out of range: use 0 to {MAX_LOOKAHEAD_MS:g} ms"
         )
     head = head or load_head()
-    if tuple(head.blendshape_names) != tuple(ARKIT_NAMES):
+    if head.rigged and tuple(head.blendshape_names) != tuple(ARKIT_NAMES):
         raise TalkmeshError("the face's blendshapes are not the 52 ARKit shapes in ARKit order")
     name = "procedural" if model is None else str(model)
+    if name == "procedural" and not head.rigged:
+        raise TalkmeshError(
+            f"the procedural animator streams the bundled head's topology, not {head.name}'s "
+            f"{head.num_vertices} vertices: stream a learned model of this topology"
+        )
     if name == "procedural":
         if not 1.0 <= fps <= 240.0:
             raise TalkmeshError(f"fps {fps:g} is out of range: use 1 to 240")
