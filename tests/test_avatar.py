@@ -273,7 +273,7 @@ def test_head_pose_turns_the_avatar_s_head_bone(tmp_path, vrm):
     out = tmp_path / ("talking.vrm" if vrm else "talking.glb")
     animate_avatar(src, arkit_weights(), FPS, out, head_pose=pose.astype(np.float32))
     new, new_bin = read_glb(out)
-    clip = new["animations"][-1]
+    clip = new["animations"][0]  # the speech clip comes first
     (channel,) = [c for c in clip["channels"] if c["target"]["path"] == "rotation"]
     assert channel["target"]["node"] == 1
     acc = new["accessors"][clip["samplers"][channel["sampler"]]["output"]]
