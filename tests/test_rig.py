@@ -55,6 +55,66 @@ def test_vertex_motion_is_carried_through_the_correspondence(head, z_up_cm):
     np.testing.assert_allclose(carried[0], 100 * offsets[0] @ r.T, atol=1e-3)
 
 
+def _random_rig(num_vertices=500, num_bundled=100, seed=0):
+    """A Rig whose correspondence is random (no registration): what carry needs, cheaply."""
+    from talkmesh.face.rig import Rig
+
+    rng = np.random.default_rng(seed)
+    rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    return Rig(
+        vertices=rng.normal(size=(num_vertices, 3)).astype(np.float32),
+        faces=np.zeros((0, 3), np.int32),
+        blendshapes=np.zeros((52, num_vertices, 3), np.float32),
+        scale=1000.0,
+        rotation=rotation,
+        translation=np.zeros(3),
+        residual=0.0,
+        corners=rng.integers(0, num_bundled, (num_vertices, 3)),
+        weights=rng.dirichlet(np.ones(3), num_vertices),
+    )
+
+
+def test_carry_in_blocks_of_vertices_equals_the_whole_gather(monkeypatch):
+    """Rig.carry gathers CARRY_VALUES at a time (the (T, V, 3, 3) gather of a million-vertex head
+    was 22 GB for one block of frames): the same offsets as the gather of every vertex at once."""
+    from talkmesh.face import rig as rig_module
+
+    rig = _random_rig()
+    offsets = np.random.default_rng(1).normal(size=(7, 100, 3)) * 1e-3
+    whole = np.einsum("vc,tvcx->tvx", rig.weights, offsets[:, rig.corners])
+    expected = rig.scale * whole @ rig.rotation.T
+    monkeypatch.setattr(rig_module, "CARRY_VALUES", 9 * 7 * 13)  # 13 vertices at a time
+    carried = rig.carry(offsets)
+    assert carried.dtype == np.float32 and carried.shape == (7, 500, 3)
+    np.testing.assert_allclose(carried, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_carry_blocks_cut_large_blocks_and_keep_every_frame(monkeypatch):
+    """Rig.carry_blocks yields blocks of at most BLOCK_VALUES float32 values: the same frames and
+    weights, in order, as carrying the whole animation."""
+    from talkmesh.animation import Animation, AnimationBlocks
+    from talkmesh.face import rig as rig_module
+
+    rig = _random_rig()
+    rng = np.random.default_rng(2)
+    template = rng.normal(size=(100, 3)).astype(np.float32)
+    frames = template + 1e-3 * rng.normal(size=(9, 100, 3)).astype(np.float32)
+    weights = rng.random((9, 52)).astype(np.float32)
+    blocks = [
+        Animation(vertices=frames[a:b], faces=np.zeros((0, 3), np.int32), fps=30.0,
+                  weights=weights[a:b], weight_names=list(ARKIT_NAMES))
+        for a, b in ((0, 5), (5, 9))
+    ]  # fmt: skip
+    anim = AnimationBlocks(iter(blocks), 9, np.zeros((0, 3), np.int32), 30.0,
+                           weight_names=list(ARKIT_NAMES))  # fmt: skip
+    monkeypatch.setattr(rig_module, "BLOCK_VALUES", 3 * 500 * 2)  # two frames a block
+    out = list(rig.carry_blocks(anim, template).blocks)
+    assert [b.num_frames for b in out] == [2, 2, 1, 2, 2]
+    moved = np.concatenate([b.vertices for b in out])
+    np.testing.assert_allclose(moved, rig.vertices + rig.carry(frames - template), atol=1e-5)
+    np.testing.assert_array_equal(np.concatenate([b.weights for b in out]), weights)
+
+
 def test_deformation_transfer_is_exact_for_an_affine_map_and_follows_the_gradients():
     """A triangle mesh sheared by A: the gradient of every triangle is A, and transferring it
     (anchored at the true offsets) returns the true offsets; rigid_follow turns a part."""

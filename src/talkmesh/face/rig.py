@@ -78,6 +78,8 @@ METHODS = ("transfer", "closest")
 # back CARRY_BLOCK vertices at a time (talkmesh.face.rig_dense; docs/results/rigging.md)
 REDUCE_ABOVE = 12_000
 CARRY_BLOCK = 32_768
+CARRY_VALUES = 1 << 23  # float64 values (64 MB) of Rig.carry's gather at a time
+BLOCK_VALUES = 1 << 25  # float32 values (128 MB) of the frames of a block Rig.carry_blocks yields
 CHECK_POINTS = 3000  # vertices of a dense mesh its not-a-head check fits (before decimating)
 PART_SKIN = 8  # skin vertices nearest each part vertex whose mean motion the part takes
 PART_MATCH = 0.3  # mean distance to a part over its RMS radius within which a component is it
@@ -192,30 +194,43 @@ class Rig:
     def carry(self, offsets: np.ndarray) -> np.ndarray:
         """(T, Vh, 3) offsets of the bundled topology (metres, e.g. a vertex model's prediction
         minus its template) -> (T, V, 3) offsets on the user's mesh, in its units and axes,
-        through the closest-point correspondence."""
+        through the closest-point correspondence, a block of user vertices at a time (a frame's
+        (V, 3, 3) gather is 72 MB of float64 at a million vertices: ``CARRY_VALUES`` at most)."""
         offsets = np.asarray(offsets, np.float64)
         assert offsets.ndim == 3 and offsets.shape[2] == 3, offsets.shape
-        moved = np.einsum("vc,tvcx->tvx", self.weights, offsets[:, self.corners])
-        return (self.scale * moved @ self.rotation.T).astype(np.float32)
+        out = np.empty((len(offsets), len(self.corners), 3), np.float32)
+        step = max(1, CARRY_VALUES // (9 * max(1, len(offsets))))
+        turn = self.scale * self.rotation.T
+        for a in range(0, len(self.corners), step):
+            b = slice(a, a + step)
+            moved = np.einsum("vc,tvcx->tvx", self.weights[b], offsets[:, self.corners[b]])
+            out[:, b] = moved @ turn
+        return out
 
     def carry_blocks(self, anim: AnimationBlocks, template: np.ndarray) -> AnimationBlocks:
         """``anim`` (a vertex model's or the procedural animator's motion of the bundled topology,
         its (Vh, 3) neutral ``template`` in metres) moving the user's mesh, block by block: every
         frame is ``vertices + carry(frame - template)``, in the user's units and axes. ARKit
-        weights pass through unchanged; no basis (the motion is the model's, not the shapes')."""
+        weights pass through unchanged; no basis (the motion is the model's, not the shapes'). A
+        block comes in as many as its frames' float32 vertices take ``BLOCK_VALUES``."""
         template = np.asarray(template, np.float32)
+
+        # a model's block (256 frames) of a million-vertex head would be 3 GB: cut smaller
+        step = max(1, BLOCK_VALUES // (3 * len(self.vertices)))
 
         def blocks():
             for block in anim.blocks:
                 assert block.vertices.shape[1:] == template.shape, block.vertices.shape
-                moved = self.vertices + self.carry(block.vertices - template)
-                yield Animation(
-                    vertices=moved,
-                    faces=self.faces,
-                    fps=block.fps,
-                    weights=block.weights,
-                    weight_names=list(block.weight_names),
-                )
+                for a in range(0, block.num_frames, step):
+                    moved = self.carry(block.vertices[a : a + step] - template)
+                    moved += self.vertices
+                    yield Animation(
+                        vertices=moved,
+                        faces=self.faces,
+                        fps=block.fps,
+                        weights=None if block.weights is None else block.weights[a : a + step],
+                        weight_names=list(block.weight_names),
+                    )
 
         return AnimationBlocks(
             blocks=blocks(),
