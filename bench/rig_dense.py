@@ -3,10 +3,11 @@ refused.
 
 The bundled head is subdivided 0 to N times (midpoint subdivision: 4766, 18911, 75k, 300k, 1.2M
 vertices) and written in millimetres as .ply; an icosphere stands for a dense mesh that is no
-head. Each runs as its own `talkmesh rig` process, whose peak RSS (``ru_maxrss`` of the child)
-and wall time are printed as a table (docs/results/rigging.md, "Dense meshes").
+head, at several sizes (icospheres; a UV sphere of 3.48M faces). Each runs as its own `talkmesh
+rig` process, whose peak RSS (``ru_maxrss``) and wall time are printed as a table
+(docs/results/rigging.md, "Dense meshes").
 
-    PYTHONPATH=src python bench/rig_dense.py [--subdivisions 0,1,3,4] [--sphere 8]
+    PYTHONPATH=src python bench/rig_dense.py [--subdivisions 0,1,3,4] [--sphere 4,8] [--uv 933]
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ from talkmesh.face.assets import load_head
 
 
 def peak_of(cmd: list[str]) -> tuple[int, float, float]:
-    """Exit status, wall seconds and peak RSS (MB) of ``cmd`` run alone in a fresh process."""
+    """Exit status, wall seconds and peak RSS (MB) of ``cmd`` run alone in a fresh process (the
+    largest of it and its decimation's forked child, which holds the mesh's pages shared)."""
     probe = (
         "import resource, subprocess, sys, time; t = time.time(); "
         "rc = subprocess.call(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL); "
@@ -42,7 +44,8 @@ def peak_of(cmd: list[str]) -> tuple[int, float, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--subdivisions", default="0,1,3,4")
-    ap.add_argument("--sphere", type=int, default=8, help="icosphere subdivisions (0: none)")
+    ap.add_argument("--sphere", default="4,8", help="icosphere subdivisions ('': none)")
+    ap.add_argument("--uv", type=int, default=933, help="UV sphere rings and segments (0: none)")
     args = ap.parse_args()
     head = load_head()
     rows = []
@@ -53,15 +56,20 @@ def main() -> None:
             for _ in range(n):
                 v, f = trimesh.remesh.subdivide(v, f)
             meshes.append((f"bundled head, subdivided {n}x", 1000 * v, f))
-        if args.sphere:
-            s = trimesh.creation.icosphere(subdivisions=args.sphere, radius=100.0)
-            meshes.append((f"icosphere({args.sphere})", s.vertices, s.faces))
+        for n in (int(k) for k in args.sphere.split(",") if k):
+            s = trimesh.creation.icosphere(subdivisions=n, radius=100.0)
+            meshes.append((f"icosphere({n})", s.vertices, s.faces))
+        if args.uv:
+            s = trimesh.creation.uv_sphere(radius=100.0, count=[args.uv, args.uv])
+            meshes.append((f"UV sphere ({args.uv} x {args.uv})", s.vertices, s.faces))
         for name, v, f in meshes:
             path = Path(tmp) / "mesh.ply"
             trimesh.Trimesh(v, f, process=False).export(path)
             cmd = [sys.executable, "-m", "talkmesh", "rig", str(path), "-o", f"{tmp}/out.glb"]
             rc, seconds, mb = peak_of([*cmd, "--overwrite"])
-            rows.append((name, len(v), len(f), mb, seconds, "rigged" if rc == 0 else "refused"))
+            result = "rigged" if rc == 0 else "refused" if rc == 2 else f"exit {rc}"
+            rows.append((name, len(v), len(f), mb, seconds, result))
+            print(rows[-1], flush=True)
     print("| mesh | vertices | faces | peak RSS MB | s | result |")
     print("|---|---|---|---|---|---|")
     for name, nv, nf, mb, seconds, result in rows:

@@ -61,6 +61,23 @@ def test_unknown_identity_is_a_one_line_error():
         load_head("nobody")
 
 
+def test_load_template_converts_units_and_axes_as_the_cli_does(tmp_path):
+    """A bundled-topology mesh in millimetres and Z-up comes back in metres and +y up, with a
+    warning saying so (the CLI's --template did this, the Python API took it as metres);
+    convert=False takes it as it is."""
+    from talkmesh.errors import TalkmeshWarning
+
+    head = load_head()
+    z_up = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], np.float64)  # +y (head up) -> +z
+    path = tmp_path / "mm_z_up.npy"
+    np.save(path, 1000 * head.template.astype(np.float64) @ z_up.T)
+    with pytest.warns(TalkmeshWarning, match=r"mm_z_up.*millimetres -> metres, up \+z -> \+y"):
+        converted = load_template(path)
+    np.testing.assert_allclose(converted.template, head.template, atol=1e-6)
+    as_given = load_template(path, convert=False)
+    np.testing.assert_allclose(as_given.template, 1000 * head.template @ z_up.T, atol=1e-3)
+
+
 def test_template_roundtrip_and_wrong_vertex_count(tmp_path):
     head = load_head("bo")
     obj = tmp_path / "bo.obj"

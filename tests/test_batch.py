@@ -309,3 +309,27 @@ def test_a_worker_limits_the_blas_threads_too():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "1"
+
+
+def test_a_warning_in_a_batch_names_its_file(library, tmp_path, capsys):
+    """Each file's warnings say which file they are about (a transcript word the dictionary
+    lacks warns once per file); a warning naming its file already is not prefixed twice."""
+    for f in (library / "bob" / "broken.wav", library / "bob" / "b1.wav"):
+        f.unlink()
+    out = tmp_path / "out"
+    args = ["animate", str(library / "alice"), "-o", f"{out}/{{stem}}.npy", "-q"]
+    assert main([*args, "--model", "procedural", "--text", "zzqxvw"]) == 0
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
+    assert len(lines) == 2, lines
+    for line, name in zip(sorted(lines), ("a1.wav", "a2.wav")):
+        assert line.startswith("talkmesh: warning: ") and name in line and "zzqxvw" in line, line
+    import warnings
+
+    from talkmesh.batch.library import warnings_about
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with warnings_about("x.wav"):
+            warnings.warn("x.wav: cut off", stacklevel=1)
+            warnings.warn("no transcript", stacklevel=1)
+    assert [str(w.message) for w in caught] == ["x.wav: cut off", "x.wav: no transcript"]

@@ -29,3 +29,17 @@ def fix_mmap_threshold(threshold: int = MMAP_THRESHOLD) -> bool:
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     return bool(mallopt(M_MMAP_THRESHOLD, threshold))
+
+
+def give_back() -> bool:
+    """Return the heap's free memory to the system (glibc's ``malloc_trim``); False where the C
+    library is not glibc. A server calls it after a job, so that its idle memory is what it holds,
+    not the largest job's freed working set kept in the arena of the thread that ran it."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        malloc_trim = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return False
+    malloc_trim.argtypes = [ctypes.c_size_t]
+    return bool(malloc_trim(0))

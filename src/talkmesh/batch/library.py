@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -115,6 +117,13 @@ class Animator:
             self.model, self.int8 = (net.int8_copy(s.int8) if s.int8 else net), None
 
     def __call__(self, job: Job) -> Row:
+        """Animate ``job`` into its outputs; its row, failed or not. A warning shown meanwhile
+        names the file (:func:`warnings_about`)."""
+        start = time.perf_counter()
+        with warnings_about(str(job.audio)):
+            return self._animate(job, start)
+
+    def _animate(self, job: Job, start: float) -> Row:
         from talkmesh.face.solve import Residual
         from talkmesh.output import VIDEO_SUFFIXES, write_animation
         from talkmesh.output.avatar import AVATAR_SUFFIXES
@@ -122,7 +131,6 @@ class Animator:
         from talkmesh.pipeline import animate_blocks
 
         s = self.settings
-        start = time.perf_counter()
         try:
             anim = animate_blocks(
                 job.audio,
@@ -195,6 +203,25 @@ class Animator:
 
         name = f"{self.settings.template} ({self.head.name})"
         return solver_for_mesh(self.head.template, self.head.faces, name)
+
+
+@contextmanager
+def warnings_about(name: str) -> Iterator[None]:
+    """Warnings shown within say which input they are about: ``name: message`` (unless the
+    message names it already), so that a batch's warnings can be told apart."""
+    previous = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = str(message)
+        previous(
+            text if name in text else f"{name}: {text}", category, filename, lineno, file, line
+        )
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous
 
 
 def write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:

@@ -579,7 +579,10 @@ def add_rig(sub: Subparsers) -> None:
 def cmd_rig(args: argparse.Namespace) -> int:
     from talkmesh.face.rig import read_landmarks, rig_head
     from talkmesh.face.rig_files import load_mesh, save_registration
+    from talkmesh.heap import fix_mmap_threshold
     from talkmesh.output.formats import save_animation
+
+    fix_mmap_threshold()  # a dense mesh's blockwise carry frees what it took (talkmesh.heap)
 
     out = Path(args.output)
     if out.suffix.lower() != ".glb":

@@ -20,7 +20,8 @@ What is changed, and said (:class:`FaceTemplate` ``.note``; ``talkmesh animate``
 
 * a mesh of the bundled topology in other units or axes (millimetres, a Z-up export): found by
   fitting it to the bundled head vertex for vertex (Umeyama), and converted to metres, +y up
-  (:func:`bundled_frame`); a mesh in metres and +y up is taken as it is, wherever it sits;
+  (:func:`talkmesh.face.assets.bundled_frame`, as the Python API's ``load_template`` does); a
+  mesh in metres and +y up is taken as it is, wherever it sits;
 * BIWI's raw scans, known by their files (a ``.vl`` frame, ``rigid_scans/<SUBJECT>.obj``), or any
   BIWI-topology mesh when asked (``normalize=True``, ``--normalize-template``): normalised as
   ``talkmesh prepare-biwi`` normalises the dataset (rotated by pi about x, centred, unit surface
@@ -41,6 +42,7 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.face.assets import (
     MAX_MESH_BYTES,
     Head,
+    bundled_frame,
     load_head,
     plain_head,
     read_mesh_vertices,
@@ -48,8 +50,6 @@ from talkmesh.face.assets import (
 
 MESH_SUFFIXES = (".ply", ".obj")  # files that carry triangles
 UNIT_AREA_TOLERANCE = 0.01  # a BIWI mesh whose total area is this close to 1 is normalised
-UNITS = {0: "metres", 1: "decimetres", 2: "centimetres", 3: "millimetres"}  # by decade
-AXIS_SNAP_DEGREES = 30.0  # a fitted rotation this close to an axis swap is that swap
 
 
 class FaceTemplate(NamedTuple):
@@ -132,45 +132,6 @@ def _biwi_frame(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     if abs(float(surface_area(vertices, faces)) - 1.0) <= UNIT_AREA_TOLERANCE:
         return vertices  # already normalised (templates.pkl, prepared data)
     return normalize_frames(vertices[None], faces)[0]
-
-
-def _axis_name(vector: np.ndarray) -> str:
-    k = int(np.argmax(np.abs(vector)))
-    return ("+" if vector[k] > 0 else "-") + "xyz"[k]
-
-
-def bundled_frame(vertices: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, str]:
-    """(V, 3) vertices of the bundled topology in any units and axes -> (metres, +y up, +z to
-    the viewer) and a note saying what was converted ("" when nothing was).
-
-    The similarity fit (Umeyama) onto ``reference`` (the bundled head, vertex for vertex) gives
-    the scale, whose decade is the unit (1000: millimetres), and the rotation, which is
-    converted only where it is an axis swap (a Z-up export); a head turned by a few degrees, or
-    placed elsewhere, is the user's and stays so. Units and axes are converted about the origin,
-    so the mesh keeps its place in its own frame.
-    """
-    from talkmesh.face.registration import nearest_axis_rotation, similarity
-
-    vertices = np.asarray(vertices, np.float64)
-    scale, rotation, _ = similarity(vertices, np.asarray(reference, np.float64))
-    if not np.isfinite(scale) or scale <= 0:
-        return vertices.astype(np.float32), ""
-    decade = int(np.clip(np.round(-np.log10(scale)), 0, 3))
-    swap = nearest_axis_rotation(rotation, AXIS_SNAP_DEGREES)
-    changes = []
-    if decade:
-        changes.append(f"{UNITS[decade]} -> metres")
-    if swap is not None and not np.allclose(swap, np.eye(3)):
-        up = swap.T[:, 1]  # the user's axis that the head's up (+y) is
-        changes.append(f"up {_axis_name(up)} -> +y")
-    else:
-        swap = None
-    if not changes:
-        return vertices.astype(np.float32), ""
-    converted = vertices * 10.0**-decade
-    if swap is not None:
-        converted = converted @ swap.T
-    return converted.astype(np.float32), "converted: " + ", ".join(changes)
 
 
 def load_face_template(

@@ -6,17 +6,20 @@ metres, head centred at the origin, +y up, +z towards the viewer.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from talkmesh.errors import MissingDependencyError, TalkmeshError
+from talkmesh.errors import MissingDependencyError, TalkmeshError, TalkmeshWarning
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 HEAD_FILE = "head.npz"
 MAX_MESH_BYTES = 512 * 1024 * 1024  # refuse absurd template files before reading them
+UNITS = {0: "metres", 1: "decimetres", 2: "centimetres", 3: "millimetres"}  # by decade
+AXIS_SNAP_DEGREES = 30.0  # a fitted rotation this close to an axis swap is that swap
 
 
 @dataclass(frozen=True)
@@ -199,13 +202,62 @@ def read_mesh_vertices(path: str | Path) -> np.ndarray:
     return verts
 
 
-def load_template(path: str | Path) -> Head:
-    """The bundled head's topology and blendshapes on the neutral mesh in ``path``."""
+def load_template(path: str | Path, *, convert: bool = True) -> Head:
+    """The bundled head's topology and blendshapes on the neutral mesh in ``path``.
+
+    ``convert``: a mesh in other units or axes (millimetres, a Z-up export) is converted to
+    metres and +y up, as ``talkmesh animate --template`` does (:func:`bundled_frame`), with a
+    :class:`~talkmesh.errors.TalkmeshWarning` saying what was done; False takes it as it is."""
+    head = load_head()
     try:
-        return load_head().with_template(read_mesh_vertices(path), Path(path).stem)
+        vertices = read_mesh_vertices(path)
+        if convert and vertices.shape == head.template.shape:
+            vertices, note = bundled_frame(vertices, head.template)
+            if note:
+                warnings.warn(f"{path}: {note}", TalkmeshWarning, stacklevel=2)
+        return head.with_template(vertices, Path(path).stem)
     except TalkmeshError as e:
         msg = str(e)
         raise TalkmeshError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+
+
+def _axis_name(vector: np.ndarray) -> str:
+    k = int(np.argmax(np.abs(vector)))
+    return ("+" if vector[k] > 0 else "-") + "xyz"[k]
+
+
+def bundled_frame(vertices: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, str]:
+    """(V, 3) vertices of the bundled topology in any units and axes -> (metres, +y up, +z to
+    the viewer) and a note saying what was converted ("" when nothing was).
+
+    The similarity fit (Umeyama) onto ``reference`` (the bundled head, vertex for vertex) gives
+    the scale, whose decade is the unit (1000: millimetres), and the rotation, which is
+    converted only where it is an axis swap (a Z-up export); a head turned by a few degrees, or
+    placed elsewhere, is the user's and stays so. Units and axes are converted about the origin,
+    so the mesh keeps its place in its own frame.
+    """
+    from talkmesh.face.registration import nearest_axis_rotation, similarity
+
+    vertices = np.asarray(vertices, np.float64)
+    scale, rotation, _ = similarity(vertices, np.asarray(reference, np.float64))
+    if not np.isfinite(scale) or scale <= 0:
+        return vertices.astype(np.float32), ""
+    decade = int(np.clip(np.round(-np.log10(scale)), 0, 3))
+    swap = nearest_axis_rotation(rotation, AXIS_SNAP_DEGREES)
+    changes = []
+    if decade:
+        changes.append(f"{UNITS[decade]} -> metres")
+    if swap is not None and not np.allclose(swap, np.eye(3)):
+        up = swap.T[:, 1]  # the user's axis that the head's up (+y) is
+        changes.append(f"up {_axis_name(up)} -> +y")
+    else:
+        swap = None
+    if not changes:
+        return vertices.astype(np.float32), ""
+    converted = vertices * 10.0**-decade
+    if swap is not None:
+        converted = converted @ swap.T
+    return converted.astype(np.float32), "converted: " + ", ".join(changes)
 
 
 def lip_opening(vertices: np.ndarray, regions: Regions) -> np.ndarray:

@@ -120,14 +120,18 @@ def rigid_fit(
     source: np.ndarray,
     target: np.ndarray,
     pairs: tuple[np.ndarray, np.ndarray] | None = None,
+    start: tuple[float, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[float, np.ndarray, np.ndarray, float]:
     """(scale, rotation, shift, median residual) taking (N, 3) ``source`` onto (M, 3) ``target``.
 
     ``pairs``: (L, 3) source and target landmark positions; with four or more, their similarity
-    fit is the only start."""
+    fit is the only start. ``start``: a fit (s, R, t) found already (on a sample of ``target``),
+    the only start otherwise."""
     tree = cKDTree(target)
     if pairs is not None and len(pairs[0]) >= 4:
         return _icp(source, target, tree, similarity(*pairs), ICP_ITERATIONS)
+    if start is not None:
+        return _icp(source, target, tree, start, ICP_ITERATIONS)
     # A short fit from every orientation, then a full one from the best two.
     starts = _orientations() + _principal_orientations(source, target)
     rng = np.random.default_rng(0)

@@ -78,6 +78,9 @@ METHODS = ("transfer", "closest")
 # back CARRY_BLOCK vertices at a time (talkmesh.face.rig_dense; docs/results/rigging.md)
 REDUCE_ABOVE = 12_000
 CARRY_BLOCK = 32_768
+CARRY_VALUES = 1 << 23  # float64 values (64 MB) of Rig.carry's gather at a time
+BLOCK_VALUES = 1 << 25  # float32 values (128 MB) of the frames of a block Rig.carry_blocks yields
+CHECK_POINTS = 3000  # vertices of a dense mesh its not-a-head check fits (before decimating)
 PART_SKIN = 8  # skin vertices nearest each part vertex whose mean motion the part takes
 PART_MATCH = 0.3  # mean distance to a part over its RMS radius within which a component is it
 SKIN, EYE, TEETH, TONGUE = 0, 1, 2, 3  # Regions.vertex_part
@@ -191,30 +194,43 @@ class Rig:
     def carry(self, offsets: np.ndarray) -> np.ndarray:
         """(T, Vh, 3) offsets of the bundled topology (metres, e.g. a vertex model's prediction
         minus its template) -> (T, V, 3) offsets on the user's mesh, in its units and axes,
-        through the closest-point correspondence."""
+        through the closest-point correspondence, a block of user vertices at a time (a frame's
+        (V, 3, 3) gather is 72 MB of float64 at a million vertices: ``CARRY_VALUES`` at most)."""
         offsets = np.asarray(offsets, np.float64)
         assert offsets.ndim == 3 and offsets.shape[2] == 3, offsets.shape
-        moved = np.einsum("vc,tvcx->tvx", self.weights, offsets[:, self.corners])
-        return (self.scale * moved @ self.rotation.T).astype(np.float32)
+        out = np.empty((len(offsets), len(self.corners), 3), np.float32)
+        step = max(1, CARRY_VALUES // (9 * max(1, len(offsets))))
+        turn = self.scale * self.rotation.T
+        for a in range(0, len(self.corners), step):
+            b = slice(a, a + step)
+            moved = np.einsum("vc,tvcx->tvx", self.weights[b], offsets[:, self.corners[b]])
+            out[:, b] = moved @ turn
+        return out
 
     def carry_blocks(self, anim: AnimationBlocks, template: np.ndarray) -> AnimationBlocks:
         """``anim`` (a vertex model's or the procedural animator's motion of the bundled topology,
         its (Vh, 3) neutral ``template`` in metres) moving the user's mesh, block by block: every
         frame is ``vertices + carry(frame - template)``, in the user's units and axes. ARKit
-        weights pass through unchanged; no basis (the motion is the model's, not the shapes')."""
+        weights pass through unchanged; no basis (the motion is the model's, not the shapes'). A
+        block comes in as many as its frames' float32 vertices take ``BLOCK_VALUES``."""
         template = np.asarray(template, np.float32)
+
+        # a model's block (256 frames) of a million-vertex head would be 3 GB: cut smaller
+        step = max(1, BLOCK_VALUES // (3 * len(self.vertices)))
 
         def blocks():
             for block in anim.blocks:
                 assert block.vertices.shape[1:] == template.shape, block.vertices.shape
-                moved = self.vertices + self.carry(block.vertices - template)
-                yield Animation(
-                    vertices=moved,
-                    faces=self.faces,
-                    fps=block.fps,
-                    weights=block.weights,
-                    weight_names=list(block.weight_names),
-                )
+                for a in range(0, block.num_frames, step):
+                    moved = self.carry(block.vertices[a : a + step] - template)
+                    moved += self.vertices
+                    yield Animation(
+                        vertices=moved,
+                        faces=self.faces,
+                        fps=block.fps,
+                        weights=None if block.weights is None else block.weights[a : a + step],
+                        weight_names=list(block.weight_names),
+                    )
 
         return AnimationBlocks(
             blocks=blocks(),
@@ -341,24 +357,61 @@ def _edge_lengths(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return total / np.maximum(np.bincount(edges.ravel(), minlength=len(vertices)), 1)
 
 
-def _register(vertices, faces, head, landmarks, automatic, pre_fit):
-    """Rigid + non-rigid registration of the head's skin; returns (s, R, t, residual, skin ids,
-    skin faces, registered skin (S, 3), user landmark ids by name)."""
-    source = head.template.astype(np.float64)
-    marks = _bundled_landmarks()  # every Head has the bundled topology
-    given = {k: int(v) for k, v in (landmarks or {}).items()}
-    _check_landmarks(given, len(vertices))
-    pairs = None
-    if len(given) >= 4:
-        names = list(given)
-        pairs = (source[[marks[k] for k in names]], vertices[[given[k] for k in names]])
-    scale, rotation, shift, fit = rigid_fit(source, vertices, pairs)
-    radius = np.sqrt(((vertices - vertices.mean(0)) ** 2).sum(1).mean())
+def _landmark_pairs(source, vertices, given: dict[str, int]):
+    """(L, 3) bundled and user positions of four or more given landmarks (the rigid fit's
+    start), else None."""
+    if len(given) < 4:
+        return None
+    marks = _bundled_landmarks()
+    names = list(given)
+    return source[[marks[k] for k in names]], vertices[[int(given[k]) for k in names]]
+
+
+def _radius(vertices: np.ndarray) -> float:
+    """The RMS distance of the vertices from their centroid."""
+    return float(np.sqrt(((vertices - vertices.mean(0)) ** 2).sum(1).mean()))
+
+
+def _refuse_unless_head(fit: float, radius: float) -> None:
+    """A one-line error where the rigid ``fit`` (median distance) is over ``NOT_A_HEAD`` of the
+    mesh's ``radius``."""
     if fit > NOT_A_HEAD * radius:
         raise TalkmeshError(
             f"the mesh does not look like a head: the bundled head fits it no closer than "
             f"{100 * fit / radius:.0f}% of its size (give a head, face forward, mouth included)"
         )
+
+
+def _check_sample(vertices, head, landmarks):
+    """The rigid fit (s, R, t) of the bundled head onto ``CHECK_POINTS`` of a dense mesh's
+    vertices, before it is decimated: a mesh that is no head is refused in the time of a small
+    one, whatever its size. The residual is measured to every vertex, as for a mesh registered
+    whole (a sample's sparser points would read farther), within twice the limit (from inside
+    a sphere, a nearest-vertex search without a bound visits all of it: 25 s at 1.7M)."""
+    source = head.template.astype(np.float64)
+    pick = np.random.default_rng(0).choice(len(vertices), min(CHECK_POINTS, len(vertices)), False)
+    pairs = _landmark_pairs(source, vertices, landmarks or {})
+    scale, rotation, shift, sampled = rigid_fit(source, vertices[pick], pairs)
+    radius = _radius(vertices)
+    moved = scale * source @ rotation.T + shift
+    near = cKDTree(vertices).query(moved, distance_upper_bound=2 * NOT_A_HEAD * radius)[0]
+    fit = float(np.median(near))
+    _refuse_unless_head(fit if np.isfinite(fit) else sampled, radius)
+    return scale, rotation, shift
+
+
+def _register(vertices, faces, head, landmarks, automatic, pre_fit, start=None):
+    """Rigid (from ``start``, a fit found already, if given) + non-rigid registration of the
+    head's skin; returns (s, R, t, residual, skin ids, skin faces, registered skin (S, 3), user
+    landmark ids by name)."""
+    source = head.template.astype(np.float64)
+    given = {k: int(v) for k, v in (landmarks or {}).items()}
+    _check_landmarks(given, len(vertices))
+    pairs = _landmark_pairs(source, vertices, given)
+    scale, rotation, shift, fit = rigid_fit(source, vertices, pairs, start)
+    radius = _radius(vertices)
+    _refuse_unless_head(fit, radius)
+    marks = _bundled_landmarks()  # every Head has the bundled topology
     skin = np.flatnonzero(head.regions.vertex_part == SKIN)
     local = np.full(head.num_vertices, -1)
     local[skin] = np.arange(len(skin))
@@ -443,10 +496,11 @@ def rig_head(
     return _rig(vertices, faces, head, landmarks, method, automatic, pre_fit)
 
 
-def _rig(vertices, faces, head, landmarks, method, automatic, pre_fit) -> Rig:
-    """:func:`rig_head` on the mesh as it is (its steps 1 to 4)."""
+def _rig(vertices, faces, head, landmarks, method, automatic, pre_fit, start=None) -> Rig:
+    """:func:`rig_head` on the mesh as it is (its steps 1 to 4); ``start``: a rigid fit found
+    already."""
     scale, rotation, shift, radius, skin, skin_faces, registered, found, user_normals = _register(
-        vertices, faces, head, landmarks, automatic, pre_fit
+        vertices, faces, head, landmarks, automatic, pre_fit, start
     )
     # Closest-point correspondence of every user vertex on the registered head (its skin as
     # fitted, eyes, teeth and tongue moved with the skin around them).
@@ -497,14 +551,16 @@ def _rig(vertices, faces, head, landmarks, method, automatic, pre_fit) -> Rig:
 
 
 def _rig_reduced(vertices, faces, head, landmarks, method, automatic, pre_fit) -> Rig:
-    """:func:`rig_head` of a mesh over REDUCE_ABOVE vertices: registered (and refused if no
-    head) on a copy decimated to REDUCE_ABOVE vertices, its shapes carried back to every vertex
+    """:func:`rig_head` of a mesh over REDUCE_ABOVE vertices: refused if no head on a sample of
+    its vertices (:func:`_check_sample`), registered on a copy decimated to REDUCE_ABOVE vertices
+    (from the sample's rigid fit), its shapes carried back to every vertex
     (:func:`talkmesh.face.rig_dense.carry_back`)."""
     _check_landmarks(landmarks or {}, len(vertices))
+    start = _check_sample(vertices, head, landmarks)
     small_v, small_f = reduce_mesh(vertices, faces, REDUCE_ABOVE)
     near = cKDTree(small_v)
     given = {n: int(near.query(vertices[int(i)])[1]) for n, i in (landmarks or {}).items()}
-    small = _rig(small_v, small_f, head, given, method, automatic, pre_fit)
+    small = _rig(small_v, small_f, head, given, method, automatic, pre_fit, start)
     shapes, corners, weights, found = carry_back(
         vertices, faces, small_v, small_f, small, landmarks, CARRY_BLOCK
     )

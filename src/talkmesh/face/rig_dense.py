@@ -4,6 +4,9 @@ a time (docs/results/rigging.md, "Dense meshes")."""
 
 from __future__ import annotations
 
+import io
+import os
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -25,17 +28,17 @@ def closest_shapes(head, corners, weights, scale, rotation, block: int) -> np.nd
 def reduce_mesh(vertices: np.ndarray, faces: np.ndarray, count: int) -> tuple[np.ndarray, ...]:
     """(V', 3) vertices and (F', 3) faces of the mesh decimated to about ``count`` vertices by
     quadric edge collapse (fast-simplification): edges collapse, separate surfaces never merge,
-    so lips that touch stay two lips."""
+    so lips that touch stay two lips. Where the OS forks, in a child process: fast-simplification
+    keeps its working arrays in C++ globals that never give their memory back (600 MB for the
+    rest of the run at 2.4M faces)."""
     try:
-        import fast_simplification
+        import fast_simplification  # noqa: F401  (here, so a missing one is a one-line error)
     except ImportError:
         raise MissingDependencyError(
             "fast-simplification", "all", f"rigging meshes of over {count} vertices"
         ) from None
     target = int(len(faces) * min(1.0, 2 * count / len(faces)))  # F ~ 2V on a closed surface
-    small_v, small_f = fast_simplification.simplify(
-        vertices.astype(np.float64), faces.astype(np.int32), target_count=target
-    )
+    small_v, small_f = _in_child(_simplify, vertices, faces, target)
     tri = small_v[small_f]
     area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     small_f = small_f[area > 1e-8 * np.median(area)]  # slivers: no closest point is on them
@@ -43,6 +46,46 @@ def reduce_mesh(vertices: np.ndarray, faces: np.ndarray, count: int) -> tuple[np
     remap = np.full(len(small_v), -1, np.int64)
     remap[used] = np.arange(len(used))
     return small_v[used], remap[small_f]
+
+
+def _simplify(vertices: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarray, ...]:
+    import fast_simplification
+
+    return fast_simplification.simplify(
+        vertices.astype(np.float64), faces.astype(np.int32), target_count=target
+    )
+
+
+def _in_child(fn, *args) -> tuple[np.ndarray, ...]:
+    """``fn(*args)`` (a tuple of plain arrays) run in a forked child, its memory given back when
+    it exits; in this process where there is no fork or the child failed (it then raises here)."""
+    if not hasattr(os, "fork"):
+        return fn(*args)
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: compute, send the arrays, exit at once (no cleanup of the parent's)
+        code = 1
+        try:
+            os.close(read)
+            buffer = io.BytesIO()  # np.save needs a file it can seek: a pipe is none
+            for array in fn(*args):
+                np.save(buffer, np.ascontiguousarray(array), allow_pickle=False)
+            with os.fdopen(write, "wb") as f:
+                f.write(buffer.getbuffer())
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(write)
+    with os.fdopen(read, "rb") as f:
+        data = f.read()
+    _, status = os.waitpid(pid, 0)
+    if status != 0:
+        return fn(*args)
+    stream = io.BytesIO(data)
+    out = []
+    while stream.tell() < len(data):
+        out.append(np.load(stream, allow_pickle=False))
+    return tuple(out)
 
 
 def carry_back(vertices, faces, small_v, small_f, small, landmarks, block: int):

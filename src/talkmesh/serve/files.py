@@ -39,6 +39,15 @@ class RenderError(Exception):
 def animate_file(audio: Path, out: Path, model: str, max_seconds: float | None = None) -> None:
     """Animate ``audio`` with ``model`` into ``out`` (.glb or .mp4), as ``talkmesh animate``;
     audio longer than ``max_seconds`` is refused (:class:`AudioTooLong`) while it is decoded."""
+    from talkmesh.heap import give_back
+
+    try:
+        _animate_file(audio, out, model, max_seconds)
+    finally:
+        give_back()  # the job's freed memory back to the system: an idle server holds its own
+
+
+def _animate_file(audio: Path, out: Path, model: str, max_seconds: float | None) -> None:
     from talkmesh.audio.loading import load_audio
     from talkmesh.output import write_animation
     from talkmesh.pipeline import animate
