@@ -578,9 +578,10 @@ COMMANDS = {
     "serve": (
         [],
         "--avatar --batch-wait-ms --first-message-timeout --host --idle-timeout --jobs "
-        "--max-message-bytes --max-queue --max-seconds --max-sessions --max-upload-mb --model "
-        "--port --quiet --request-timeout --torch-threads --workers",
+        "--livelink --max-message-bytes --max-queue --max-seconds --max-sessions --max-upload-mb "
+        "--model --port --quiet --request-timeout --torch-threads --workers",
     ),
+    "livelink": (["audio"], "--head-motion --model --no-audio --quiet --seed --subject --to"),
     "info": ([], ""),
 }
 

@@ -31,7 +31,7 @@ from talkmesh.cli.models import (
     add_retarget,
     add_train,
 )
-from talkmesh.cli.serve import add_info, add_serve
+from talkmesh.cli.serve import add_info, add_livelink, add_serve
 from talkmesh.errors import TalkmeshError, os_error_message, show_warnings, warning_line
 from talkmesh.version import __version__
 
@@ -54,6 +54,7 @@ COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
     add_rig,
     add_export_head,
     add_serve,
+    add_livelink,
     add_info,
 )
 
