@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -200,3 +202,47 @@ def test_serve_refuses_a_subject_when_it_sends_no_live_link():
 def test_serve_with_a_refused_target_does_not_start():
     with pytest.raises(TalkmeshError, match="nothing listens there"):
         create_app(livelink=f"127.0.0.1:{free_udp_port()}")
+
+
+def test_serve_on_a_port_in_use_is_one_line_and_leaves_nothing_running(listener):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        target = f"127.0.0.1:{listener.getsockname()[1]}"
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "talkmesh", "serve", "--port", str(port), "--livelink", target],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,  # its workers share its process group
+        )
+        _, err = proc.communicate(timeout=300)
+    assert proc.returncode != 0
+    assert err.strip().splitlines() == [
+        f"talkmesh: error: cannot listen on 127.0.0.1:{port} (Address already in use): "
+        "choose another --port or --host"
+    ]
+    assert not group_alive(proc.pid), "a worker of the server outlived it"
+
+
+def group_alive(pgid: int, wait_s: float = 30.0) -> bool:
+    """Whether a process of group ``pgid`` still exists after up to ``wait_s`` seconds (a worker
+    that exits with its parent is reaped by init a moment later)."""
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return False
+        time.sleep(0.1)
+    return True
+
+
+def test_cli_without_a_sound_library_says_to_pass_no_audio(listener, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "sounddevice", None)  # import fails, as without PortAudio
+    port = listener.getsockname()[1]
+    args = ["livelink", str(CLIP), "--to", f"127.0.0.1:{port}", "--model", "procedural"]
+    assert main(args) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot play the audio" in err[0] and "--no-audio" in err[0]
