@@ -52,7 +52,7 @@ def run_server(**app_options):
     from talkmesh.serve.server import create_app
 
     static = app_options.get("static_dir", STATIC)
-    if not (static / "viewer.js").is_file():
+    if static == STATIC and not (static / "viewer.js").is_file():
         pytest.fail(f"{static}/viewer.js is missing: run `make viewer` (or `npm run build:viewer`)")
     port = _free_port()
     app = create_app(models=("procedural",), **app_options)

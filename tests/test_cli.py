@@ -542,8 +542,8 @@ COMMANDS = {
         "--lip-closure --loudness-gain --model --no-bilabial-closure --no-blinks --no-lip-closure "
         "--no-pause-gate "
         "--normalize-template --output --overwrite --pause-source "
-        "--performance --procedural-mix --quiet --seed --size --style --summary --template --text "
-        "--workers",
+        "--performance --procedural-mix --quiet --runtime --seed --size --style --summary "
+        "--template --text --workers",
     ),
     "render": (["anim"], "--audio --camera --fps --labels --output --overwrite --quiet --size"),
     "export": (["anim"], "--camera --fps --output --overwrite --quiet --size"),
@@ -563,6 +563,7 @@ COMMANDS = {
     "prepare-vocaset": (["raw", "out"], "--quiet"),
     "convert-whisper": (["source"], "--out --overwrite --quiet"),
     "import-checkpoint": (["files"], "--dataset --family --out --overwrite --quiet"),
+    "export-onnx": (["model"], "--output --overwrite --quiet"),
     "train": (["recipe", "overrides"], "--devices --num-nodes --quiet --resume --stage"),
     "benchmark": (
         ["config"],
@@ -578,9 +579,10 @@ COMMANDS = {
     "serve": (
         [],
         "--avatar --batch-wait-ms --first-message-timeout --host --idle-timeout --jobs "
-        "--max-message-bytes --max-queue --max-seconds --max-sessions --max-upload-mb --model "
-        "--port --quiet --request-timeout --torch-threads --workers",
+        "--livelink --max-message-bytes --max-queue --max-seconds --max-sessions --max-upload-mb "
+        "--model --port --quiet --request-timeout --torch-threads --workers",
     ),
+    "livelink": (["audio"], "--head-motion --model --no-audio --quiet --seed --subject --to"),
     "info": ([], ""),
 }
 

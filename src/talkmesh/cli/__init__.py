@@ -27,11 +27,12 @@ from talkmesh.cli.models import (
     add_benchmark,
     add_convert_whisper,
     add_dub,
+    add_export_onnx,
     add_import_checkpoint,
     add_retarget,
     add_train,
 )
-from talkmesh.cli.serve import add_info, add_serve
+from talkmesh.cli.serve import add_info, add_livelink, add_serve
 from talkmesh.errors import TalkmeshError, os_error_message, show_warnings, warning_line
 from talkmesh.version import __version__
 
@@ -47,6 +48,7 @@ COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
     add_prepare_vocaset,
     add_convert_whisper,
     add_import_checkpoint,
+    add_export_onnx,
     add_train,
     add_benchmark,
     add_retarget,
@@ -54,6 +56,7 @@ COMMANDS: tuple[Callable[[Subparsers], None], ...] = (
     add_rig,
     add_export_head,
     add_serve,
+    add_livelink,
     add_info,
 )
 

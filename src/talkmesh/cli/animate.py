@@ -36,6 +36,12 @@ from talkmesh.face.corrections import (
 from talkmesh.face.head_motion import NATURAL, check_amount
 from talkmesh.output import output_name, write_animation
 
+RUNTIMES = ("torch", "onnxruntime")
+RUNTIME_HELP = (
+    "what runs a learned model: torch (releases) or onnxruntime (an .onnx file of export-onnx); "
+    "default: by the --model file"
+)
+
 
 def add_animate(sub: Subparsers) -> None:
     a = sub.add_parser("animate", help="animate a face from speech files, folders or lists")
@@ -91,8 +97,10 @@ def add_animate(sub: Subparsers) -> None:
     a.add_argument(
         "--model",
         default=None,
-        help="a bundled model (default codetalker-synth), procedural, or a .safetensors release",
+        help="a bundled model (default codetalker-synth), procedural, a .safetensors release, or "
+        "an .onnx file of export-onnx (run by ONNX Runtime)",
     )
+    a.add_argument("--runtime", choices=RUNTIMES, help=RUNTIME_HELP)
     a.add_argument(
         "--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)"
     )
@@ -237,6 +245,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
         split_tags(args.text)  # a bad tag is refused before any file is looked at
     performance_from(args)
     check_amount(args.head_motion)
+    check_runtime(args.runtime, args.model)
     style_mix = parse_style(args.style)
     sources = [Path(a) for a in args.audio]
     library = any(is_batch_source(p) for p in sources)
@@ -312,6 +321,18 @@ def exit_on_sigterm() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def check_runtime(runtime: str | None, model: str | None) -> None:
+    """``--runtime`` must agree with the model file: ONNX Runtime runs .onnx files only."""
+    onnx = model is not None and model.lower().endswith(".onnx")
+    if runtime == "onnxruntime" and not onnx:
+        raise TalkmeshError(
+            f"--runtime onnxruntime runs an .onnx model: export {model or 'codetalker-synth'} with "
+            "`talkmesh export-onnx MODEL -o model.onnx` and pass --model model.onnx"
+        )
+    if runtime == "torch" and onnx:
+        raise TalkmeshError(f"--runtime torch runs releases, not {model}: drop --runtime")
 
 
 def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar: Path | None):

@@ -232,3 +232,43 @@ def cmd_retarget(args: argparse.Namespace) -> int:
             f"wrote {output_name(out, anim.num_frames)} ({anim.num_frames} frames, {anim.duration:.2f} s)"
         )
     return 0
+
+
+def add_export_onnx(sub: Subparsers) -> None:
+    eo = sub.add_parser(
+        "export-onnx",
+        help="write a model as ONNX graphs (its speech encoder and one generation step) for "
+        "ONNX Runtime and engines",
+    )
+    eo.add_argument("model", help="a bundled model (codetalker-synth) or a .safetensors release")
+    eo.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        action=Once,
+        help="the step graph FILE.onnx; the speech encoder goes beside it as FILE.speech.onnx",
+    )
+    eo.add_argument("--overwrite", action="store_true", help="replace existing files")
+    add_quiet(eo)
+    eo.set_defaults(func=cmd_export_onnx)
+
+
+def cmd_export_onnx(args: argparse.Namespace) -> int:
+    from talkmesh.models.onnx import export_onnx, speech_path
+    from talkmesh.models.release import load_model
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".onnx":
+        raise TalkmeshError(f"-o {out}: give a file name ending in .onnx")
+    for path in (out, speech_path(out)):
+        if path.exists() and not args.overwrite:
+            raise TalkmeshError(f"{path} already exists: choose another -o or pass --overwrite")
+    if not out.parent.is_dir():
+        raise TalkmeshError(f"-o {out}: the folder {out.parent} does not exist")
+    if str(args.model).lower().endswith(".onnx"):
+        raise TalkmeshError(f"{args.model} is already ONNX: give a model release to export")
+    written = export_onnx(load_model(args.model), out)
+    if not args.quiet:
+        sizes = ", ".join(f"{p} ({p.stat().st_size / 2**20:.1f} MB)" for p in written)
+        print(f"wrote {sizes}")
+    return 0

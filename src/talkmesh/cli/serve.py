@@ -8,6 +8,11 @@ import sys
 from talkmesh.cli.common import Subparsers, add_quiet
 from talkmesh.version import __version__
 
+LIVELINK_HELP = (
+    "also send every session's frames as Live Link Face UDP packets to Unreal there (port 11111 "
+    "by default; a session names its subject with ?livelink=NAME, or opts out with ?livelink=0)"
+)
+
 
 def add_serve(sub: Subparsers) -> None:
     sv = sub.add_parser(
@@ -83,6 +88,7 @@ def add_serve(sub: Subparsers) -> None:
         help="processes that compute the procedural sessions (default: one per core; 0: the "
         "server process itself)",
     )
+    sv.add_argument("--livelink", metavar="HOST:PORT", help=LIVELINK_HELP)
     add_quiet(sv, "log only warnings and errors")
     sv.set_defaults(func=cmd_serve)
 
@@ -114,7 +120,87 @@ def cmd_serve(args: argparse.Namespace) -> int:
         batch_wait_ms=args.batch_wait_ms,
         torch_threads=args.torch_threads,
         workers=args.workers,
+        livelink=args.livelink,
     )
+    return 0
+
+
+def add_livelink(sub: Subparsers) -> None:
+    ll = sub.add_parser(
+        "livelink",
+        help="animate a speech file and send it live to Unreal as Live Link Face packets, with "
+        "its audio",
+    )
+    ll.add_argument("audio", help="speech file")
+    ll.add_argument(
+        "--to",
+        required=True,
+        metavar="HOST:PORT",
+        help="where Unreal's Live Link Face source listens (port 11111 by default)",
+    )
+    ll.add_argument(
+        "--subject", default="talkmesh", help="the subject name Unreal lists (default talkmesh)"
+    )
+    ll.add_argument(
+        "--model",
+        help="a bundled model (default codetalker-synth), procedural, or a .safetensors release",
+    )
+    ll.add_argument(
+        "--no-audio", action="store_true", help="send the frames in real time without playing"
+    )
+    ll.add_argument("--seed", type=int, default=0, help="seed of blinks and gaze (default 0)")
+    ll.add_argument(
+        "--head-motion",
+        type=float,
+        default=0.5,
+        metavar="AMOUNT",
+        help="how much the head moves with the prosody, 0 to 1 (default 0.5)",
+    )
+    add_quiet(ll)
+    ll.set_defaults(func=cmd_livelink)
+
+
+def cmd_livelink(args: argparse.Namespace) -> int:
+    """Everything that can fail is checked before the first frame: the target, the audio, the
+    model; then the frames go out in real time with the audio."""
+    import time
+
+    from talkmesh.audio.loading import audio_duration
+    from talkmesh.output import livelink as ll
+    from talkmesh.pipeline import animate
+
+    target = ll.parse_target(args.to)
+    audio_duration(args.audio)  # unreadable audio is refused before the model runs
+    with ll.LiveLinkSender(target, args.subject) as sender:
+        sender.check()
+        anim = animate(args.audio, model=args.model, seed=args.seed, head_motion=args.head_motion)
+        lag = 0.0
+        if not args.no_audio:
+            assert anim.audio is not None
+            lag = ll.start_audio(anim.audio, anim.sample_rate)
+        if not args.quiet:
+            print(
+                f"sending {anim.num_frames} frames ({anim.duration:.2f} s at {anim.fps:g} fps) "
+                f"to {target} as subject {args.subject}",
+                flush=True,
+            )
+        try:
+            played = ll.play_live_link(anim, sender, start=time.perf_counter() + lag)
+        finally:
+            if not args.no_audio:
+                ll.stop_audio()
+    if played.refused:
+        print(
+            f"talkmesh: warning: {played.refused} of {anim.num_frames} frames were refused by "
+            f"{target} (nothing listened there then)",
+            file=sys.stderr,
+        )
+    if not args.quiet:
+        late = played.late * 1000
+        print(
+            f"sent {played.sent} frames; sent late by {late.mean():.2f} ms on average, "
+            f"{late.max():.2f} ms at most"
+        )
     return 0
 
 

@@ -220,3 +220,11 @@ class MotionModel(nn.Module, ABC):
         """A new :class:`FrameStream`; ``style_weights`` (K,) (None: the mean style);
         ``lookahead_ms`` None: the largest the model was trained for."""
         raise TalkmeshError(f"this {self.family} model cannot stream")
+
+    def onnx_graphs(self) -> tuple[nn.Module, nn.Module]:
+        """The speech encoder and one generation step as modules that export to ONNX
+        (:mod:`talkmesh.models.onnx`)."""
+        raise TalkmeshError(
+            f"export-onnx exports CodeTalker models (the bundled codetalker-synth); this is a "
+            f"{self.family} model"
+        )

@@ -72,8 +72,13 @@ def load_model(
 ) -> MotionModel:
     """Rebuild a released model offline from its file alone (``strict=True``), in eval mode.
 
-    ``family`` (e.g. ``"meshtalk"``), when given, is required of the file.
+    ``family`` (e.g. ``"meshtalk"``), when given, is required of the file. A ``.onnx`` file of
+    ``talkmesh export-onnx`` is run by ONNX Runtime (:class:`talkmesh.models.onnx.OnnxModel`).
     """
+    if str(name_or_path).lower().endswith(".onnx") and family is None:
+        from talkmesh.models.onnx import OnnxModel
+
+        return OnnxModel(name_or_path)  # type: ignore[return-value]  # a MotionModel's surface
     try:
         from safetensors import safe_open
         from safetensors.torch import load_file

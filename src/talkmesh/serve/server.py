@@ -66,6 +66,7 @@ from talkmesh.serve.batching import DEFAULT_BATCH_WAIT_MS, Scheduler, Work, fram
 from talkmesh.serve.emotion import LiveEmotion
 from talkmesh.serve.files import RenderError, animate_file, audio_suffix, neutral_head_glb
 from talkmesh.serve.limits import JobQueue, QueueFull
+from talkmesh.serve.livelink import LiveLinkOut, open_link
 from talkmesh.serve.protocol import (
     CLOSE_BUSY,
     CLOSE_GOING_AWAY,
@@ -233,6 +234,7 @@ class Service:
         avatar: Path | None = None,
         batch_wait_s: float = DEFAULT_BATCH_WAIT_MS / 1000,
         pool: WorkerPool | None = None,
+        livelink: LiveLinkOut | None = None,
     ):
         self.avatar_name, self.avatar_glb = None, None
         if avatar is not None:  # checked now: a bad avatar stops the server before it starts
@@ -246,6 +248,7 @@ class Service:
         self.sessions = Sessions(limits.max_sessions)
         self.scheduler = Scheduler(batch_wait_s)
         self.pool = pool  # procedural sessions are computed there (None: in this process)
+        self.livelink = livelink  # every session's frames also go there (serve/livelink.py)
         self.head = load_head()
         self.queue = JobQueue(limits.jobs, limits.max_queue, lim.DEFAULT_SHORT_SECONDS)
         self._head_glb: bytes | None = None
@@ -288,6 +291,7 @@ class Service:
         name, lookahead, offsets = self._parse_query(ws)
         source = self.models[name]
         try:
+            link = open_link(self.livelink, ws.query_params.get("livelink"))  # sends frames later
             if source == PROCEDURAL and self.pool is not None:
                 stream = await self.pool.open(source, lookahead, offsets)
             else:
@@ -315,8 +319,10 @@ class Service:
                 try:  # errors leave the task group as themselves, not as a group
                     sent = 0
                     async for frames in frames_of(work):
-                        for frame in frames:
-                            await ws.send_bytes(encode_frame(emotion.apply(frame)))
+                        for frame in map(emotion.apply, frames):
+                            if link is not None:
+                                link.send(frame, stream.fps)
+                            await ws.send_bytes(encode_frame(frame))
                         sent += len(frames)
                     await ws.send_json({"type": "end", "frames": sent})
                     await ws.close(CLOSE_NORMAL)
@@ -325,6 +331,8 @@ class Service:
                 tasks.cancel_scope.cancel()
         finally:
             self.scheduler.leave(work)
+            if link is not None:
+                link.close()
         if failure is not None:
             raise failure
 
@@ -558,6 +566,7 @@ def create_app(
     avatar: str | Path | None = None,
     batch_wait_ms: float = DEFAULT_BATCH_WAIT_MS,
     workers: int = 0,
+    livelink: str | None = None,
     **limit_options,
 ) -> Starlette:
     """The ASGI app. Every model is opened once here, so a bad one fails now, not per client.
@@ -567,7 +576,8 @@ def create_app(
     request_timeout, first_message_timeout); ``batch_wait_ms``: how long the scheduler waits after
     a session's audio arrives to gather others' into the same tick (:mod:`talkmesh.serve.batching`);
     ``workers``: processes that compute the procedural sessions (:mod:`talkmesh.serve.workers`;
-    0: this process). With workers, close ``app.state.service.pool`` when done."""
+    0: this process); ``livelink``: HOST:PORT to send sessions' frames to (serve/livelink.py).
+    With workers, close ``app.state.service.pool`` when done."""
     limits = Limits(
         max_sessions, max_message_bytes, max_upload_bytes, float(idle_timeout), **limit_options
     )
@@ -576,7 +586,8 @@ def create_app(
     avatar = None if avatar is None else Path(avatar)
     if workers < 0:
         raise TalkmeshError(f"--workers must be 0 or more, got {workers}")
-    service = Service(resolve_models(models), limits, avatar, batch_wait_ms / 1000)
+    link = None if livelink is None else LiveLinkOut(livelink)
+    service = Service(resolve_models(models), limits, avatar, batch_wait_ms / 1000, livelink=link)
     for name, source in service.models.items():
         try:
             open_stream(source, head=service.head)

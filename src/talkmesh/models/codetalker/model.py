@@ -52,6 +52,7 @@ from talkmesh.models.speech import (
     MelEncoder,
     MelFeatureStream,
     SpeechEncoderConfig,
+    WhisperEncoder,
     build_speech_encoder,
     release_config,
 )
@@ -291,6 +292,18 @@ class CodeTalker(MotionModel):
         with torch.inference_mode():
             style = self.style_vector(None, torch.from_numpy(np.asarray(weights, np.float32))[None])
         return CodeTalkerStream(self, style, features)
+
+    def onnx_graphs(self) -> tuple[nn.Module, nn.Module]:
+        """The Whisper speech encoder and one step of generation with its state as inputs and
+        outputs (:mod:`talkmesh.models.codetalker.export`): a causal VQ decoder's steps are final."""
+        from talkmesh.models.codetalker.export import EncoderGraph, StepGraph
+
+        if not self.cfg.vq.causal or not isinstance(self.speech, WhisperEncoder):
+            raise TalkmeshError(
+                "export-onnx needs a CodeTalker with a causal VQ decoder and the Whisper speech "
+                "encoder (as the bundled codetalker-synth)"
+            )
+        return EncoderGraph(self.speech.features.encoder).eval(), StepGraph(self).eval()
 
     # -- pieces ---------------------------------------------------------------------------------
 

@@ -1,0 +1,142 @@
+// talkmesh-client: speech in, ARKit weights out, played on any three.js object in step with the
+// audio. No dependency: meshes are found by their morphTargetDictionary (three.js's Mesh and
+// SkinnedMesh, a VRM's scene), names matched as talkmesh.face.arkit_names matches them.
+//
+//   const client = new TalkmeshClient("ws://127.0.0.1:8000/ws/stream");
+//   client.attach(gltf.scene);                // or vrm.scene
+//   await client.playAudio(audioBuffer);      // an AudioBuffer: plays it and animates in step
+//   client.update();                          // every animation frame
+//
+// The protocol (docs/guide/streaming.md): 16 kHz mono int16 PCM in binary messages, then
+// {"type": "end"}; the server answers a hello, one "TMF1" binary message per frame and an end.
+
+import { ARKIT_NAMES, bindAvatar } from "../viewer/arkit_names.js";
+
+export const SAMPLE_RATE = 16000;
+const CHUNK_SAMPLES = SAMPLE_RATE / 10; // 100 ms per message
+const FRAME_MAGIC = 0x544d4631; // "TMF1" read big-endian
+const HEADER_BYTES = 16;
+
+// One frame message -> {index, time, weights: Float32Array} (weights in hello.names order).
+export function parseFrame(buffer) {
+  const view = new DataView(buffer);
+  if (buffer.byteLength < HEADER_BYTES || view.getUint32(0, false) !== FRAME_MAGIC) {
+    throw new Error("not a talkmesh frame (TMF1)");
+  }
+  const count = view.getUint16(12, true);
+  const weights = new Float32Array(count);
+  for (let i = 0; i < count; i++) weights[i] = view.getFloat32(HEADER_BYTES + 4 * i, true);
+  return { index: view.getUint32(4, true), time: view.getFloat32(8, true), weights };
+}
+
+// (S,) float samples at `rate` -> 16 kHz int16, through an OfflineAudioContext (the browser's
+// own resampler, with its anti-aliasing filter).
+export async function toPcm16(buffer) {
+  const frames = Math.ceil(buffer.duration * SAMPLE_RATE);
+  const offline = new OfflineAudioContext(1, Math.max(1, frames), SAMPLE_RATE);
+  const source = offline.createBufferSource();
+  source.buffer = buffer;
+  source.connect(offline.destination);
+  source.start();
+  const mono = (await offline.startRendering()).getChannelData(0);
+  const pcm = new Int16Array(mono.length);
+  for (let i = 0; i < mono.length; i++) pcm[i] = Math.max(-32768, Math.min(32767, Math.round(mono[i] * 32767)));
+  return pcm;
+}
+
+export class TalkmeshClient {
+  // url: the server's ws://HOST:PORT/ws/stream (query options: model, lookahead_ms, livelink).
+  constructor(url, { audioContext } = {}) {
+    this.url = url;
+    this.context = audioContext || new AudioContext();
+    this.targets = []; // [{mesh, pairs: [[target index, stream index]...]}]
+    this.frames = []; // received, not yet shown
+    this.names = ARKIT_NAMES;
+    this.start = null; // the AudioContext time of frame 0
+    this.state = "idle";
+    this.received = 0;
+    this.shown = []; // [frame time, audio time when shown] of every frame shown
+    this.onframe = null; // called with each frame as it is shown
+  }
+
+  // Drive every mesh under `object` whose morph targets carry ARKit names.
+  attach(object) {
+    const meshes = [];
+    object.traverse((o) => {
+      if (o.morphTargetDictionary && o.morphTargetInfluences) meshes.push(o);
+    });
+    this.meshes = meshes;
+    this._bind();
+    return this.targets.reduce((n, t) => n + t.pairs.length, 0);
+  }
+
+  _bind() {
+    if (!this.meshes) return;
+    const described = this.meshes.map((m) => {
+      const targets = [];
+      for (const [name, k] of Object.entries(m.morphTargetDictionary)) targets[k] = name;
+      return { name: m.name, targets };
+    });
+    const binding = bindAvatar(described, this.names);
+    this.targets = this.meshes.map((mesh, i) => ({ mesh, pairs: binding.meshes[i].arkit }));
+  }
+
+  // Play `buffer` (an AudioBuffer) and stream it to the server: the frames are shown as the
+  // audio reaches their time. Resolves with the number of frames once the server has ended.
+  async playAudio(buffer) {
+    const pcm = await toPcm16(buffer);
+    const ws = new WebSocket(this.url);
+    ws.binaryType = "arraybuffer";
+    this.state = "connecting";
+    const ended = new Promise((resolve, reject) => {
+      ws.onmessage = (event) => {
+        if (typeof event.data !== "string") {
+          this.frames.push(parseFrame(event.data));
+          this.received++;
+          return;
+        }
+        const message = JSON.parse(event.data);
+        if (message.type === "hello") {
+          this.names = message.names;
+          this.fps = message.fps;
+          this._bind();
+          this.state = "streaming";
+          for (let i = 0; i < pcm.length; i += CHUNK_SAMPLES) ws.send(pcm.slice(i, i + CHUNK_SAMPLES).buffer);
+          ws.send(JSON.stringify({ type: "end" }));
+          const source = this.context.createBufferSource();
+          source.buffer = buffer;
+          source.connect(this.context.destination);
+          this.start = this.context.currentTime + 0.05; // a frame's time is from here
+          source.start(this.start);
+          source.onended = () => { this.playing = false; };
+          this.playing = true;
+        } else if (message.type === "end") {
+          this.state = "done";
+          resolve(message.frames);
+        } else if (message.type === "error") {
+          this.state = "error";
+          reject(new Error(message.message));
+        }
+      };
+      ws.onerror = () => reject(new Error(`cannot reach ${this.url}`));
+      ws.onclose = (event) => {
+        if (this.state !== "done") reject(new Error(`closed (${event.code}) ${event.reason}`));
+      };
+    });
+    return ended;
+  }
+
+  // Show the latest frame whose time the audio has reached; call every animation frame.
+  update() {
+    if (this.start === null || !this.frames.length) return;
+    const now = this.context.currentTime - this.start;
+    let frame = null;
+    while (this.frames.length && this.frames[0].time <= now) frame = this.frames.shift();
+    if (!frame) return;
+    for (const { mesh, pairs } of this.targets) {
+      for (const [k, i] of pairs) mesh.morphTargetInfluences[k] = frame.weights[i];
+    }
+    this.shown.push([frame.time, now]);
+    if (this.onframe) this.onframe(frame);
+  }
+}
