@@ -330,6 +330,12 @@ class CodeTalker(MotionModel):
         encode = interleaved_encoding if s2.interleaved_ppe else periodic_encoding
         return encode(num_frames, s2.d_model, s2.period, device, offset)
 
+    @property
+    def resampler(self) -> str:
+        """Imported releases (CNN-feature resampling, as the official code): resampy's
+        ``kaiser_best``, which the official ``librosa.load(sr=16000)`` used (librosa 0.8.1)."""
+        return "kaiser_best" if self.cfg.stage2.speech.resample == "cnn" else super().resampler
+
     def default_frames(self, samples: int) -> int:
         """Motion frames for ``samples`` of 16 kHz audio: the official count where the speech
         encoder resamples its CNN features, else duration x fps."""

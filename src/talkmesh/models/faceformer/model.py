@@ -360,6 +360,12 @@ class FaceFormer(MotionModel):
         """(B, d) generation's input for frame 0 (no previous frame)."""
         return self.motion_map.bias + style if self.cfg.frame0_motion_bias else style
 
+    @property
+    def resampler(self) -> str:
+        """Imported releases (CNN-feature resampling, as the official code): resampy's
+        ``kaiser_best``, which the official ``librosa.load(sr=16000)`` used (librosa 0.8.1)."""
+        return "kaiser_best" if self.cfg.speech.resample == "cnn" else super().resampler
+
     def default_frames(self, samples: int) -> int:
         """Motion frames for ``samples`` of 16 kHz audio: the encoder's own count where it
         resamples its CNN features (the official frame count), else duration x fps."""

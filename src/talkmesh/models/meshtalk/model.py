@@ -547,6 +547,12 @@ class MeshTalkModel(MotionModel):
     def styles(self) -> tuple[str, ...]:
         return ()
 
+    @property
+    def resampler(self) -> str:
+        """Imported releases: torchaudio's ``Resample`` (Hann-windowed sinc), as the official
+        ``utils/helpers.load_audio``."""
+        return "sinc_hann" if self.cfg.model.official_decoder else super().resampler
+
     def default_frames(self, samples: int) -> int:
         """Frames for ``samples`` of audio; the official 1 s windows count them as its
         ``audio_chunking`` does (``MelConfig.windows``)."""
