@@ -73,6 +73,7 @@ from talkmesh.models.layers import (
 )
 from talkmesh.models.postnorm import PostNormDecoderLayer, interleaved_encoding
 from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
+from talkmesh.models.threads import step_threads
 
 MODES = ("fast", "naive")
 OUTPUT_CHUNK = 512  # frames decoded to vertices at once at the end of fast generation
@@ -470,13 +471,15 @@ class FaceFormer(MotionModel):
             raise TalkmeshError(f"styles are given for {len(style)} samples but audio has {B}")
         tokens = self.audio_tokens(audio, audio_lengths, num_frames)
         if mode == "naive":
-            offsets = self._generate_naive(style, tokens, num_frames)
+            with step_threads():  # small tensors, one step after another (models/threads.py)
+                offsets = self._generate_naive(style, tokens, num_frames)
             return offsets.view(B, num_frames, V, 3) + template[:, None]
         cross = self.cross_terms(tokens)
         gen = FrameGenerator(self, style)
         states = style.new_empty(B, num_frames, self.cfg.d_model)
-        for t in range(num_frames):
-            states[:, t] = gen.step([c[:, t : t + 1] for c in cross])
+        with step_threads():
+            for t in range(num_frames):
+                states[:, t] = gen.step([c[:, t : t + 1] for c in cross])
         result = template.new_empty(B, num_frames, V, 3)
         for a in range(0, num_frames, OUTPUT_CHUNK):  # bounded memory for the V*3 map
             offsets = self.out(states[:, a : a + OUTPUT_CHUNK]) * self.scale

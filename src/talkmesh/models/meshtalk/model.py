@@ -46,6 +46,7 @@ from talkmesh.models.meshtalk.layers import (
 )
 from talkmesh.models.meshtalk.prior import PRESETS, PriorConfig
 from talkmesh.models.speech import SpeechEncoderConfig, SpeechFeatures, release_config
+from talkmesh.models.threads import step_threads
 
 
 def _fail(message: str) -> None:
@@ -615,9 +616,10 @@ class MeshTalkModel(MotionModel):
             gumbel=s.gumbel if gumbel is None else gumbel,
             generator=generator,
         )
-        if cached:
-            return self.prior.sample(features, progress=progress, **kwargs)
-        return self.prior.sample_uncached(features, **kwargs)
+        with step_threads():  # small tensors, one step after another (models/threads.py)
+            if cached:
+                return self.prior.sample(features, progress=progress, **kwargs)
+            return self.prior.sample_uncached(features, **kwargs)
 
     @torch.inference_mode()
     def generate(
