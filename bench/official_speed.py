@@ -168,6 +168,8 @@ def run_family(family: str, checkout: Path, args, speech: np.ndarray, out: Path,
     one_hot[0, 0] = 1
     style = torch.tensor([0], device=dev)
     modes = ("naive", "fast") if family == "faceformer" else ("naive", "exact")
+    if args.skip_naive:
+        modes = modes[1:]
     label = f"{family} {args.dataset}"
     # warm-up (one-time costs: thread pools, first-call allocations), not timed
     short = torch.from_numpy(speech[:16000])[None].to(dev)
@@ -186,10 +188,12 @@ def run_family(family: str, checkout: Path, args, speech: np.ndarray, out: Path,
         ref, official_s = None, None
         if frames <= MAX_FRAMES:
             inputs = torch.from_numpy(fx.processor_input(wave))[None].to(dev)
+            torch.set_num_threads(args.official_threads or args.threads)
             with torch.no_grad():
                 official_s, out_ = timed(
                     partial(official.predict, inputs, template.reshape(1, -1), one_hot), dev
                 )
+            torch.set_num_threads(args.threads)
             ref = out_[0].reshape(-1, V, 3).cpu().numpy()
             print(
                 f"| {label} | {seconds:g} | {frames} | official predict | {official_s:.2f} | 1.0 | |"
@@ -264,6 +268,13 @@ def main() -> None:
     p.add_argument("--dataset", choices=("vocaset", "biwi"), default="vocaset")
     p.add_argument("--seconds", type=float, nargs="+", default=[4.0, 30.0])
     p.add_argument("--threads", type=int, default=torch.get_num_threads())
+    p.add_argument(
+        "--official-threads",
+        type=int,
+        help="PyTorch threads of the official predict (default: --threads; talkmesh's step loops "
+        "take their own, talkmesh.models.threads)",
+    )
+    p.add_argument("--skip-naive", action="store_true", help="do not time talkmesh's naive mode")
     p.add_argument("--device", default="cpu", help="cpu or cuda (both codes run there)")
     p.add_argument(
         "--batch",
@@ -288,6 +299,8 @@ def main() -> None:
     clip = load_audio(SPEECH)
     speech = np.tile(clip, int(np.ceil(max(args.seconds) * 16000 / len(clip))))
     where = torch.cuda.get_device_name(0) if args.device != "cpu" else f"{args.threads} CPU threads"
+    if args.device == "cpu" and args.official_threads:
+        where += f" ({args.official_threads} for the official predict)"
     print(f"{where}, torch {torch.__version__}; speech: {SPEECH.name} repeated")
     print(
         "| model | audio (s) | frames | run | seconds | speed-up vs official | max diff / motion |"

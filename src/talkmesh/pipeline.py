@@ -9,8 +9,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from talkmesh.animation import Animation, AnimationBlocks
-from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 from talkmesh.audio.phonemes import Phone, recognize_phones, word_starts
+from talkmesh.audio.resamplers import POLYPHASE
 from talkmesh.audio.waveform import Waveform, open_audio
 from talkmesh.constants import INT8_LAYERS, MOTION_FPS
 from talkmesh.errors import TalkmeshError
@@ -222,6 +223,7 @@ def animate_blocks(
         pause_gate, lip_closure, procedural_mix, loudness_gain, bilabial_closure, pause_source
     )
     net, weights = _learned_model(model, head, style_mix, int8)
+    wave = _wave_for(net, wave, source)
     fps = net.motion_fps if fps is None else fps
     frames = net.default_frames(len(wave))  # imported official models count as the official code
     if abs(fps - net.motion_fps) > 1e-6:
@@ -248,6 +250,14 @@ def animate_blocks(
         basis=head.blendshapes,
         audio_file=source,
     )
+
+
+def _wave_for(net: MotionModel, wave: np.ndarray | Waveform, source: Path | None):
+    """The waveform ``net`` hears: an imported official model reads a file resampled as its
+    official code did it (``net.resampler``), not by the polyphase filter."""
+    if source is None or net.resampler == POLYPHASE:
+        return wave
+    return load_audio(source, resampler=net.resampler)
 
 
 def _plain_blocks(chunks, head: Head, fps: float, frames: int, wave, source) -> AnimationBlocks:

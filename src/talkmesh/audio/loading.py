@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import soundfile as sf
 
+from talkmesh.audio.resamplers import POLYPHASE, check_resampler, resample_with
 from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError, TalkmeshWarning
 
@@ -42,7 +43,11 @@ SOUNDFILE_EXTENSIONS = frozenset(
 
 
 def load_audio(
-    path: str | Path, sr: int = SAMPLE_RATE, *, max_seconds: float | None = None
+    path: str | Path,
+    sr: int = SAMPLE_RATE,
+    *,
+    max_seconds: float | None = None,
+    resampler: str = POLYPHASE,
 ) -> np.ndarray:
     """Read an audio file as a mono waveform.
 
@@ -53,6 +58,10 @@ def load_audio(
         max_seconds: longer files are refused (default ``MAX_DURATION_S``): from the header,
             before anything is decoded, when it states the length, else as soon as the decoded
             audio passes it.
+        resampler: how another rate becomes ``sr`` (:data:`talkmesh.audio.resamplers.RESAMPLERS`):
+            ``polyphase`` streams the file through the polyphase filter; the others (the
+            official codes' resamplers, for imported models) decode the file at its own rate
+            and convert it whole.
 
     Returns:
         (S,) float32 waveform in [-1, 1] at ``sr``; channels are averaged.
@@ -68,17 +77,20 @@ def load_audio(
     if sr <= 0:
         raise TalkmeshError(f"sample rate must be positive, got {sr}")
     max_seconds = MAX_DURATION_S if max_seconds is None else max_seconds
+    check_resampler(resampler)
     if path.suffix.lower() in SOUNDFILE_EXTENSIONS:
         try:
-            audio = _load_soundfile(path, sr, max_seconds)
+            audio = _load_soundfile(path, sr, max_seconds, resampler)
             if audio is None:  # FLAC written to a pipe: ffmpeg counts as it decodes
-                audio = _load_ffmpeg_fallback(path, sr, "no length in its header", max_seconds)
+                reason = "no length in its header"
+                audio = _load_ffmpeg_fallback(path, sr, reason, max_seconds, resampler)
         except sf.LibsndfileError as e:
             # libsndfile cannot read some codecs inside WAV (e.g. GSM, MP3-in-RIFF), nor
             # truncated or corrupt files to their end: try ffmpeg.
-            audio = _load_ffmpeg_fallback(path, sr, _one_line(str(e)), max_seconds)
+            reason = _one_line(str(e))
+            audio = _load_ffmpeg_fallback(path, sr, reason, max_seconds, resampler)
     else:
-        audio = _load_ffmpeg(path, sr, max_seconds=max_seconds)
+        audio = _load_ffmpeg_resampled(path, sr, None, max_seconds, resampler)
     assert audio.ndim == 1 and audio.dtype == np.float32
     if not len(audio):
         raise TalkmeshError(f"{path} contains no audio samples: re-export or re-record it")
@@ -154,10 +166,15 @@ def save_wav(path: str | Path, audio: np.ndarray, sr: int = SAMPLE_RATE) -> None
     sf.write(str(path), np.clip(audio, -1.0, 1.0), sr, subtype="PCM_16")
 
 
-def resample(audio: np.ndarray, orig_sr: int, sr: int = SAMPLE_RATE) -> np.ndarray:
-    """Resample a (S,) waveform from ``orig_sr`` to ``sr`` with a polyphase filter; float32 out."""
+def resample(
+    audio: np.ndarray, orig_sr: int, sr: int = SAMPLE_RATE, method: str = POLYPHASE
+) -> np.ndarray:
+    """Resample a (S,) waveform from ``orig_sr`` to ``sr``; float32 out. ``method``: the
+    polyphase filter, or an official code's (:mod:`talkmesh.audio.resamplers`)."""
     audio = np.asarray(audio, dtype=np.float32)
     assert audio.ndim == 1, f"expected a (S,) waveform, got shape {audio.shape}"
+    if check_resampler(method) != POLYPHASE:
+        return resample_with(audio, orig_sr, sr, method)
     return _resample_blocks(iter([audio]), len(audio), orig_sr, sr)
 
 
@@ -215,7 +232,9 @@ def _unreadable(path: Path, reason: str) -> TalkmeshError:
 # --- soundfile path -------------------------------------------------------------------------
 
 
-def _load_soundfile(path: Path, sr: int, max_seconds: float | None = None) -> np.ndarray | None:
+def _load_soundfile(
+    path: Path, sr: int, max_seconds: float | None = None, resampler: str = POLYPHASE
+) -> np.ndarray | None:
     """The waveform through libsndfile, None for a stream without a stated length."""
     with sf.SoundFile(str(path)) as f:
         if f.frames >= UNKNOWN_FRAMES:  # libsndfile fails on its last block: ffmpeg reads it
@@ -228,7 +247,11 @@ def _load_soundfile(path: Path, sr: int, max_seconds: float | None = None) -> np
             b[:, 0] if b.shape[1] == 1 else b.mean(axis=1, dtype=np.float32)
             for b in f.blocks(blocksize=block, dtype="float32", always_2d=True)
         )
-        audio = _resample_blocks(blocks, f.frames, f.samplerate, sr)
+        if resampler == POLYPHASE:
+            audio = _resample_blocks(blocks, f.frames, f.samplerate, sr)
+        else:  # the whole file at its own rate, then the official code's resampler
+            native = _resample_blocks(blocks, f.frames, f.samplerate, f.samplerate)
+            audio = resample_with(native, f.samplerate, sr, resampler)
         # libsndfile trims a WAV's frame count to the bytes present: ask the header itself
         stated = _riff_stated_seconds(path) or f.frames / f.samplerate
     warn_if_cut(path, len(audio) / sr, stated, sr, stacklevel=3)
@@ -314,12 +337,36 @@ def _ffmpeg_exe() -> str:
     return imageio_ffmpeg.get_ffmpeg_exe()
 
 
-def _load_ffmpeg_fallback(path: Path, sr: int, reason: str, max_seconds: float) -> np.ndarray:
+def _load_ffmpeg_fallback(
+    path: Path, sr: int, reason: str, max_seconds: float, resampler: str = POLYPHASE
+) -> np.ndarray:
     try:
         exe = _ffmpeg_exe()
     except MissingDependencyError:
         raise _unreadable(path, reason) from None
-    return _load_ffmpeg(path, sr, exe, max_seconds)
+    return _load_ffmpeg_resampled(path, sr, exe, max_seconds, resampler)
+
+
+_RATE = re.compile(r"Audio:[^\n]*?(\d+) Hz")
+
+
+def _load_ffmpeg_resampled(
+    path: Path, sr: int, exe: str | None, max_seconds: float, resampler: str
+) -> np.ndarray:
+    """ffmpeg's decoding at ``sr`` (its own resampler), or with another ``resampler``: decoded at
+    the stream's own rate (from ffmpeg's probe), then converted."""
+    if resampler == POLYPHASE:
+        return _load_ffmpeg(path, sr, exe, max_seconds)
+    exe = exe or _ffmpeg_exe()
+    proc = subprocess.run(
+        [exe, "-nostdin", "-hide_banner", "-i", str(path)],
+        capture_output=True,
+        text=True,
+        errors="replace",
+    )
+    m = _RATE.search(proc.stderr)
+    rate = int(m.group(1)) if m else sr
+    return resample_with(_load_ffmpeg(path, rate, exe, max_seconds), rate, sr, resampler)
 
 
 def _load_ffmpeg(

@@ -80,7 +80,8 @@ def add_serve(sub: Subparsers) -> None:
     sv.add_argument(
         "--torch-threads",
         type=int,
-        help="threads of the batched model steps (default: PyTorch's, one per core)",
+        help="threads of the batched model steps (default: the server's share of the cores beside "
+        "its --workers, at least 1)",
     )
     sv.add_argument(
         "--workers",

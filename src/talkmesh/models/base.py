@@ -146,6 +146,13 @@ class MotionModel(nn.Module, ABC):
         ``seed`` matters only to sampling models; ``mode`` one of :attr:`generation_modes`.
         """
 
+    @property
+    def resampler(self) -> str:
+        """How audio at another rate becomes the 16 kHz that ``generate`` takes
+        (:mod:`talkmesh.audio.resamplers`): ``polyphase``, the fastest good one; imported
+        official models name their official code's, so that they hear what it heard."""
+        return "polyphase"
+
     def default_frames(self, samples: int) -> int:
         """The frames ``generate`` makes for ``samples`` of 16 kHz audio when not told: the
         duration at :attr:`motion_fps` (imported official models count them as the official code

@@ -556,6 +556,19 @@ def _viewer_missing(request: Request) -> HTMLResponse:
     )
 
 
+def _set_torch_threads(torch_threads: int | None, workers: int) -> None:
+    """PyTorch's threads in the server process: ``torch_threads``, else its share of the cores
+    with the ``workers`` beside it, so that together they do not start more threads than
+    cores (a machine without torch serves the procedural animator only)."""
+    try:
+        import torch
+
+        from talkmesh.models.threads import worker_threads
+    except ImportError:
+        return
+    torch.set_num_threads(torch_threads or worker_threads(workers + 1))
+
+
 def create_app(
     models: Sequence[str] = (PROCEDURAL,),
     max_sessions: int = DEFAULT_MAX_SESSIONS,
@@ -642,7 +655,8 @@ def serve(
     **app_options,
 ) -> None:
     """Run :func:`create_app` with uvicorn until Ctrl-C or SIGTERM, then close the sessions (1001);
-    ``torch_threads``: PyTorch's threads for the model steps (None: its default); ``workers``:
+    ``torch_threads``: PyTorch's threads for the model steps (None: this process's share of the
+    cores beside the workers, :func:`talkmesh.models.threads.worker_threads`); ``workers``:
     processes for the procedural sessions (None: one per core, :func:`default_workers`)."""
     try:
         import uvicorn
@@ -650,14 +664,10 @@ def serve(
         raise MissingDependencyError("uvicorn", "serve", "talkmesh serve") from None
     if not 0 <= port <= 65535:
         raise TalkmeshError(f"--port {port}: give 1 to 65535 (0: any free port)")
-    if torch_threads is not None:
-        if torch_threads < 1:
-            raise TalkmeshError(f"--torch-threads must be at least 1, got {torch_threads}")
-        import torch
-
-        torch.set_num_threads(torch_threads)
-
+    if torch_threads is not None and torch_threads < 1:
+        raise TalkmeshError(f"--torch-threads must be at least 1, got {torch_threads}")
     workers = default_workers() if workers is None else workers
+    _set_torch_threads(torch_threads, workers)
     app = create_app(workers=workers, **app_options)
     service: Service = app.state.service
 

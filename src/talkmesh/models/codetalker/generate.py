@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from talkmesh.models.base import FrameRequest, FrameStream
@@ -127,13 +128,79 @@ def generate_exact(model: nn.Module, style: Tensor, cross: list[Tensor], num_fra
     vq = model.cfg.vq
     B, window = style.shape[0], max(1, model.cfg.stage2.attention_window // vq.temporal_unit)
     codes = torch.empty(B, num_frames, vq.components, dtype=torch.long, device=style.device)
+    feedback = PrefixFeedback(model.vqvae.decoder)
     for t in range(num_frames):
         codes[:, t] = gen.codes_step([c[:, t : t + 1] for c in cross])
         if t + 1 < num_frames:
             start = max(0, t + 1 - window)
             z_q = model.vqvae.quantizer.lookup(codes[:, start : t + 1])
-            gen.feed(model.vqvae.decoder.hidden(z_q, offset=start * vq.temporal_unit)[:, -1:])
+            gen.feed(feedback(z_q, start * vq.temporal_unit))
     return codes
+
+
+class PrefixFeedback:
+    """The bidirectional VQ decoder's last frame over a prefix that grows by one frame a call,
+    ``decoder.hidden(z_q, offset=offset)[:, -1:]``, computing only what the fed-back frame needs:
+    the input map of the new frame alone, the convolution of the last three frames alone (with
+    the replicate padding, frame i reads frames i-2..i+2, so frames up to T-3 keep their
+    pre-normalisation outputs as the prefix grows; the instance statistics and everything after
+    them still span the prefix), and in the last block only the last row (the others' keys and
+    values). Other calls (the window sliding, temporal units, int8 layers, causal decoders) take
+    the full pass."""
+
+    def __init__(self, decoder: nn.Module) -> None:
+        cfg = decoder.cfg
+        self.decoder = decoder
+        self.usable = (
+            cfg.temporal_unit == 1
+            and not cfg.causal
+            and decoder.conv.linear is None
+            and isinstance(decoder.blocks[-1].attn.qkv, nn.Linear)
+            and isinstance(decoder.inp, nn.Linear)
+        )
+        self.x: Tensor | None = None  # (B, T, D) input-map rows of the prefix
+        self.fixed: Tensor | None = None  # (B, D, T - 3) conv outputs no new frame changes
+
+    def __call__(self, z_q: Tensor, offset: int) -> Tensor:
+        """z_q (B, T, H, C) of frames offset..offset+T-1 -> (B, 1, hidden)."""
+        dec, T = self.decoder, z_q.shape[1]
+        known = 0 if self.x is None else self.x.shape[1]
+        if not self.usable or offset or T < 6 or T != known + 1:
+            self.x = self.fixed = None
+            if self.usable and not offset and T >= 5:
+                self._start(z_q)
+            return dec.hidden(z_q, offset=offset)[:, -1:]
+        x = self.x = torch.cat([self.x, dec.inp(z_q[:, -1:].flatten(2))], dim=1)
+        tail = F.pad(x[:, -5:].transpose(1, 2), (0, 2), mode="replicate")
+        new = F.leaky_relu(dec.conv.conv(tail), 0.2)  # (B, D, 3): frames T-3..T-1
+        pre = torch.cat([self.fixed, new], dim=2)
+        self.fixed = pre[:, :, : T - 2]
+        h = dec.mid((dec.conv.norm(pre) if dec.conv.norm is not None else pre).transpose(1, 2))
+        if dec.cfg.frame_positions:
+            h = h + sinusoid(torch.arange(T, device=h.device), h.shape[-1])
+        for block in dec.blocks[:-1]:
+            h = block(h)
+        return dec.norm(_last_row(dec.blocks[-1], h))
+
+    def _start(self, z_q: Tensor) -> None:
+        """Keep the input rows and fixed conv outputs of a prefix of T >= 5 frames."""
+        dec, T = self.decoder, z_q.shape[1]
+        self.x = dec.inp(z_q.flatten(2))
+        pre = F.leaky_relu(dec.conv.conv(F.pad(self.x.transpose(1, 2), (2, 2), "replicate")), 0.2)
+        self.fixed = pre[:, :, : T - 2]
+
+
+def _last_row(block: nn.Module, h: Tensor) -> Tensor:
+    """A transformer block (no bias) over h (B, T, D), its last row only -> (B, 1, D)."""
+    B, T, D = h.shape
+    attn, heads = block.attn, block.attn.heads
+    n = block.norm1(h)
+    w, b = attn.qkv.weight, attn.qkv.bias
+    q = F.linear(n[:, -1:], w[:D], b[:D]).view(B, 1, heads, D // heads).transpose(1, 2)
+    k, v = F.linear(n, w[D:], b[D:]).view(B, T, 2, heads, D // heads).permute(2, 0, 3, 1, 4)
+    y = F.scaled_dot_product_attention(q, k, v)
+    x = h[:, -1:] + attn.out(y.transpose(1, 2).reshape(B, 1, D))
+    return x + block.mlp(block.norm2(x))
 
 
 class AheadWindow:

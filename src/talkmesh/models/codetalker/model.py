@@ -57,6 +57,7 @@ from talkmesh.models.speech import (
     release_config,
 )
 from talkmesh.models.speech_chunks import FrameFeatures
+from talkmesh.models.threads import step_threads
 
 GENERATION_MODES = ("fast", "naive", "exact")  # CodeTalker.generate(mode=...)
 
@@ -345,6 +346,12 @@ class CodeTalker(MotionModel):
         encode = interleaved_encoding if s2.interleaved_ppe else periodic_encoding
         return encode(num_frames, s2.d_model, s2.period, device, offset)
 
+    @property
+    def resampler(self) -> str:
+        """Imported releases (CNN-feature resampling, as the official code): resampy's
+        ``kaiser_best``, which the official ``librosa.load(sr=16000)`` used (librosa 0.8.1)."""
+        return "kaiser_best" if self.cfg.stage2.speech.resample == "cnn" else super().resampler
+
     def default_frames(self, samples: int) -> int:
         """Motion frames for ``samples`` of 16 kHz audio: the official count where the speech
         encoder resamples its CNN features, else duration x fps."""
@@ -474,7 +481,21 @@ class CodeTalker(MotionModel):
         s2, vq = self.cfg.stage2, self.cfg.vq
         style = self.style_vector(styles, style_weights)
         tokens = self.audio_tokens(audio, audio_lengths, num_frames)
-        H, C = vq.components, vq.code_dim
+        with step_threads():  # small tensors, one step after another (models/threads.py)
+            all_codes, motion = self._step_loop(mode, style, tokens, num_frames, block)
+        if mode == "naive" or motion is None:  # a causal decoder's steps are already final
+            window = None if mode == "naive" else max(1, s2.attention_window // vq.temporal_unit)
+            motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
+        motion = motion.reshape(B, num_frames, vq.num_vertices, 3)  # a view: no copy
+        return motion.add_(template[:, None])  # in place: 10 minutes are about 1 GB
+
+    def _step_loop(
+        self, mode: str, style: Tensor, tokens: Tensor, num_frames: int, block: int | None
+    ) -> tuple[Tensor, Tensor | None]:
+        """The autoregressive loop of ``generate``'s ``mode`` -> codes (B, T, H) and the motion
+        of fast mode's causal decoder (None where the codes are decoded after)."""
+        B, s2 = style.shape[0], self.cfg.stage2
+        H, C = self.cfg.vq.components, self.cfg.vq.code_dim
         if mode == "naive":
             inputs = style[:, None]
             codes = []
@@ -498,11 +519,7 @@ class CodeTalker(MotionModel):
             all_codes, motion = generate_fast(
                 self, style, self.cross_terms(tokens), num_frames, block
             )
-        if mode == "naive" or motion is None:  # a causal decoder's steps are already final
-            window = None if mode == "naive" else max(1, s2.attention_window // vq.temporal_unit)
-            motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
-        motion = motion.reshape(B, num_frames, vq.num_vertices, 3)  # a view: no copy
-        return motion.add_(template[:, None])  # in place: 10 minutes are about 1 GB
+        return all_codes, motion
 
     def generate_chunks(
         self,
@@ -539,7 +556,9 @@ class CodeTalker(MotionModel):
             return
         if num_frames is None:
             num_frames = self.default_frames(len(audio) if streamed else audio.shape[1])
-        with torch.inference_mode():
+        # the speech windows and the steps alike on the step threads (bench/threads.py: the
+        # fastest for the whole loop on a shared machine)
+        with torch.inference_mode(), step_threads():
             style = self.style_vector(None, style_weights)
             features = FrameFeatures(self.speech, audio, num_frames * k)
             terms = AheadWindow(

@@ -73,6 +73,7 @@ from talkmesh.models.layers import (
 )
 from talkmesh.models.postnorm import PostNormDecoderLayer, interleaved_encoding
 from talkmesh.models.speech import SpeechEncoderConfig, build_speech_encoder, release_config
+from talkmesh.models.threads import step_threads
 
 MODES = ("fast", "naive")
 OUTPUT_CHUNK = 512  # frames decoded to vertices at once at the end of fast generation
@@ -360,6 +361,12 @@ class FaceFormer(MotionModel):
         """(B, d) generation's input for frame 0 (no previous frame)."""
         return self.motion_map.bias + style if self.cfg.frame0_motion_bias else style
 
+    @property
+    def resampler(self) -> str:
+        """Imported releases (CNN-feature resampling, as the official code): resampy's
+        ``kaiser_best``, which the official ``librosa.load(sr=16000)`` used (librosa 0.8.1)."""
+        return "kaiser_best" if self.cfg.speech.resample == "cnn" else super().resampler
+
     def default_frames(self, samples: int) -> int:
         """Motion frames for ``samples`` of 16 kHz audio: the encoder's own count where it
         resamples its CNN features (the official frame count), else duration x fps."""
@@ -464,13 +471,15 @@ class FaceFormer(MotionModel):
             raise TalkmeshError(f"styles are given for {len(style)} samples but audio has {B}")
         tokens = self.audio_tokens(audio, audio_lengths, num_frames)
         if mode == "naive":
-            offsets = self._generate_naive(style, tokens, num_frames)
+            with step_threads():  # small tensors, one step after another (models/threads.py)
+                offsets = self._generate_naive(style, tokens, num_frames)
             return offsets.view(B, num_frames, V, 3) + template[:, None]
         cross = self.cross_terms(tokens)
         gen = FrameGenerator(self, style)
         states = style.new_empty(B, num_frames, self.cfg.d_model)
-        for t in range(num_frames):
-            states[:, t] = gen.step([c[:, t : t + 1] for c in cross])
+        with step_threads():
+            for t in range(num_frames):
+                states[:, t] = gen.step([c[:, t : t + 1] for c in cross])
         result = template.new_empty(B, num_frames, V, 3)
         for a in range(0, num_frames, OUTPUT_CHUNK):  # bounded memory for the V*3 map
             offsets = self.out(states[:, a : a + OUTPUT_CHUNK]) * self.scale

@@ -46,6 +46,7 @@ from talkmesh.models.meshtalk.layers import (
 )
 from talkmesh.models.meshtalk.prior import PRESETS, PriorConfig
 from talkmesh.models.speech import SpeechEncoderConfig, SpeechFeatures, release_config
+from talkmesh.models.threads import step_threads
 
 
 def _fail(message: str) -> None:
@@ -547,6 +548,12 @@ class MeshTalkModel(MotionModel):
     def styles(self) -> tuple[str, ...]:
         return ()
 
+    @property
+    def resampler(self) -> str:
+        """Imported releases: torchaudio's ``Resample`` (Hann-windowed sinc), as the official
+        ``utils/helpers.load_audio``."""
+        return "sinc_hann" if self.cfg.model.official_decoder else super().resampler
+
     def default_frames(self, samples: int) -> int:
         """Frames for ``samples`` of audio; the official 1 s windows count them as its
         ``audio_chunking`` does (``MelConfig.windows``)."""
@@ -609,9 +616,10 @@ class MeshTalkModel(MotionModel):
             gumbel=s.gumbel if gumbel is None else gumbel,
             generator=generator,
         )
-        if cached:
-            return self.prior.sample(features, progress=progress, **kwargs)
-        return self.prior.sample_uncached(features, **kwargs)
+        with step_threads():  # small tensors, one step after another (models/threads.py)
+            if cached:
+                return self.prior.sample(features, progress=progress, **kwargs)
+            return self.prior.sample_uncached(features, **kwargs)
 
     @torch.inference_mode()
     def generate(
