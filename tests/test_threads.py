@@ -106,12 +106,11 @@ def test_codetalker_and_faceformer_steps_run_on_the_step_threads(
 
 
 def test_the_server_takes_its_share_beside_its_workers(two_threads, monkeypatch):
-    from talkmesh.serve import server
 
     monkeypatch.setattr(threads, "usable_cpus", lambda: 8)
-    server._set_torch_threads(None, 3)
+    threads.set_process_threads(None, 3 + 1)
     assert torch.get_num_threads() == 2  # 8 cores for the server and 3 workers
-    server._set_torch_threads(None, 8)
+    threads.set_process_threads(None, 8 + 1)
     assert torch.get_num_threads() == 1
-    server._set_torch_threads(3, 8)  # --torch-threads wins
+    threads.set_process_threads(3, 8 + 1)  # --torch-threads wins
     assert torch.get_num_threads() == 3

@@ -69,3 +69,9 @@ def worker_threads(processes: int, cpus: int | None = None) -> int:
     (default: :func:`usable_cpus`): their share, at least one."""
     cpus = usable_cpus() if cpus is None else cpus
     return max(1, cpus // max(1, processes))
+
+
+def set_process_threads(threads: int | None, processes: int) -> None:
+    """PyTorch's threads in this process: ``threads``, else its share of the cores among
+    ``processes`` that share them (:func:`worker_threads`: the server beside its workers)."""
+    torch.set_num_threads(threads or worker_threads(processes))

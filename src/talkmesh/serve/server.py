@@ -39,6 +39,7 @@ session. Procedural sessions are computed in ``--workers`` processes (:mod:`talk
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import signal
@@ -65,6 +66,7 @@ from talkmesh.serve import limits as lim
 from talkmesh.serve.batching import DEFAULT_BATCH_WAIT_MS, Scheduler, Work, frames_of
 from talkmesh.serve.emotion import LiveEmotion
 from talkmesh.serve.files import RenderError, animate_file, audio_suffix, neutral_head_glb
+from talkmesh.serve.hints import streaming_hint
 from talkmesh.serve.limits import JobQueue, QueueFull
 from talkmesh.serve.livelink import LiveLinkOut, open_link
 from talkmesh.serve.protocol import (
@@ -128,25 +130,6 @@ def resolve_models(models: Sequence[str]) -> dict[str, str]:
     if not out:
         raise TalkmeshError("no models to serve: pass --model procedural or a .safetensors file")
     return out
-
-
-def streaming_hint(name: str, source: str, error: TalkmeshError) -> str:
-    """The refusal of a model that cannot stream; for a bundled one (the default of ``talkmesh
-    animate``, which animates files but has no causal decoder), which bundled model streams and
-    the command that serves it."""
-    from talkmesh.models.release import MODELS_DIR
-
-    message = str(error)
-    bundled = Path(source).parent == MODELS_DIR.resolve()
-    if not bundled or "cannot stream" not in message:
-        return message
-    reason = message.split("cannot stream", 1)[1].split("(", 1)[0].strip(" :")
-    return (
-        f"--model {name}: the bundled {name} animates files (`talkmesh animate`) but cannot "
-        f"stream ({reason}); the bundled model that streams is procedural: "
-        "`talkmesh serve --model procedural` (or train a streaming CodeTalker with "
-        "configs/codetalker_stream.yaml and pass its model.safetensors to --model)"
-    )
 
 
 class ClientError(Exception):
@@ -556,19 +539,6 @@ def _viewer_missing(request: Request) -> HTMLResponse:
     )
 
 
-def _set_torch_threads(torch_threads: int | None, workers: int) -> None:
-    """PyTorch's threads in the server process: ``torch_threads``, else its share of the cores
-    with the ``workers`` beside it, so that together they do not start more threads than
-    cores (a machine without torch serves the procedural animator only)."""
-    try:
-        import torch
-
-        from talkmesh.models.threads import worker_threads
-    except ImportError:
-        return
-    torch.set_num_threads(torch_threads or worker_threads(workers + 1))
-
-
 def create_app(
     models: Sequence[str] = (PROCEDURAL,),
     max_sessions: int = DEFAULT_MAX_SESSIONS,
@@ -667,7 +637,10 @@ def serve(
     if torch_threads is not None and torch_threads < 1:
         raise TalkmeshError(f"--torch-threads must be at least 1, got {torch_threads}")
     workers = default_workers() if workers is None else workers
-    _set_torch_threads(torch_threads, workers)
+    with contextlib.suppress(ImportError):  # without torch: the procedural animator only
+        from talkmesh.models.threads import set_process_threads
+
+        set_process_threads(torch_threads, workers + 1)
     app = create_app(workers=workers, **app_options)
     service: Service = app.state.service
 
