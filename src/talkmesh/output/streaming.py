@@ -56,6 +56,7 @@ def save_blocks(
     weighted = [p for p in paths if p.suffix.lower() in WEIGHT_SUFFIXES and anim.weight_names]
     others = [p for p in paths if p not in streamed and p not in weighted]
     weights: list[np.ndarray] = []
+    poses: list[np.ndarray] = []  # the head's, for the weight formats' head columns
     temps: list[Path] = []
     with ExitStack() as stack:
         writers = []
@@ -80,6 +81,8 @@ def save_blocks(
                         w.write(block)
                 if weighted and block.weights is not None:
                     weights.append(block.weights)
+                if weighted and block.head_pose is not None:
+                    poses.append(block.head_pose)
                 yield block
 
         whole = None
@@ -103,6 +106,7 @@ def save_blocks(
             weights=np.concatenate(weights),
             weight_names=anim.weight_names,
             phones=anim.phones,
+            head_pose=np.concatenate(poses) if poses else None,
         )
         for p in weighted:
             write_animation(whole or curves, p, overwrite=overwrite, size=size, camera=camera)
