@@ -24,6 +24,20 @@ TINY_WAV2VEC2 = dict(
     num_conv_pos_embedding_groups=2,
 )
 
+# a random Whisper encoder small enough for tests (speech.hf_config)
+TINY_WHISPER = dict(
+    d_model=16,
+    encoder_layers=1,
+    encoder_attention_heads=2,
+    encoder_ffn_dim=32,
+    decoder_layers=1,
+    decoder_attention_heads=2,
+    decoder_ffn_dim=32,
+    num_mel_bins=80,
+    max_source_positions=1500,
+    vocab_size=64,
+)
+
 
 def write_wav(path: Path, seconds: float, sr: int) -> None:
     t = np.arange(int(round(seconds * sr))) / sr

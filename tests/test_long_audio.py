@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from fixtures import TINY_WHISPER
 
 from talkmesh.animation import Animation, AnimationBlocks
 from talkmesh.errors import TalkmeshError
@@ -25,19 +26,6 @@ from talkmesh.pipeline import animate_blocks
 
 SPEECH = Path(__file__).parent / "fixtures" / "official" / "speech.wav"
 V = 20
-
-TINY_WHISPER = dict(
-    d_model=16,
-    encoder_layers=1,
-    encoder_attention_heads=2,
-    encoder_ffn_dim=32,
-    decoder_layers=1,
-    decoder_attention_heads=2,
-    decoder_ffn_dim=32,
-    num_mel_bins=80,
-    max_source_positions=1500,
-    vocab_size=64,
-)
 
 
 def tiny_whisper(window: int) -> WhisperEncoder:

@@ -11,6 +11,7 @@ import onnx
 import pytest
 import torch
 from conftest import build_tiny_codetalker
+from fixtures import TINY_WHISPER
 
 from talkmesh.audio.loading import load_audio
 from talkmesh.cli import main
@@ -22,18 +23,6 @@ from talkmesh.models.speech import SpeechEncoderConfig
 CLIP = Path(
     "/usr/share/pocketsphinx/test/data/librivox/sense_and_sensibility_01_austen_64kb-0880.wav"
 )  # 3.0 s of speech
-TINY_WHISPER = dict(
-    d_model=16,
-    encoder_layers=1,
-    encoder_attention_heads=2,
-    encoder_ffn_dim=32,
-    decoder_layers=1,
-    decoder_attention_heads=2,
-    decoder_ffn_dim=32,
-    num_mel_bins=80,
-    max_source_positions=1500,
-    vocab_size=64,
-)
 TOLERANCE = 1e-4  # of the motion's scale (its largest offset)
 
 

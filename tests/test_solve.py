@@ -120,17 +120,27 @@ def test_blocks_get_weights_and_the_residual_adds_up():
     solver, truth = bundled(frames=40)
     verts = solver.template + np.einsum("tk,kvx->tvx", truth, solver.blendshapes)
     faces = np.zeros((0, 3), np.int32)
+    pose = np.random.default_rng(0).uniform(-0.1, 0.1, (40, 6)).astype(np.float32)
     anim = AnimationBlocks(
-        blocks=(Animation(verts[a : a + 16], faces, 30.0) for a in range(0, 40, 16)),
+        blocks=(
+            Animation(verts[a : a + 16], faces, 30.0, head_pose=pose[a : a + 16])
+            for a in range(0, 40, 16)
+        ),
         num_frames=40,
         faces=faces,
         fps=30.0,
         template=solver.template,
+        phones=[("M", 0.0, 0.1)],
     )
     residual = Residual()
-    blocks = list(solver.solve_blocks(anim, residual).blocks)
+    solved = solver.solve_blocks(anim, residual)
+    assert solved.phones == anim.phones and solved.template is anim.template
+    blocks = list(solved.blocks)
     weights = np.concatenate([b.weights for b in blocks])
     assert weights.shape == (40, 52) and blocks[0].weight_names == list(ARKIT_NAMES)
+    # the rest of each block as the model made it: its vertices and its head's motion
+    np.testing.assert_array_equal(np.concatenate([b.head_pose for b in blocks]), pose)
+    np.testing.assert_array_equal(np.concatenate([b.vertices for b in blocks]), verts)
     assert np.abs(weights - truth).mean() < 0.01
     assert 0 <= residual.share < 1e-3 and residual.total > 0
 

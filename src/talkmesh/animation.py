@@ -110,8 +110,8 @@ class AnimationBlocks:
     """An :class:`Animation` made a block of frames at a time, so that long audio never holds all
     its (T, V, 3) vertices: what every field means is as in :class:`Animation`; ``blocks`` yields
     the consecutive frames as Animations (vertices and, when ``weight_names`` is set, weights;
-    their head pose when there is one), once. File writers stream it (:func:`talkmesh.output.streaming.save_blocks`); :meth:`collect`
-    makes the whole Animation."""
+    their head pose when there is one), once. File writers stream it
+    (:func:`talkmesh.output.streaming.save_blocks`); :meth:`collect` makes the whole Animation."""
 
     blocks: Iterator[Animation]
     num_frames: int

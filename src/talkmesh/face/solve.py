@@ -24,7 +24,7 @@ all frames of a block at once, each block continuing from the last frame of the 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -41,10 +41,12 @@ ITERATIONS = 300
 
 
 class Solved(NamedTuple):
-    """Weights ``(T, 52)`` in [0, 1] (ARKit order) and the residual share of the motion."""
+    """Weights ``(T, 52)`` in [0, 1] (ARKit order), the residual share of the motion and the
+    motion's sum of squares (what the share is of)."""
 
     weights: np.ndarray
     residual: float
+    total: float = 0.0
 
 
 @dataclass
@@ -119,7 +121,7 @@ class ArkitSolver:
         gram = f["gram"]
         missed = total - 2 * float(np.sum(w * projection)) + float(np.sum((w @ gram) * w))
         share = max(missed, 0.0) / total if total > 0 else 0.0
-        return Solved(w.astype(np.float32), share)
+        return Solved(w.astype(np.float32), share, total)
 
     def solve_blocks(self, anim: AnimationBlocks, residual: Residual | None = None):
         """``anim`` (this topology's motion, block by block) with its ARKit weights solved;
@@ -132,32 +134,13 @@ class ArkitSolver:
                 offsets = np.asarray(block.vertices, np.float64) - template
                 solved = self.solve(offsets, previous)
                 if residual is not None:
-                    flat = offsets.reshape(len(offsets), -1)
-                    total = float(np.einsum("ij,ij->", flat, flat))
-                    residual.total += total
-                    residual.missed += solved.residual * total
+                    residual.total += solved.total
+                    residual.missed += solved.residual * solved.total
                 previous = solved.weights[-1].astype(np.float64) if len(solved.weights) else None
-                yield Animation(
-                    vertices=block.vertices,
-                    faces=block.faces,
-                    fps=block.fps,
-                    weights=solved.weights,
-                    weight_names=list(ARKIT_NAMES),
-                )
+                yield replace(block, weights=solved.weights, weight_names=list(ARKIT_NAMES))
 
-        return AnimationBlocks(
-            blocks=blocks(),
-            num_frames=anim.num_frames,
-            faces=anim.faces,
-            fps=anim.fps,
-            audio=anim.audio,
-            sample_rate=anim.sample_rate,
-            weight_names=list(ARKIT_NAMES),
-            template=anim.template,
-            audio_file=anim.audio_file,
-            to_gltf=anim.to_gltf,
-            phones=anim.phones,
-        )
+        # every other field (the head pose, the basis, the phones) as the model made it
+        return replace(anim, blocks=blocks(), weight_names=list(ARKIT_NAMES))
 
 
 def _bounded_smooth(target, f: dict, previous, iterations: int) -> np.ndarray:
