@@ -358,24 +358,25 @@ def _load_ffmpeg_resampled(
     if resampler == POLYPHASE:
         return _load_ffmpeg(path, sr, exe, max_seconds)
     exe = exe or _ffmpeg_exe()
-    proc = subprocess.run(
-        [exe, "-nostdin", "-hide_banner", "-i", str(path)],
-        capture_output=True,
-        text=True,
-        errors="replace",
-    )
-    m = _RATE.search(proc.stderr)
+    header = _ffmpeg_header(path, exe)
+    m = _RATE.search(header)
     rate = int(m.group(1)) if m else sr
-    return resample_with(_load_ffmpeg(path, rate, exe, max_seconds), rate, sr, resampler)
+    audio = _load_ffmpeg(path, rate, exe, max_seconds, header)
+    return resample_with(audio, rate, sr, resampler)
 
 
 def _load_ffmpeg(
-    path: Path, sr: int, exe: str | None = None, max_seconds: float | None = None
+    path: Path,
+    sr: int,
+    exe: str | None = None,
+    max_seconds: float | None = None,
+    header: str | None = None,
 ) -> np.ndarray:
-    """Decode with ffmpeg to s16le mono at ``sr`` through a pipe, refusing overlong streams."""
+    """Decode with ffmpeg to s16le mono at ``sr`` through a pipe, refusing overlong streams
+    (``header``: what ffmpeg says of the file, when it was already asked)."""
     exe = exe or _ffmpeg_exe()
     max_seconds = MAX_DURATION_S if max_seconds is None else max_seconds
-    seconds, _ = _ffmpeg_probe(path, exe)
+    seconds, _ = _ffmpeg_probe(path, exe, header)
     if seconds is not None:  # else no duration in the header: the decoded length tells
         _check_duration(path, seconds, max_seconds)
     max_bytes = int(max_seconds * sr) * BYTES_PER_SAMPLE
@@ -413,17 +414,23 @@ def _ffmpeg_duration(path: Path) -> float:
     return seconds
 
 
-def _ffmpeg_probe(path: Path, exe: str) -> tuple[float | None, str]:
-    """The duration in the container header (nothing is decoded) or None with ffmpeg's reason."""
+def _ffmpeg_header(path: Path, exe: str) -> str:
+    """What ffmpeg says of the file's container and streams (nothing is decoded)."""
     proc = subprocess.run(
         [exe, "-nostdin", "-hide_banner", "-i", str(path)],
         capture_output=True,
         text=True,
         errors="replace",
     )
-    m = _DURATION.search(proc.stderr)
+    return proc.stderr
+
+
+def _ffmpeg_probe(path: Path, exe: str, header: str | None = None) -> tuple[float | None, str]:
+    """The duration in the container header (nothing is decoded) or None with ffmpeg's reason."""
+    header = _ffmpeg_header(path, exe) if header is None else header
+    m = _DURATION.search(header)
     if m is None:
-        return None, _ffmpeg_reason(proc.stderr, path)
+        return None, _ffmpeg_reason(header, path)
     hours, minutes, seconds = m.groups()
     return int(hours) * 3600 + int(minutes) * 60 + float(seconds), ""
 
