@@ -319,7 +319,8 @@ def test_head_pose_round_trips_through_npz_and_fills_live_link_head_columns(tmp_
     header = lines[0].split(",")
     rows = np.array([[float(v) for v in line.split(",")[2:]] for line in lines[1:]])
     cols = [header.index(n) - 2 for n in ("HeadYaw", "HeadPitch", "HeadRoll")]
-    np.testing.assert_allclose(rows[:, cols], anim.head_pose[:, [1, 0, 2]], atol=1e-7)
+    # the app's units: radians / pi (Unreal's ARKit face support maps -180..180 deg to -1..1)
+    np.testing.assert_allclose(rows[:, cols], anim.head_pose[:, [1, 0, 2]] / np.pi, atol=1e-7)
     assert not rows[:, [header.index("LeftEyeYaw") - 2]].any()
 
 

@@ -89,8 +89,19 @@ def test_packets_read_back_by_pylivelinkface_carry_the_weights_and_head_pose(lis
             else:  # head_pose is pitch, yaw, roll; eyes are not rotated
                 rotations = {"HeadYaw": 1, "HeadPitch": 0, "HeadRoll": 2}
                 index = rotations.get(shape.name)
-                want = 0.0 if index is None else anim.head_pose[t, index]
+                want = 0.0 if index is None else anim.head_pose[t, index] / np.pi
             assert face.get_blendshape(shape) == pytest.approx(want, abs=1e-7), shape
+
+
+def test_head_rotations_are_half_turns_as_pylivelinkface_reads_them():
+    """pylivelinkface documents head rotations between -1 and 1 (Unreal maps -180..180 degrees
+    there): a quarter turn of yaw reads 0.5, a 30 degree nod 1/6, never radians."""
+    pose = np.zeros((1, 6), np.float32)
+    pose[0, :3] = np.radians([30.0, 90.0, -45.0])  # pitch, yaw, roll
+    values = live_link_values(np.zeros((1, 52), np.float32), pose)
+    face = PyLiveLinkFace.decode(encode_packet(values[0], 0, 30.0, "s", "x" * 36))[1]
+    got = [face.get_blendshape(FaceBlendShape[n]) for n in ("HeadYaw", "HeadPitch", "HeadRoll")]
+    np.testing.assert_allclose(got, [0.5, 1 / 6, -0.25], atol=1e-6)
 
 
 def test_without_head_pose_the_rotations_are_zero_and_rates_are_exact():

@@ -62,6 +62,21 @@ LIVE_LINK_ROTATIONS: tuple[str, ...] = (
 LIVE_LINK_COLUMNS: tuple[str, ...] = LIVE_LINK_BLENDSHAPES + LIVE_LINK_ROTATIONS
 assert sorted(LIVE_LINK_BLENDSHAPES) == sorted(LIVE_LINK_NAMES.values())
 assert len(LIVE_LINK_COLUMNS) == 61
+# Live Link Face's rotations are not radians: Unreal's ARKit face support (``ToBlendShapeMap`` in
+# AppleARKitFaceSupport's AppleARKitFaceMeshConversion.h) maps each angle's -180..180 degrees
+# to -1..1 (``HeadYaw = Rotator.Yaw / 180``), and pylivelinkface documents head rotations
+# "between -1 and 1". A value is the angle in radians over pi.
+LIVE_LINK_HEAD_FROM_POSE = [
+    1,
+    0,
+    2,
+]  # a head pose is pitch, yaw, roll; the columns yaw, pitch, roll
+
+
+def live_link_head(pose: np.ndarray) -> np.ndarray:
+    """(T, 6) head pose (radians, :mod:`talkmesh.face.head_motion`) -> (T, 3) float32 HeadYaw,
+    HeadPitch, HeadRoll as Live Link Face carries them: half turns, -1 to 1."""
+    return (np.asarray(pose, np.float64)[:, LIVE_LINK_HEAD_FROM_POSE] / np.pi).astype(np.float32)
 
 
 def arkit_index(name: str) -> int:

@@ -17,6 +17,7 @@ from talkmesh.face.arkit import (
     ARKIT_NAMES,
     LIVE_LINK_BLENDSHAPES,
     LIVE_LINK_COLUMNS,
+    live_link_head,
     arkit_index,
     to_arkit_order,
 )
@@ -73,7 +74,8 @@ def export_live_link_csv(anim: Animation, path: Path) -> None:
     """A Live Link Face take: ``Timecode,BlendShapeCount,EyeBlinkLeft,...,RightEyeRoll``.
 
     Timecodes are ``HH:MM:SS:FF.mmm`` with FF counted at the animation's fps; the head's
-    rotations are its ``head_pose`` in radians (HeadYaw, HeadPitch, HeadRoll; zero without one,
+    rotations are its ``head_pose`` as the app writes them, radians / pi (HeadYaw, HeadPitch,
+    HeadRoll, :func:`talkmesh.face.arkit.live_link_head`; zero without one,
     :mod:`talkmesh.face.head_motion` gives the signs), the eyes' rotations are zero (the eyes move
     by the eyeLook blendshapes).
     """
@@ -83,7 +85,7 @@ def export_live_link_csv(anim: Animation, path: Path) -> None:
     values[:, : len(columns)] = weights[:, columns]
     if anim.head_pose is not None:
         head = len(columns) + np.arange(3)  # HeadYaw, HeadPitch, HeadRoll
-        values[:, head] = anim.head_pose[:, [1, 0, 2]]
+        values[:, head] = live_link_head(anim.head_pose)
     row_format = "%s," + str(len(LIVE_LINK_COLUMNS)) + ",%.8f" * len(LIVE_LINK_COLUMNS) + "\n"
     lines = ["Timecode,BlendShapeCount," + ",".join(LIVE_LINK_COLUMNS) + "\n"]
     lines += [row_format % (timecode(t, anim.fps), *row) for t, row in enumerate(values.tolist())]

@@ -13,7 +13,8 @@ names. A datagram (version 6 of the app's format, every number big-endian):
 ``uint8``             value count, 61
 ``61 x float32``      the 52 blendshapes in ARKit's order (:data:`ARKIT_NAMES`, Unreal's
                       ``EARFaceBlendShape``), then head yaw, pitch, roll and the left and right
-                      eyes' yaw, pitch, roll (radians)
+                      eyes' yaw, pitch, roll (half turns: radians / pi, -1 to 1, as
+                      Unreal's ARKit face support maps them)
 ====================  =======================================================================
 
 The packet's blendshapes keep ARKit's order, where the app's CSV takes swap jawLeft/jawRight and
@@ -37,7 +38,7 @@ import numpy as np
 
 from talkmesh.animation import Animation
 from talkmesh.errors import TalkmeshError
-from talkmesh.face.arkit import ARKIT_NAMES, LIVE_LINK_ROTATIONS
+from talkmesh.face.arkit import ARKIT_NAMES, LIVE_LINK_ROTATIONS, live_link_head
 
 PACKET_VERSION = 6
 DEFAULT_PORT = 11111  # Unreal's Live Link Face source listens here unless told otherwise
@@ -45,7 +46,6 @@ DEFAULT_SUBJECT = "talkmesh"
 MAX_SUBJECT = 64
 PACKET_VALUES = len(ARKIT_NAMES) + len(LIVE_LINK_ROTATIONS)  # 61
 HEAD_COLUMNS = len(ARKIT_NAMES) + np.arange(3)  # HeadYaw, HeadPitch, HeadRoll
-HEAD_FROM_POSE = [1, 0, 2]  # head_pose is pitch, yaw, roll: the packet wants yaw, pitch, roll
 CHECK_WAIT_S = 0.2  # how long a check waits for "port unreachable" from the target
 SPIN_S = 0.0005  # the last half millisecond before a frame is waited out by spinning
 _VALUES = struct.Struct(f">B{PACKET_VALUES}f")
@@ -96,7 +96,7 @@ def live_link_values(weights: np.ndarray, head_pose: np.ndarray | None = None) -
     values = np.zeros((len(weights), PACKET_VALUES), np.float32)
     values[:, : len(ARKIT_NAMES)] = weights
     if head_pose is not None:
-        values[:, HEAD_COLUMNS] = np.asarray(head_pose, np.float32)[:, HEAD_FROM_POSE]
+        values[:, HEAD_COLUMNS] = live_link_head(head_pose)
     return values
 
 
