@@ -17,8 +17,8 @@ from talkmesh.face.arkit import (
     ARKIT_NAMES,
     LIVE_LINK_BLENDSHAPES,
     LIVE_LINK_COLUMNS,
-    live_link_head,
     arkit_index,
+    live_link_head,
     to_arkit_order,
 )
 from talkmesh.output.files import bundled_head, check_readable, finite, reading
