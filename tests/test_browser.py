@@ -166,6 +166,10 @@ def test_viewer_streams_microphone_speech(server, speech_wav, tmp_path):
             assert 0 <= median <= p95, stats["latencyMs"]
             assert stats["fps"] > 0
             assert page.inner_text("#frames") != "0"
+            # the frames' head pose turns the head: head.glb moves as a whole
+            assert stats["headPose"] is not None and len(stats["headPose"]) == 6
+            w = page.evaluate("window.talkmesh.head.quaternion.w")
+            assert 1 - abs(w) > 1e-7, "the head never turned"
 
             # Mid-speech with the mouth open; written to docs/ only once everything passed.
             page.wait_for_function(f"Math.max(...({JAW_INFLUENCES})()) > 0.1", timeout=WAIT_MS)

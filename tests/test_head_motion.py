@@ -155,3 +155,30 @@ def test_cli_writes_the_head_pose_unless_it_is_off(tmp_path):
         assert moving["head_pose"].shape == (len(moving["weights"]), 6)
         assert np.degrees(np.ptp(moving["head_pose"][:, :3], axis=0)).min() > 0.5
         np.testing.assert_array_equal(moving["offsets"], still["offsets"])
+
+
+def blinks_per_minute(blink: np.ndarray, fps: float) -> float:
+    """Closures (the lid crossing half-closed) per minute of ``blink`` (T,) eyeBlink weights."""
+    return (np.diff((blink > 0.5).astype(int)) == 1).sum() / (len(blink) / fps / 60)
+
+
+def test_a_minute_of_silence_blinks_at_a_natural_rate_and_the_head_never_stops():
+    """After speech, a minute of silence: blinks at a resting rate (people blink about 10-20
+    times a minute, lipsync.SpeakingStyle; 8 to 30 allows the renewal process's spread over one
+    minute), the eyes shift, and no 5 s of it holds the head still."""
+    wave = np.concatenate([accented(seconds=2.0, at=1.0), np.zeros(60 * SR, np.float32)])
+    phones = [Phone("SIL", 0.0, 0.2), Phone("AA", 0.2, 1.9), Phone("SIL", 1.9, 62.0)]
+    for seed in (0, 1):
+        anim = animate(wave, phones=phones, model="procedural", seed=seed)
+        quiet = slice(int(2 * anim.fps), anim.num_frames)
+        names = anim.weight_names
+        rate = blinks_per_minute(anim.weights[quiet, names.index("eyeBlinkLeft")], anim.fps)
+        assert 8 <= rate <= 30, (seed, rate)
+        degrees = np.degrees(anim.head_pose[quiet, :3])
+        window = int(5 * anim.fps)
+        for start in range(0, len(degrees) - window + 1, window):
+            part = degrees[start : start + window]
+            assert np.ptp(part, axis=0).min() > 0.02, (seed, start)  # every axis moves
+        look = anim.weights[quiet, names.index("eyeLookUpLeft")]
+        look = look - anim.weights[quiet, names.index("eyeLookDownLeft")]
+        assert np.ptp(look) > 0.05

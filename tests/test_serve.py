@@ -23,6 +23,7 @@ from websockets.sync.client import connect
 from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.assets import load_head
+from talkmesh.face.head_stream import HeadMotionStream
 from talkmesh.serve.protocol import (
     CLOSE_BUSY,
     CLOSE_GOING_AWAY,
@@ -101,12 +102,15 @@ def alone(client, pcm) -> Reply:
         return read_until_close(ws)
 
 
-def test_frame_encoding_round_trip():
+@pytest.mark.parametrize("with_pose", [False, True])
+def test_frame_encoding_round_trip(with_pose):
     rng = np.random.default_rng(0)
+    pose = rng.normal(0, 0.05, 6).astype(np.float32) if with_pose else None
     for offsets in (None, rng.normal(0, 0.01, (7, 3)).astype(np.float32)):
-        frame = StreamFrame(41, 41 / FPS, rng.random(52).astype(np.float32), offsets)
+        frame = StreamFrame(41, 41 / FPS, rng.random(52).astype(np.float32), offsets, pose)
         data = encode_frame(frame)
-        assert data[:4] == b"TMF1" and len(data) == 16 + 4 * 52 + (0 if offsets is None else 42)
+        size = 16 + 4 * 52 + (0 if offsets is None else 42) + (24 if with_pose else 0)
+        assert data[:4] == b"TMF1" and len(data) == size
         back = decode_frame(data)
         assert (back.index, back.time) == (41, np.float32(41 / FPS))
         np.testing.assert_array_equal(back.weights, frame.weights)
@@ -114,6 +118,10 @@ def test_frame_encoding_round_trip():
             assert back.offsets is None
         else:
             np.testing.assert_allclose(back.offsets, offsets, atol=1e-5)
+        if pose is None:
+            assert back.head_pose is None
+        else:
+            np.testing.assert_array_equal(back.head_pose, pose)
 
 
 def test_hello(client):
@@ -142,6 +150,64 @@ def test_speech_streams_as_consecutive_frames_that_move_the_jaw(alone, pcm):
     assert weights.min() >= 0.0 and weights.max() <= 1.0
     jaw = weights[:, ARKIT_NAMES.index("jawOpen")]
     assert jaw.max() - jaw.min() > 0.1  # the mouth opens and closes with the syllables
+
+
+def test_frames_carry_the_head_motion_of_the_audio_so_far(alone, pcm):
+    """Each frame's head pose is what the head motion makes of the audio up to it, however the
+    audio was cut: the session's poses are those of the whole clip at once."""
+    audio = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+    motion, parts = HeadMotionStream(FPS), []
+    for second in range(0, len(audio), SAMPLE_RATE):  # a second at a time, frames as they come
+        motion.receive(audio[second : second + SAMPLE_RATE])
+        done = sum(map(len, parts))
+        parts.append(motion.poses(done, min(len(alone.frames), done + int(FPS) - 5)))
+    parts.append(motion.poses(sum(map(len, parts)), len(alone.frames)))
+    expected = np.concatenate(parts)
+    got = np.stack([f.head_pose for f in alone.frames])
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+    assert np.degrees(np.ptp(got[:, :3], axis=0)).min() > 0.05  # it nods, turns and tilts
+
+
+def test_head_motion_zero_sends_no_head_pose(client, pcm):
+    with client.websocket_connect("/ws/stream?head_motion=0") as ws:
+        ws.receive_json()
+        ws.send_bytes(pcm[: 5 * CHUNK])
+        ws.send_json({"type": "end"})
+        reply = read_until_close(ws)
+    assert reply.code == CLOSE_NORMAL and len(reply.frames) == 15
+    assert all(f.head_pose is None for f in reply.frames)
+
+
+def test_when_the_audio_stops_the_face_keeps_moving(client, pcm):
+    """1 s of speech, then 2.5 s without a message: idle frames (silence streamed in the
+    client's place) keep coming, the head breathing and swaying, the eyes moving."""
+    with client.websocket_connect("/ws/stream") as ws:
+        ws.receive_json()
+        for i in range(0, 10 * CHUNK, CHUNK):
+            ws.send_bytes(pcm[i : i + CHUNK])
+        time.sleep(2.5)
+        ws.send_json({"type": "end"})
+        reply = read_until_close(ws)
+    assert reply.code == CLOSE_NORMAL
+    idle = reply.frames[30:]
+    assert len(idle) >= 15  # at least half a second of idle frames
+    assert [f.index for f in reply.frames] == list(range(len(reply.frames)))
+    poses = np.degrees(np.stack([f.head_pose[:3] for f in idle]))
+    assert np.ptp(poses, axis=0).min() > 0.01
+    jaw = np.array([f.weights[ARKIT_NAMES.index("jawOpen")] for f in idle[10:]])
+    assert jaw.max() < 0.05  # silence: the mouth at rest once the cut-off syllable closes
+    eyes = [i for i, n in enumerate(ARKIT_NAMES) if n.startswith("eye")]
+    assert np.ptp(np.stack([f.weights[eyes] for f in idle]), axis=0).max() > 0.01
+
+
+def test_idle_off_sends_only_the_audios_frames(client, pcm):
+    with client.websocket_connect("/ws/stream?idle=0") as ws:
+        ws.receive_json()
+        ws.send_bytes(pcm[: 10 * CHUNK])
+        time.sleep(1.5)
+        ws.send_json({"type": "end"})
+        reply = read_until_close(ws)
+    assert reply.code == CLOSE_NORMAL and len(reply.frames) == 30
 
 
 def test_offsets_on_request(client, pcm):
@@ -175,11 +241,14 @@ def test_offsets_on_request(client, pcm):
         ("?lookahead_ms=nan", [], CLOSE_POLICY, ["lookahead_ms"]),
         ("?lookahead_ms=5000", [], CLOSE_POLICY, ["look-ahead", "300"]),
         ("?offsets=yes", [], CLOSE_POLICY, ["offsets"]),
+        ("?head_motion=2", [], CLOSE_POLICY, ["head_motion", "0 (still) to 1"]),
+        ("?head_motion=lots", [], CLOSE_POLICY, ["head_motion", "lots"]),
+        ("?idle=yes", [], CLOSE_POLICY, ["idle must be 0 or 1"]),
     ],
 )
 def test_bad_input_gets_an_error_and_the_right_close_code(client, query, messages, code, fragments):
     with client.websocket_connect("/ws/stream" + query) as ws:
-        if query.startswith(("?model", "?lookahead", "?offsets")):
+        if query.startswith(("?model", "?lookahead", "?offsets", "?head_motion", "?idle")):
             reply = read_until_close(ws)  # refused before the hello
         else:
             assert ws.receive_json()["type"] == "hello"
@@ -414,10 +483,11 @@ def test_model_sessions_at_once_get_the_frames_of_a_session_alone(tmp_path, pcm,
     """Sessions of a streaming model share its steps (serve.batching): frames as if alone."""
     path = tiny_stream_model(num_vertices=load_head().num_vertices)
     chunks = [pcm[i : i + CHUNK] for i in range(0, len(pcm), CHUNK)]
+    URL = "/ws/stream?lookahead_ms=100&idle=0"  # b and c wait for the others' frames: no idle
     with TestClient(create_app([str(path)], batch_wait_ms=20)) as client:
 
         def session(*others):
-            with client.websocket_connect("/ws/stream?lookahead_ms=100") as ws:
+            with client.websocket_connect(URL) as ws:
                 ws.receive_json()
                 for k, chunk in enumerate(chunks):
                     ws.send_bytes(chunk)
@@ -429,8 +499,8 @@ def test_model_sessions_at_once_get_the_frames_of_a_session_alone(tmp_path, pcm,
 
         alone = session()
         with (
-            client.websocket_connect("/ws/stream?lookahead_ms=100") as b,
-            client.websocket_connect("/ws/stream?lookahead_ms=100") as c,
+            client.websocket_connect(URL) as b,
+            client.websocket_connect(URL) as c,
         ):
             b.receive_json()
             c.receive_json()

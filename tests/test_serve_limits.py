@@ -243,7 +243,7 @@ def test_a_stream_outlives_the_request_timeout(tmp_path):
     """The request timeout bounds HTTP requests, not WebSocket sessions."""
     pcm = (np.zeros(1600) + 1).astype("<i2").tobytes()  # 100 ms
     with server(tmp_path, "--request-timeout", "1", "--idle-timeout", "30") as s:
-        with connect(f"ws://127.0.0.1:{s.port}/ws/stream") as ws:
+        with connect(f"ws://127.0.0.1:{s.port}/ws/stream?idle=0") as ws:  # no idle frames
             assert json.loads(ws.recv())["type"] == "hello"
             ws.send(pcm)
             time.sleep(2.5)  # well past the request timeout

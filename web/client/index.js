@@ -17,7 +17,11 @@ const CHUNK_SAMPLES = SAMPLE_RATE / 10; // 100 ms per message
 const FRAME_MAGIC = 0x544d4631; // "TMF1" read big-endian
 const HEADER_BYTES = 16;
 
-// One frame message -> {index, time, weights: Float32Array} (weights in hello.names order).
+const FLAG_HEAD = 2;
+
+// One frame message -> {index, time, weights: Float32Array, headPose} (weights in hello.names
+// order; headPose: Float32Array [pitch, yaw, roll (radians), x, y, z (metres)] or null, a vertex
+// v going to R v + t with R = Ry(yaw) Rx(pitch) Rz(roll), three.js's Euler order "YXZ").
 export function parseFrame(buffer) {
   const view = new DataView(buffer);
   if (buffer.byteLength < HEADER_BYTES || view.getUint32(0, false) !== FRAME_MAGIC) {
@@ -26,7 +30,13 @@ export function parseFrame(buffer) {
   const count = view.getUint16(12, true);
   const weights = new Float32Array(count);
   for (let i = 0; i < count; i++) weights[i] = view.getFloat32(HEADER_BYTES + 4 * i, true);
-  return { index: view.getUint32(4, true), time: view.getFloat32(8, true), weights };
+  let headPose = null;
+  if (view.getUint16(14, true) & FLAG_HEAD) {
+    headPose = new Float32Array(6);
+    const at = HEADER_BYTES + 4 * count;
+    for (let i = 0; i < 6; i++) headPose[i] = view.getFloat32(at + 4 * i, true);
+  }
+  return { index: view.getUint32(4, true), time: view.getFloat32(8, true), weights, headPose };
 }
 
 // (S,) float samples at `rate` -> 16 kHz int16, through an OfflineAudioContext (the browser's

@@ -26,6 +26,7 @@ const LATENCY_WINDOW_MS = 2000;
 const STATS_EVERY_MS = 250;
 const FRAME_MAGIC = 0x544d4631; // "TMF1" read big-endian
 const FRAME_HEADER_BYTES = 16;
+const FLAG_HEAD = 2; // a frame's head pose follows its weights: 6 float32
 
 const talkmesh = {
   state: "loading",
@@ -34,6 +35,7 @@ const talkmesh = {
   fps: 0,
   weightHistory: { jawOpen: [] },
   lastWeights: null,
+  headPose: null, // the last frame's [pitch, yaw, roll (radians), x, y, z (metres)], if any
   names: null,
   streamFps: null,
   lookaheadMs: null,
@@ -261,6 +263,38 @@ function applyWeights(weights) {
   }
 }
 
+// The head pose of a frame: a vertex v goes to R v + t, R = Ry(yaw) Rx(pitch) Rz(roll), which is
+// three.js's Euler order "YXZ". The bundled head.glb moves as a whole (its frame is the pose's);
+// an avatar turns its head bone (a bone named "head", e.g. VRM's J_Bip_C_Head) about its joint,
+// by the pose's rotation in the world frame; an avatar without one keeps its head still.
+let poseTarget = null;
+const poseEuler = new THREE.Euler();
+const poseTurn = new THREE.Quaternion();
+const parentTurn = new THREE.Quaternion();
+
+function findPoseTarget(root, label) {
+  let bone = null;
+  root.traverse((o) => {
+    if (!bone && o.isBone && /(^|[_.:])head$/i.test(o.name)) bone = o;
+  });
+  if (bone) return { bone, rest: bone.quaternion.clone() };
+  return label === "head.glb" ? { object: root } : null;
+}
+
+function applyPose(pose) {
+  if (!pose || !poseTarget) return;
+  poseTurn.setFromEuler(poseEuler.set(pose[0], pose[1], pose[2], "YXZ"));
+  if (poseTarget.bone) {
+    const { bone, rest } = poseTarget;
+    bone.parent.getWorldQuaternion(parentTurn);
+    // world rotation of the bone = turn * parent * rest: its local one in the parent's frame
+    bone.quaternion.copy(parentTurn).invert().multiply(poseTurn).multiply(parentTurn).multiply(rest);
+  } else {
+    poseTarget.object.quaternion.copy(poseTurn);
+    poseTarget.object.position.set(pose[3], pose[4], pose[5]);
+  }
+}
+
 // Show `gltf` (a loaded .glb/.vrm) instead of the current model.
 function show(gltf, label) {
   const head = gltf.scene;
@@ -277,6 +311,7 @@ function show(gltf, label) {
   scene.add(head);
   talkmesh.head = head;
   frameHead(head);
+  poseTarget = findPoseTarget(head, label);
   const { binding, meshes: driven } = bind();
   talkmesh.avatar = {
     name: label,
@@ -369,11 +404,20 @@ function parseFrame(buffer) {
   if (buffer.byteLength < FRAME_HEADER_BYTES + 4 * count) throw new Error("truncated frame");
   const weights = new Float32Array(count);
   for (let i = 0; i < count; i++) weights[i] = view.getFloat32(FRAME_HEADER_BYTES + 4 * i, true);
+  const flags = view.getUint16(14, true);
+  let pose = null;
+  if (flags & FLAG_HEAD) {
+    const at = FRAME_HEADER_BYTES + 4 * count;
+    if (buffer.byteLength < at + 24) throw new Error("truncated frame");
+    pose = new Float32Array(6);
+    for (let i = 0; i < 6; i++) pose[i] = view.getFloat32(at + 4 * i, true);
+  }
   return {
     index: view.getUint32(4, true),
     time: view.getFloat32(8, true),
-    flags: view.getUint16(14, true),
+    flags,
     weights,
+    pose,
   };
 }
 
@@ -505,7 +549,8 @@ class Session {
       return;
     }
     talkmesh.framesReceived += 1;
-    pending.push(frame.weights);
+    pending.push(frame);
+    if (frame.pose) talkmesh.headPose = Array.from(frame.pose);
     const named = {};
     talkmesh.names.forEach((name, i) => (named[name] = frame.weights[i]));
     talkmesh.lastWeights = named;
@@ -696,7 +741,11 @@ let statsAt = 0;
 function tick(now) {
   // Jitter buffer: drop all but the newest two, show the oldest of them.
   if (pending.length > 2) pending.splice(0, pending.length - 2);
-  if (pending.length) applyWeights(pending.shift());
+  if (pending.length) {
+    const frame = pending.shift();
+    applyWeights(frame.weights);
+    applyPose(frame.pose);
+  }
   controls.update();
   renderer.render(scene, camera);
 

@@ -61,7 +61,8 @@ class SessionLink:
     def send(self, frame: StreamFrame, fps: float) -> None:
         if self.sender is None:
             self.sender = LiveLinkSender(self.target, self.subject, fps)
-        values = live_link_values(frame.weights[None])[0]
+        pose = None if frame.head_pose is None else frame.head_pose[None]
+        values = live_link_values(frame.weights[None], pose)[0]
         if not self.sender.send(values, frame.index) and not self.warned:
             log.warning("Live Link %s refused frame %d: nothing listens", self.target, frame.index)
             self.warned = True

@@ -63,7 +63,7 @@ from talkmesh.audio.loading import SAMPLE_RATE, AudioTooLong, audio_duration
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.assets import load_head
 from talkmesh.serve import limits as lim
-from talkmesh.serve.batching import DEFAULT_BATCH_WAIT_MS, Scheduler, Work, frames_of
+from talkmesh.serve.batching import DEFAULT_BATCH_WAIT_MS, Scheduler, frames_of
 from talkmesh.serve.emotion import LiveEmotion
 from talkmesh.serve.files import RenderError, animate_file, audio_suffix, neutral_head_glb
 from talkmesh.serve.hints import streaming_hint
@@ -79,6 +79,7 @@ from talkmesh.serve.protocol import (
     encode_frame,
     parse_text,
 )
+from talkmesh.serve.session import SessionAudio, session_options
 from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, open_stream
 from talkmesh.serve.workers import WorkerLost, WorkerPool, default_workers
 
@@ -274,6 +275,7 @@ class Service:
         name, lookahead, offsets = self._parse_query(ws)
         source = self.models[name]
         try:
+            options = session_options(ws.query_params)
             link = open_link(self.livelink, ws.query_params.get("livelink"))  # sends frames later
             if source == PROCEDURAL and self.pool is not None:
                 stream = await self.pool.open(source, lookahead, offsets)
@@ -295,14 +297,16 @@ class Service:
         }
         await ws.send_json(hello)
         work, emotion = self.scheduler.join(stream), LiveEmotion(self.head)
+        audio = SessionAudio(self.scheduler, work, stream.fps, options)
         failure: Exception | None = None
         try:
             async with anyio.create_task_group() as tasks:
-                tasks.start_soon(self._receive_loop, ws, work, emotion)
+                tasks.start_soon(self._receive_loop, ws, audio, emotion)
+                tasks.start_soon(audio.keep_alive)  # idle life: silence when the audio stops
                 try:  # errors leave the task group as themselves, not as a group
                     sent = 0
                     async for frames in frames_of(work):
-                        for frame in map(emotion.apply, frames):
+                        for frame in (emotion.apply(audio.pose(f)) for f in frames):
                             if link is not None:
                                 link.send(frame, stream.fps)
                             await ws.send_bytes(encode_frame(frame))
@@ -319,7 +323,7 @@ class Service:
         if failure is not None:
             raise failure
 
-    async def _receive_loop(self, ws: WebSocket, work: Work, emotion: LiveEmotion) -> None:
+    async def _receive_loop(self, ws: WebSocket, audio: SessionAudio, emotion: LiveEmotion) -> None:
         """A session's audio into the scheduler until its end message; what ends the session
         early (bad input, silence, the client gone) goes into its frames' queue instead."""
         timeout = self.limits.first_message_timeout  # a silent client frees its slot soon
@@ -328,13 +332,15 @@ class Service:
                 pcm = await self._receive_audio(ws, timeout)
                 timeout = self.limits.idle_timeout
                 if isinstance(pcm, dict):  # the emotion of the frames sent from now on
+                    audio.heard()
                     emotion.set(pcm)
-                    continue
-                await self.scheduler.submit(work, pcm)
-                if pcm is None:
+                elif pcm is None:
+                    await audio.end()
                     return
+                else:
+                    await audio.feed(pcm)
         except Exception as e:
-            work.send.send_nowait(e)
+            audio.work.send.send_nowait(e)
 
     async def _receive_audio(self, ws: WebSocket, timeout: float) -> np.ndarray | dict | None:
         """The next message: (S,) float32 audio, an emotion message's mix, or None for the end.

@@ -70,6 +70,7 @@ class StreamFrame:
     time: float  # seconds: index / fps
     weights: np.ndarray  # (52,) float32 ARKit weights, in ARKIT_NAMES order
     offsets: np.ndarray | None  # (V, 3) float32 vertex offsets from the neutral face
+    head_pose: np.ndarray | None = None  # (6,) float32 pitch, yaw, roll, translation (head_motion)
 
 
 def as_audio(pcm: np.ndarray) -> np.ndarray:

@@ -1,0 +1,119 @@
+"""A streaming session's audio on its way to the scheduler, its head motion, and the idle life
+that keeps its face moving when the audio stops.
+
+Every chunk the client sends goes to the session's :class:`~talkmesh.face.head_stream.HeadMotionStream`
+(the head pose each frame carries) and to the scheduler, in the same order. From the client's
+first message on the session keeps a clock; when no audio has come for ``IDLE_AFTER_S``,
+:meth:`SessionAudio.keep_alive` streams silence in the client's place, up to the clock, every
+``IDLE_TICK_S``: the frames keep coming with the procedural upper face's blinks and gaze, and
+the head's breathing and sway. When the client speaks again its audio follows the silence. A
+client sending faster than real time is ahead of the clock and gets no silence until the clock
+catches up; ``idle=0`` turns it off.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import anyio
+import numpy as np
+
+from talkmesh.audio.loading import SAMPLE_RATE
+from talkmesh.errors import TalkmeshError
+from talkmesh.face.head_motion import NATURAL, check_amount
+from talkmesh.face.head_stream import HeadMotionStream
+from talkmesh.serve.batching import Scheduler, Work
+from talkmesh.serve.stream import StreamFrame
+
+IDLE_AFTER_S = 0.5  # a client that sent no audio for this long has stopped talking
+IDLE_TICK_S = 0.04  # silence is streamed this often (a frame or so at a time)
+MAX_IDLE_PIECE_S = 1.0  # at most this much silence at once (a client back after a long stall)
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    head_motion: float = NATURAL
+    idle: bool = True
+
+
+def session_options(query) -> SessionOptions:
+    """``head_motion`` (0 to 1) and ``idle`` (0 or 1) of a session's query, checked."""
+    text = query.get("head_motion", str(NATURAL))
+    try:
+        amount = float(text)
+    except ValueError:
+        amount = math.nan
+    try:
+        check_amount(amount)
+    except TalkmeshError:
+        raise TalkmeshError(
+            f"head_motion must be 0 (still) to 1 (lively), got '{text[:40]}'"
+        ) from None
+    flag = query.get("idle", "1")
+    if flag not in ("0", "1"):
+        raise TalkmeshError(f"idle must be 0 or 1, got '{flag[:40]}'")
+    return SessionOptions(amount, flag == "1")
+
+
+class SessionAudio:
+    """A session's audio: the client's chunks (:meth:`feed`), its end (:meth:`end`) and the
+    silence of :meth:`keep_alive`, into the scheduler and the head motion (module docstring)."""
+
+    def __init__(
+        self, scheduler: Scheduler, work: Work, fps: float, options: SessionOptions
+    ) -> None:
+        self.scheduler, self.work, self.options = scheduler, work, options
+        amount = options.head_motion
+        self.motion = HeadMotionStream(fps, amount=amount) if amount > 0 else None
+        self.started: float | None = None  # monotonic time of the first message
+        self.last_audio: float | None = None
+        self.samples = 0
+        self.ended = False
+
+    def heard(self) -> None:
+        """A message came (any kind): the session's clock runs from the first."""
+        if self.started is None:
+            self.started = time.monotonic()
+
+    async def feed(self, pcm: np.ndarray) -> None:
+        """The client's next chunk of (S,) float32 audio."""
+        self.heard()
+        self.last_audio = time.monotonic()
+        await self._submit(pcm)
+
+    async def end(self) -> None:
+        self.ended = True
+        await self.scheduler.submit(self.work, None)
+
+    async def _submit(self, pcm: np.ndarray) -> None:
+        # the head motion and the scheduler get the audio in the same order: nothing awaits
+        # between the two (Scheduler.submit queues before it waits for a backlog)
+        if self.motion is not None:
+            self.motion.receive(pcm)
+        self.samples += len(pcm)
+        await self.scheduler.submit(self.work, pcm)
+
+    def pose(self, frame: StreamFrame) -> StreamFrame:
+        """``frame`` with its head pose (itself when the head is still)."""
+        if self.motion is None:
+            return frame
+        frame.head_pose = self.motion.poses(frame.index, frame.index + 1)[0]
+        return frame
+
+    async def keep_alive(self) -> None:
+        """Silence in the client's place while it sends no audio (module docstring); returns
+        at the end of the audio."""
+        if not self.options.idle:
+            return
+        while not self.ended:
+            await anyio.sleep(IDLE_TICK_S)
+            if self.started is None or self.ended:
+                continue
+            now = time.monotonic()
+            if now - (self.last_audio or self.started) < IDLE_AFTER_S:
+                continue
+            due = int((now - self.started) * SAMPLE_RATE) - self.samples
+            if due > 0:
+                await self._submit(np.zeros(min(due, int(MAX_IDLE_PIECE_S * SAMPLE_RATE)), "f4"))
