@@ -39,6 +39,10 @@ class Animation:
             ARKit keeps the face apart from the head's transform; a vertex ``v`` is seen at
             ``R @ v + t`` (:mod:`talkmesh.face.head_motion`). Videos, .glb head nodes, Live Link
             head columns and .npz files carry it.
+        pose_frame: optional (4, 4) similarity placing ``head_pose``'s frame (the bundled head's
+            axes and metres, where the pose was made) in the vertices' frame: a user's head
+            (``animate --head``) in its own units and axes is posed as ``F (R F^-1 u + t)``
+            (:func:`talkmesh.face.head_motion.pose_vertices`); None: the same frame.
         phones: optional timed phones ``(ARPAbet label, start s, end s)`` the motion was made
             from (the procedural animator's recognised or aligned phones): viseme exports drive
             the tongue visemes from them.
@@ -58,6 +62,7 @@ class Animation:
     colors: np.ndarray | None = None
     head_pose: np.ndarray | None = None
     phones: list[tuple[str, float, float]] | None = None
+    pose_frame: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float32)
@@ -125,6 +130,7 @@ class AnimationBlocks:
     audio_file: Path | None = None
     to_gltf: np.ndarray | None = None
     phones: list[tuple[str, float, float]] | None = None
+    pose_frame: np.ndarray | None = None
 
     def collect(self) -> Animation:
         """All frames as one :class:`Animation` (filled in place: one copy of the vertices)."""
@@ -159,4 +165,5 @@ class AnimationBlocks:
             to_gltf=self.to_gltf,
             head_pose=np.concatenate(poses) if poses else None,
             phones=self.phones,
+            pose_frame=self.pose_frame,
         )

@@ -142,8 +142,18 @@ def pivot_offset(angles: np.ndarray) -> np.ndarray:
     return PIVOT[None] - rotations(angles) @ PIVOT
 
 
-def pose_vertices(vertices: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """(T, V, 3) face-frame vertices and a (T, 6) pose -> (T, V, 3) posed vertices."""
+def pose_vertices(
+    vertices: np.ndarray, pose: np.ndarray, frame: np.ndarray | None = None
+) -> np.ndarray:
+    """(T, V, 3) face-frame vertices and a (T, 6) pose -> (T, V, 3) posed vertices. ``frame``:
+    the (4, 4) similarity ``F`` placing the pose's frame in the vertices' (a user's head in its
+    own units and axes, :attr:`talkmesh.animation.Animation.pose_frame`): ``u -> F (R F^-1 u +
+    t)``, the same rigid motion of the head wherever its vertices are kept."""
+    vertices = np.asarray(vertices, np.float32)
+    if frame is not None:
+        linear, shift = np.asarray(frame, np.float64)[:3, :3], np.asarray(frame)[:3, 3]
+        inner = ((vertices - shift) @ np.linalg.inv(linear).T).astype(np.float32)
+        return (pose_vertices(inner, pose) @ linear.T + shift).astype(np.float32)
     rot = rotations(pose[:, :3]).astype(np.float32)
     return np.einsum("tij,tvj->tvi", rot, vertices) + pose[:, None, 3:].astype(np.float32)
 

@@ -212,7 +212,8 @@ class Rig:
         its (Vh, 3) neutral ``template`` in metres) moving the user's mesh, block by block: every
         frame is ``vertices + carry(frame - template)``, in the user's units and axes. ARKit
         weights pass through unchanged; no basis (the motion is the model's, not the shapes'). A
-        block comes in as many as its frames' float32 vertices take ``BLOCK_VALUES``."""
+        block comes in as many as its frames' float32 vertices take ``BLOCK_VALUES``. The head
+        pose passes unchanged too, with :meth:`pose_frame` saying where its frame lies."""
         template = np.asarray(template, np.float32)
 
         # a model's block (256 frames) of a million-vertex head would be 3 GB: cut smaller
@@ -230,6 +231,9 @@ class Rig:
                         fps=block.fps,
                         weights=None if block.weights is None else block.weights[a : a + step],
                         weight_names=list(block.weight_names),
+                        head_pose=None
+                        if block.head_pose is None
+                        else block.head_pose[a : a + step],
                     )
 
         return AnimationBlocks(
@@ -244,13 +248,24 @@ class Rig:
             audio_file=anim.audio_file,
             to_gltf=self.to_gltf(),
             phones=anim.phones,
+            pose_frame=self.pose_frame(),
         )
+
+    def pose_frame(self) -> np.ndarray:
+        """(4, 4) the bundled head's frame (metres, its axes: where head poses are made) in the
+        user's: ``scale * rotation @ p + translation``."""
+        frame = np.eye(4)
+        frame[:3, :3] = self.scale * np.asarray(self.rotation, np.float64)
+        frame[:3, 3] = self.translation
+        return frame
 
     def facing(self, anim: Animation) -> Animation:
         """``anim`` of the user's mesh turned and scaled into the bundled head's axes and metres
         (y up, looking along +z), as the renderer's front camera expects."""
         vertices = (anim.vertices - self.translation) @ self.rotation / self.scale
-        return replace(anim, vertices=vertices, template=None, basis=None, to_gltf=None)
+        return replace(
+            anim, vertices=vertices, template=None, basis=None, to_gltf=None, pose_frame=None
+        )
 
     def neutral_animation(self) -> Animation:
         """One neutral frame with the 52 blendshapes as its ``basis`` (all weights zero): saved as

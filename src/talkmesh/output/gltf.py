@@ -177,14 +177,26 @@ def _nodes(anim: Animation, buf: _GlbBuffer, sampler: dict | None) -> tuple[list
         samplers.append(sampler)
         channels.append({"sampler": 0, "target": {"node": 0, "path": "weights"}})
         if anim.head_pose is not None:  # the head's motion: a parent node rotating and moving
-            nodes.append({"name": "head", "children": [0]})
-            _head_channels(buf, anim.head_pose, sampler["input"], 1, samplers, channels)
+            frame = None if anim.pose_frame is None else np.asarray(anim.pose_frame, np.float64)
+            if frame is not None:  # the pose acts in its own frame: into it below the head node
+                nodes.append(
+                    {"name": "pose frame", "children": [0], "matrix": _matrix(np.linalg.inv(frame))}
+                )
+            nodes.append({"name": "head", "children": [len(nodes) - 1]})
+            head = len(nodes) - 1
+            _head_channels(buf, anim.head_pose, sampler["input"], head, samplers, channels)
+            if frame is not None:  # ... and back out of it above
+                nodes.append({"name": "user frame", "children": [head], "matrix": _matrix(frame)})
     if anim.to_gltf is not None and not np.allclose(anim.to_gltf, np.eye(4)):
         # the user's frame (units, up-axis) to glTF's, as the root: the vertices stay as given
-        matrix = np.asarray(anim.to_gltf, np.float64)
         child = len(nodes) - 1
-        nodes.append({"name": "root", "children": [child], "matrix": matrix.T.ravel().tolist()})
+        nodes.append({"name": "root", "children": [child], "matrix": _matrix(anim.to_gltf)})
     return nodes, samplers, channels
+
+
+def _matrix(matrix: np.ndarray) -> list[float]:
+    """A (4, 4) matrix as a glTF node's ``matrix`` (column-major)."""
+    return np.asarray(matrix, np.float64).T.ravel().tolist()
 
 
 def _head_channels(

@@ -127,6 +127,8 @@ class NpzWriter:
             arrays["template"] = header.template
         if header.basis is not None:
             arrays["basis"] = header.basis
+        if header.pose_frame is not None:  # where head_pose's frame lies (a user's head)
+            arrays["pose_frame"] = np.asarray(header.pose_frame, "<f8")
         for name, arr in arrays.items():
             if isinstance(arr, np.ndarray) or np.isscalar(arr) or isinstance(arr, np.generic):
                 self._put(name, arr)
@@ -240,6 +242,16 @@ def import_npz(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
     pose = d.get("head_pose")
     if pose is not None and pose.shape != (len(vertices), 6):
         raise TalkmeshError(f"{path}: head_pose is {pose.shape}, not ({len(vertices)}, 6)")
+    frame = d.get("pose_frame")
+    if frame is not None and (
+        frame.shape != (4, 4)
+        or not np.isfinite(frame).all()
+        or abs(np.linalg.det(frame[:3, :3].astype(np.float64))) < 1e-12
+    ):
+        raise TalkmeshError(
+            f"{path}: pose_frame must be a finite, invertible (4, 4) matrix; re-export the "
+            "animation"
+        )
     stored_fps = float(d["fps"])
     if fps is None and not 0 < stored_fps < float("inf"):  # NaN fails too
         raise TalkmeshError(f"{path}: its frame rate is {stored_fps:g}: pass --fps")
@@ -254,6 +266,7 @@ def import_npz(path: Path, faces: np.ndarray | None, fps: float | None) -> Anima
         template=d.get("template"),
         basis=d.get("basis"),
         head_pose=None if pose is None else finite(pose.astype(np.float32), "head_pose"),
+        pose_frame=None if frame is None else frame.astype(np.float64),
     )
 
 

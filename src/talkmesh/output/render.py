@@ -48,7 +48,7 @@ def posed(anim: Animation, t: int) -> np.ndarray:
     """(V, 3) vertices of frame ``t`` where the head is: moved by its ``head_pose``, if any."""
     if anim.head_pose is None:
         return anim.vertices[t]
-    return pose_vertices(anim.vertices[t : t + 1], anim.head_pose[t : t + 1])[0]
+    return pose_vertices(anim.vertices[t : t + 1], anim.head_pose[t : t + 1], anim.pose_frame)[0]
 
 
 def _renderer_for(
