@@ -26,6 +26,7 @@ from talkmesh.output.livelink import (
     parse_target,
     play_live_link,
 )
+from talkmesh.serve.protocol import decode_frame
 from talkmesh.serve.server import create_app
 
 CLIP = Path(
@@ -188,8 +189,10 @@ def test_serve_sends_each_session_under_its_subject(listener):
             ws.receive_json()
             ws.send_bytes(pcm)
             ws.send_json({"type": "end"})
-            while ws.receive()["type"] != "websocket.close":
-                pass
+            sent = []
+            while (message := ws.receive())["type"] != "websocket.close":
+                if message.get("bytes") is not None:
+                    sent.append(decode_frame(message["bytes"]))
         with client.websocket_connect("/ws/stream?livelink=0") as ws:  # opted out
             ws.receive_json()
             ws.send_json({"type": "end"})
@@ -198,6 +201,11 @@ def test_serve_sends_each_session_under_its_subject(listener):
     faces = receive(listener, 30)
     assert [f._frames for f in faces] == list(range(30)) and {f.name for f in faces} == {"Mia"}
     assert (faces[0].fps, faces[0]._denominator) == (30, 1)
+    # the head turns with the session's head pose (breathing and sway in silence), in half turns
+    for face, frame in zip(faces, sent, strict=True):
+        got = [face.get_blendshape(FaceBlendShape[n]) for n in ("HeadYaw", "HeadPitch", "HeadRoll")]
+        np.testing.assert_allclose(got, frame.head_pose[[1, 0, 2]] / np.pi, atol=1e-7)
+    assert np.ptp([f.get_blendshape(FaceBlendShape.HeadPitch) for f in faces]) > 0
     listener.settimeout(0.3)
     with pytest.raises(TimeoutError):
         listener.recv(4096)  # the second session sent nothing
