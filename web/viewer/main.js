@@ -265,15 +265,31 @@ function applyWeights(weights) {
 
 // The head pose of a frame: a vertex v goes to R v + t, R = Ry(yaw) Rx(pitch) Rz(roll), which is
 // three.js's Euler order "YXZ". The bundled head.glb moves as a whole (its frame is the pose's);
-// an avatar turns its head bone (a bone named "head", e.g. VRM's J_Bip_C_Head) about its joint,
+// an avatar turns its head bone (a VRM's humanoid head, else a bone named "head", e.g.
+// J_Bip_C_Head) about its joint,
 // by the pose's rotation in the world frame; an avatar without one keeps its head still.
 let poseTarget = null;
 const poseEuler = new THREE.Euler();
 const poseTurn = new THREE.Quaternion();
 const parentTurn = new THREE.Quaternion();
 
-function findPoseTarget(root, label) {
+// The node index of a VRM's humanoid head bone (VRM 0.x humanBones list, VRM 1.0 map), or null.
+function humanoidHead(parser) {
+  const ext = (parser && parser.json.extensions) || {};
+  const old = ext.VRM && ext.VRM.humanoid && ext.VRM.humanoid.humanBones;
+  const found = Array.isArray(old) ? old.find((b) => b.bone === "head") : null;
+  if (found) return found.node;
+  const bones = ext.VRMC_vrm && ext.VRMC_vrm.humanoid && ext.VRMC_vrm.humanoid.humanBones;
+  return bones && bones.head ? bones.head.node : null;
+}
+
+function findPoseTarget(root, label, parser) {
+  const humanoid = humanoidHead(parser);
   let bone = null;
+  root.traverse((o) => {
+    const where = parser && parser.associations.get(o);
+    if (!bone && humanoid !== null && where && where.nodes === humanoid) bone = o;
+  });
   root.traverse((o) => {
     if (!bone && o.isBone && /(^|[_.:])head$/i.test(o.name)) bone = o;
   });
@@ -286,7 +302,8 @@ function applyPose(pose) {
   poseTurn.setFromEuler(poseEuler.set(pose[0], pose[1], pose[2], "YXZ"));
   if (poseTarget.bone) {
     const { bone, rest } = poseTarget;
-    bone.parent.getWorldQuaternion(parentTurn);
+    if (bone.parent) bone.parent.getWorldQuaternion(parentTurn);
+    else parentTurn.identity();
     // world rotation of the bone = turn * parent * rest: its local one in the parent's frame
     bone.quaternion.copy(parentTurn).invert().multiply(poseTurn).multiply(parentTurn).multiply(rest);
   } else {
@@ -311,7 +328,7 @@ function show(gltf, label) {
   scene.add(head);
   talkmesh.head = head;
   frameHead(head);
-  poseTarget = findPoseTarget(head, label);
+  poseTarget = findPoseTarget(head, label, gltf.parser);
   const { binding, meshes: driven } = bind();
   talkmesh.avatar = {
     name: label,
