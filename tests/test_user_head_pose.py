@@ -139,7 +139,7 @@ def _node_matrix(node, quat=None, move=None) -> np.ndarray:
 def test_the_glb_head_node_turns_the_users_head_as_the_pose_does(head, tmp_path):
     """The face's world transform at a key (root x user frame x head key x pose frame), applied
     to the frame's unposed vertices, is the posed head in glTF's frame."""
-    from tests.test_io import validate_glb
+    from test_io import validate_glb
 
     _, blocks = talking(head)
     mine = identity_rig(head).carry_blocks(blocks, head.template).collect()
