@@ -42,6 +42,7 @@ from talkmesh.face.arkit_names import (
 )
 from talkmesh.face.visemes import oculus_visemes
 from talkmesh.output.avatar_head import head_node, head_rotations
+from talkmesh.output.scene import AvatarScene, load_scene
 from talkmesh.output.vrm import preset_weights, read_expressions, target_matrix
 
 AVATAR_SUFFIXES = (".glb", ".vrm")
@@ -426,6 +427,37 @@ def animate_avatar(
     )
     _write_atomic(output, glb_bytes(new_gltf, new_binary), overwrite)
     return binding
+
+
+def talking_scene(
+    avatar: str | Path,
+    weights: np.ndarray,
+    fps: float,
+    *,
+    head_pose: np.ndarray | None = None,
+    phones: list[tuple[str, float, float]] | None = None,
+) -> AvatarScene:
+    """The avatar as :func:`animate_avatar` would write it, ready to render: an
+    :class:`~talkmesh.output.scene.AvatarScene` playing the speech clip (nothing is written)."""
+    gltf, binary = read_glb(avatar)
+    binding = bind_avatar(gltf, str(avatar))
+    new_gltf, new_binary = add_clip(
+        gltf, binary, binding, weights, fps, head_pose=head_pose, phones=phones
+    )
+    return load_scene(new_gltf, new_binary, str(avatar))
+
+
+def load_avatar_scene(path: str | Path, *, clip: bool = True) -> AvatarScene:
+    """A .glb/.vrm file as an :class:`~talkmesh.output.scene.AvatarScene` playing its first clip;
+    with ``clip``, a file without an animation to play is a one-line TalkmeshError."""
+    gltf, binary = read_glb(path)
+    scene = load_scene(gltf, binary, str(path))
+    if clip and not scene.animated:
+        raise TalkmeshError(
+            f"{path} has no animation clip to play: give it the speech with `talkmesh animate "
+            f"speech.wav --avatar {path} -o talking{Path(path).suffix.lower()}` and render that"
+        )
+    return scene
 
 
 def _write_atomic(path: Path, data: bytes, overwrite: bool) -> None:
