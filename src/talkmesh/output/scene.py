@@ -32,7 +32,7 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.output.avatar_head import head_node
 
 TEXTURE_SIZE = 64  # pixels a side a texture is shrunk to before vertices sample it
-FOCUS_MARGIN = 0.5  # the moving vertices' box grows by this share of its size on each side
+FOCUS_MARGIN = 0.2  # the moving vertices' box grows by this share of its size on each side
 ALPHA_CUTOFF = 0.5  # glTF's default ``alphaCutoff``, used for BLEND materials too
 FPS_DEFAULT = 30.0  # a clip whose keys do not tell its rate
 MIN_KEY_FPS, MAX_KEY_FPS = 10.0, 240.0  # keys this dense are taken as the clip's frames
