@@ -205,3 +205,66 @@ def test_animate_refuses_an_avatar_it_cannot_draw_before_the_model(tmp_path, cap
     assert "Draco" in err and err.count("\n") == 1 and not out.exists()
     # the same avatar still gets its .glb copy: only drawing it needs decoded meshes
     assert main([*args[:4], "--model", "procedural", "-o", str(tmp_path / "o.glb"), "-q"]) == 0
+
+
+def test_three_js_poses_the_talking_avatar_as_the_video_does(tmp_path):
+    """three.js (GLTFLoader, AnimationMixer, its skinning and morphing) loads the talking copy
+    that animate --avatar writes and places every vertex where the video's frames have it: the
+    morph weights, the head bone's turn through the skin, the rigid meshes' node transforms."""
+    from test_browser import CHROMIUM, ROOT
+
+    from talkmesh.output.avatar import animate_avatar
+
+    pytest.importorskip("playwright")
+    esbuild = ROOT / "node_modules" / ".bin" / "esbuild"
+    if not (ROOT / "node_modules" / "three").is_dir() or not esbuild.is_file():
+        pytest.fail("three.js or esbuild is missing: run `npm ci` in the repo root")
+    if not CHROMIUM.is_file():
+        pytest.fail(f"{CHROMIUM} is missing: run `make setup` (installs Debian's chromium)")
+    from playwright.sync_api import sync_playwright
+
+    bundle = tmp_path / "player.js"
+    subprocess.run(
+        [str(esbuild), str(ROOT / "tests" / "pose_player.js"), "--bundle", "--format=iife",
+         f"--outfile={bundle}", "--log-level=error"],
+        check=True,
+        timeout=120,
+    )  # fmt: skip
+    src = make_avatar(tmp_path / "me.glb")
+    gltf, binary = read_glb(src)
+    gltf["nodes"][1]["name"] = "Head"  # the neck joint turns as a head bone
+    src.write_bytes(glb_bytes(gltf, binary))
+    frames = 8
+    rng = np.random.default_rng(3)
+    weights = rng.uniform(0, 1, (frames, 52)).astype(np.float32)
+    pose = np.zeros((frames, 6), np.float32)
+    pose[:, :3] = rng.uniform(-0.3, 0.3, (frames, 3))
+    out = tmp_path / "talking.glb"
+    animate_avatar(src, weights, FPS, out, head_pose=pose)
+    scene = load_avatar_scene(out)
+    times = [k / FPS for k in range(frames - 1)]  # at the clip's end a looping action wraps
+    with sync_playwright() as p:
+        browser = p.chromium.launch(
+            executable_path=str(CHROMIUM), headless=True, args=["--no-sandbox"]
+        )
+        try:
+            page = browser.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.set_content("<html><body></body></html>")
+            page.add_script_tag(content=bundle.read_text())
+            got = page.evaluate(
+                "([bytes, times]) => window.poseGlb(bytes, times)",
+                [list(out.read_bytes()), times],
+            )
+            assert not errors, errors
+        finally:
+            browser.close()
+    assert got["clip"] == "talk"
+    moved = 0.0
+    for t, points in enumerate(got["frames"]):
+        theirs = np.asarray(points, np.float64).reshape(-1, 3)  # meshes in the scene's order
+        mine = scene.vertices(t).astype(np.float64)
+        np.testing.assert_allclose(mine, theirs, atol=1e-5)
+        moved = max(moved, np.abs(mine - scene.vertices(0)).max())
+    assert moved > 0.01  # the head turned and the shapes moved: a check that can fail
