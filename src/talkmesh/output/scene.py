@@ -27,6 +27,7 @@ import io
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse
 
 from talkmesh.errors import TalkmeshError
 from talkmesh.output.avatar_head import head_node
@@ -122,10 +123,11 @@ class _Primitive:
     node: int
     mesh: int
     positions: np.ndarray  # (N, 3) float64, the mesh's own frame
-    targets: np.ndarray | None  # (K, N, 3) morph target offsets
+    targets: np.ndarray | None  # (K, N, 3) float32 morph target offsets
     skin: int | None
     joints: np.ndarray | None = None  # (N, J) skin joint slots
     weights: np.ndarray | None = None  # (N, J) their weights
+    skinning: scipy.sparse.csr_matrix | None = None  # (N, joints of the skin) the weights
     start: int = 0  # its first vertex in the scene's array
     cache: tuple | None = field(default=None, repr=False)
 
@@ -154,6 +156,7 @@ class AvatarScene:
         self._gltf, self._binary, self.source = gltf, binary, source
         nodes = gltf.get("nodes") or []
         self._rest = [self._rest_trs(n) for n in nodes]
+        self._local = [r if isinstance(r, np.ndarray) else _trs(*r) for r in self._rest]
         self._parent = {c: k for k, n in enumerate(nodes) for c in n.get("children") or []}
         self._order = self._scene_nodes()
         self._turn = np.eye(4)
@@ -289,15 +292,22 @@ class AvatarScene:
                 else np.zeros_like(positions)
                 for t in primitive.get("targets") or []
             ]
-            prim = _Primitive(node, m, positions, np.stack(targets) if targets else None, skin)
+            stacked = np.stack(targets).astype(np.float32) if targets else None
+            prim = _Primitive(node, m, positions, stacked, skin)
             if skin is not None and "JOINTS_0" in attributes:
                 sets = [k for k in range(8) if f"JOINTS_{k}" in attributes]
                 joints = [read_accessor(gltf, binary, attributes[f"JOINTS_{k}"]) for k in sets]
                 weights = [read_accessor(gltf, binary, attributes[f"WEIGHTS_{k}"]) for k in sets]
                 prim.joints = np.concatenate(joints, axis=1).astype(np.int64)
                 prim.weights = np.concatenate(weights, axis=1).astype(np.float64)
-                if prim.joints.max(initial=0) >= len(self._skins[skin][0]):
+                num_joints = len(self._skins[skin][0])
+                if prim.joints.max(initial=0) >= num_joints:
                     raise ValueError(f"mesh {m} names a joint its skin does not have")
+                rows = np.repeat(np.arange(len(positions)), prim.joints.shape[1])
+                prim.skinning = scipy.sparse.csr_matrix(
+                    (prim.weights.ravel(), (rows, prim.joints.ravel())),
+                    shape=(len(positions), num_joints),
+                )  # duplicate (vertex, joint) pairs add up, as the spec's sum does
             else:
                 prim.skin = None
             rgba = self._colors(primitive, len(positions))
@@ -406,9 +416,10 @@ class AvatarScene:
                 weights[track.node] = value
             elif isinstance(local[track.node], list):
                 local[track.node][("translation", "rotation", "scale").index(track.path)] = value
+        moved = {k.node for k in self._tracks if k.path != "weights"}
         world = np.tile(np.eye(4), (len(nodes), 1, 1))
         for k in self._order:
-            m = _trs(*local[k]) if isinstance(local[k], list) else local[k]
+            m = _trs(*local[k]) if k in moved and isinstance(local[k], list) else self._local[k]
             parent = self._parent.get(k)
             world[k] = (self._turn if parent is None else world[parent]) @ m
         return world, weights
@@ -439,15 +450,16 @@ class AvatarScene:
     @staticmethod
     def _pose(p: _Primitive, w: np.ndarray, matrices: np.ndarray) -> np.ndarray:
         v = p.positions
-        if p.targets is not None:
-            nz = np.flatnonzero(w)
-            if len(nz):
-                v = v + np.tensordot(w[nz], p.targets[nz], axes=1)
+        if p.targets is not None and w.any():  # a matrix-vector product over (K, N * 3)
+            k = len(p.targets)
+            v = v + (w.astype(np.float32) @ p.targets.reshape(k, -1)).reshape(v.shape)
         if p.skin is None:
             m = matrices[0]
             return v @ m[:3, :3].T + m[:3, 3]
-        blend = np.einsum("nj,njab->nab", p.weights, matrices[p.joints])
-        return np.einsum("nab,nb->na", blend[:, :3, :3], v) + blend[:, :3, 3]
+        # each vertex's blend of its joints' matrices (spec 3.7.3.3): a sparse (N, J) weight
+        # matrix times the (J, 12) top rows of the joint matrices
+        blend = (p.skinning @ matrices[:, :3, :].reshape(len(matrices), 12)).reshape(-1, 3, 4)
+        return np.einsum("nab,nb->na", blend[:, :, :3], v) + blend[:, :, 3]
 
 
 def _clip_fps(clip: dict, times: list[np.ndarray]) -> float:
