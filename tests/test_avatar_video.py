@@ -268,3 +268,12 @@ def test_three_js_poses_the_talking_avatar_as_the_video_does(tmp_path):
         np.testing.assert_allclose(mine, theirs, atol=1e-5)
         moved = max(moved, np.abs(mine - scene.vertices(0)).max())
     assert moved > 0.01  # the head turned and the shapes moved: a check that can fail
+
+
+def test_render_tells_avatars_from_talkmesh_s_own_animations(tmp_path):
+    from talkmesh.output.scene import is_avatar_file
+
+    assert is_avatar_file(make_avatar(tmp_path / "a.glb"))  # a skin and four meshes
+    assert not is_avatar_file(head_avatar(tmp_path / "rig.glb"))  # one morphing mesh
+    (tmp_path / "text.glb").write_text("not a glb")
+    assert not is_avatar_file(tmp_path / "text.glb") and not is_avatar_file(tmp_path / "none.glb")

@@ -82,8 +82,9 @@ def add_animate(sub: Subparsers) -> None:
     )
     a.add_argument(
         "--avatar",
-        help="your rigged character (.glb .vrm with ARKit-named morph targets): .glb/.vrm "
-        "outputs are copies of it with the speech as one animation clip",
+        help="your rigged character (.glb .vrm with ARKit-named morph targets, VRM presets or "
+        "Oculus visemes): .glb/.vrm outputs are copies of it with the speech as one animation "
+        "clip, videos show it playing that clip",
     )
     a.add_argument(
         "--text",

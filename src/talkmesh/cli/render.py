@@ -13,7 +13,12 @@ from talkmesh.output import VIDEO_SUFFIXES, output_name, write_animation
 
 def add_render(sub: Subparsers) -> None:
     r = sub.add_parser("render", help="render animations to an mp4 (several: side by side)")
-    r.add_argument("anim", nargs="+", help="animation files (.npz .glb .npy)")
+    r.add_argument(
+        "anim",
+        nargs="+",
+        help="animation files (.npz .glb .npy), or one avatar (.vrm, a .glb with a skin or "
+        "several meshes: `animate --avatar` output) drawn whole playing its first clip",
+    )
     r.add_argument(
         "-o",
         "--output",
@@ -77,14 +82,14 @@ def cmd_render(args: argparse.Namespace) -> int:
 def avatar_input(anims: list[str]):
     """The avatar (a .vrm, or a .glb with a skin or several meshes) to render as a whole, or
     None for the animations talkmesh writes; an avatar is rendered alone."""
-    from talkmesh.output.avatar import load_avatar_scene, read_glb
-    from talkmesh.output.scene import is_avatar
+    from talkmesh.output.avatar import load_avatar_scene
+    from talkmesh.output.scene import is_avatar_file
 
     found = [
         a
         for a in anims
         if Path(a).suffix.lower() == ".vrm"
-        or (Path(a).suffix.lower() == ".glb" and is_avatar(read_glb(a)[0]))
+        or (Path(a).suffix.lower() == ".glb" and is_avatar_file(a))
     ]
     if found and len(anims) > 1:
         raise TalkmeshError(

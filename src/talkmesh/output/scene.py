@@ -24,6 +24,9 @@ from __future__ import annotations
 
 import base64
 import io
+import json
+import os
+import struct
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,6 +35,7 @@ import scipy.sparse
 from talkmesh.errors import TalkmeshError
 from talkmesh.output.avatar_head import head_node
 
+MAX_JSON_BYTES = 256 * 2**20  # a glTF JSON chunk larger than this is not read to classify the file
 TEXTURE_SIZE = 64  # pixels a side a texture is shrunk to before vertices sample it
 FOCUS_MARGIN = 0.2  # the moving vertices' box grows by this share of its size on each side
 ALPHA_CUTOFF = 0.5  # glTF's default ``alphaCutoff``, used for BLEND materials too
@@ -545,6 +549,24 @@ def is_avatar(gltf: dict) -> bool:
     if (gltf.get("extensions") or {}).keys() & {"VRM", "VRMC_vrm"} or gltf.get("skins"):
         return True
     return sum(isinstance(n.get("mesh"), int) for n in gltf.get("nodes") or []) > 1
+
+
+def is_avatar_file(path: str | os.PathLike) -> bool:
+    """:func:`is_avatar` of a .glb's JSON chunk, read alone (the binary chunk of a long
+    animation is not loaded twice); False for a file that is no readable .glb (its reader then
+    says what is wrong)."""
+    try:
+        with open(path, "rb") as f:
+            header = f.read(20)
+            if len(header) < 20 or header[:4] != b"glTF" or header[16:20] != b"JSON":
+                return False
+            (length,) = struct.unpack_from("<I", header, 12)
+            if length > MAX_JSON_BYTES:
+                return False
+            gltf = json.loads(f.read(length).decode("utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(gltf, dict) and is_avatar(gltf)
 
 
 def load_scene(gltf: dict, binary: bytes, source: str) -> AvatarScene:
