@@ -4,6 +4,7 @@ weights, skins, the head bone), in its base colours, from the front and three-qu
 
 from __future__ import annotations
 
+import json
 import subprocess
 
 import numpy as np
@@ -168,11 +169,17 @@ def test_avatars_the_renderer_cannot_draw_are_one_line(tmp_path, capsys):
     flat = dict(gltf, meshes=[{**m, "primitives": [{**p, "mode": 1} for p in m["primitives"]]}
                               for m in lines])  # fmt: skip
     broken = dict(gltf, nodes=[*gltf["nodes"][:3], {"mesh": 99}, *gltf["nodes"][4:]])
+    huge = json.loads(json.dumps(gltf))  # a position accessor of 10^12 zeros, without data
+    huge["accessors"][huge["meshes"][3]["primitives"][0]["attributes"]["POSITION"]].update(
+        {"count": 10**12, "bufferView": None}
+    )
+    huge["accessors"] = [{k: v for k, v in a.items() if v is not None} for a in huge["accessors"]]
     cases = [
         (draco, "Draco-compressed meshes"),
         (external, "external file"),
         (flat, "no triangle meshes to draw"),
         (broken, "does not follow the glTF 2.0 schema"),
+        (huge, "claims 1000000000000 elements without data"),
     ]
     for data, message in cases:
         with pytest.raises(TalkmeshError, match=message) as e:

@@ -36,6 +36,7 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.output.avatar_head import head_node
 
 MAX_JSON_BYTES = 256 * 2**20  # a glTF JSON chunk larger than this is not read to classify the file
+MAX_ZEROS = 2**26  # values an accessor without a buffer view may stand for (sparse bases)
 TEXTURE_SIZE = 64  # pixels a side a texture is shrunk to before vertices sample it
 FOCUS_MARGIN = 0.2  # the moving vertices' box grows by this share of its size on each side
 ALPHA_CUTOFF = 0.5  # glTF's default ``alphaCutoff``, used for BLEND materials too
@@ -61,6 +62,8 @@ def read_accessor(gltf: dict, binary: bytes, index: int) -> np.ndarray:
         out = _view_array(
             gltf, binary, acc["bufferView"], acc.get("byteOffset", 0), dtype, count, width
         )
+    elif count * width > MAX_ZEROS:  # zeros the file does not hold: a count to check first
+        raise ValueError(f"accessor {index} claims {count} elements without data")
     else:
         out = np.zeros((count, width), dtype)
     sparse = acc.get("sparse")
