@@ -172,17 +172,18 @@ class AvatarScene:
         self._skins = [self._read_skin(s) for s in gltf.get("skins") or []]
         self.clip, self.fps, self.num_frames, self._tracks = self._read_clip()
         self._prims: list[_Primitive] = []
-        faces, colors = [], []
+        faces, colors, start = [], [], 0
         for node in self._order:
             if isinstance(nodes[node].get("mesh"), int):
                 for prim, tri, rgba in self._read_mesh(node):
-                    prim.start = sum(len(p.positions) for p in self._prims)
+                    prim.start, start = start, start + len(prim.positions)
                     self._prims.append(prim)
                     faces.append(tri + prim.start)
                     colors.append(rgba)
         if not self._prims or not sum(len(f) for f in faces):
             raise TalkmeshError(
-                f"{source} has no triangle meshes to draw: export the avatar with its meshes"
+                f"{source} has no triangle meshes to draw: export the avatar with its meshes "
+                "(triangles, not points or lines)"
             )
         self.faces = np.concatenate(faces).astype(np.int32)
         self.colors = np.concatenate(colors).astype(np.float32)
