@@ -3,6 +3,7 @@
 python scripts/docs_figures.py regions          # docs/images/regions.png
 python scripts/docs_figures.py lipsync [CLIP]   # docs/images/lipsync_<clip>.png and contact_<clip>.png
 python scripts/docs_figures.py multilingual NAME --corpus corpus/multilingual --model M   # one clip
+python scripts/docs_figures.py avatars          # docs/images/avatar-kinds.png
 """
 
 from __future__ import annotations
@@ -235,9 +236,67 @@ def style_figure(model: str, clip: Path, a: str, b: str, out: Path) -> None:
     save_small(fig, out)
 
 
+AVATAR_KINDS = {  # tests/avatars.py's head avatars, a row each
+    "arkit": "ARKit glb: 52 shapes",
+    "vrm": "VRM 1.0: presets only",
+    "visemes": "Oculus visemes only",
+}
+AVATAR_SENTENCE = "Would you like a cup of tea?"
+AVATAR_CELL = 144
+
+
+def avatars_figure(out: Path) -> None:
+    """Three kinds of avatar (the bundled head with ARKit shapes, with only VRM presets, with only
+    Oculus visemes) saying one sentence, as their `animate --avatar` videos draw them: rest,
+    then where the jaw opening, the rounding, the closure and the spreading peak."""
+    import sys
+    import tempfile
+
+    from PIL import Image
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from avatars import head_avatar
+
+    from talkmesh.audio.tts import synthesize_speech
+    from talkmesh.face.arkit import ARKIT_NAMES
+    from talkmesh.output.avatar import talking_scene
+    from talkmesh.output.labels import TextOverlay
+    from talkmesh.output.render import avatar_renderer
+    from talkmesh.pipeline import animate
+
+    with tempfile.TemporaryDirectory() as tmp:
+        wav = Path(tmp) / "tea.wav"
+        anim = animate(wav, phones=synthesize_speech(AVATAR_SENTENCE, wav), model="procedural")
+        w = {name: anim.weights[:, ARKIT_NAMES.index(name)] for name in ARKIT_NAMES}
+        mouth = [k for k, name in enumerate(ARKIT_NAMES) if name.startswith(("jaw", "mouth"))]
+        picks = [int(np.argmin(anim.weights[:, mouth].sum(1)))]  # rest, then each kind's peak
+        for curve in (
+            w["jawOpen"],
+            w["mouthPucker"] + w["mouthFunnel"],
+            w["mouthClose"] + w["mouthPressLeft"] + w["mouthRollLower"],
+            w["mouthStretchLeft"] + w["mouthSmileLeft"] - w["jawOpen"],
+        ):
+            picks.append(int(np.argmax(curve)))
+        rows = []
+        for kind, label in AVATAR_KINDS.items():
+            avatar = head_avatar(Path(tmp) / f"{kind}.{'vrm' if kind == 'vrm' else 'glb'}", kind)
+            scene = talking_scene(avatar, anim.weights, anim.fps, phones=anim.phones)
+            with avatar_renderer(scene, AVATAR_CELL) as renderer:
+                cells = [renderer.render(scene.vertices(t)) for t in picks]
+            TextOverlay(label, AVATAR_CELL, AVATAR_CELL, top=True).draw(cells[0])
+            for cell, t in zip(cells, picks):
+                TextOverlay(f"{t / anim.fps:.2f} s", AVATAR_CELL, AVATAR_CELL, top=False).draw(cell)
+            rows.append(np.concatenate(cells, axis=1))
+    sheet = Image.fromarray(np.concatenate(rows, axis=0)).quantize(colors=128)  # small PNG
+    sheet.save(out, optimize=True)
+    print(f"wrote {out} ({out.stat().st_size // 1024} KB)")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("figure", choices=["regions", "lipsync", "motion", "style", "multilingual"])
+    p.add_argument(
+        "figure", choices=["regions", "lipsync", "motion", "style", "multilingual", "avatars"]
+    )
     p.add_argument("--model", default="procedural", help="lipsync/style: the animator")
     p.add_argument("--styles", default="", help="style: two training speakers A,B")
     p.add_argument("--pred", action="append", default=[], help="motion: LABEL=PRED_DIR (repeat)")
@@ -250,6 +309,8 @@ def main() -> None:
     DOCS.mkdir(parents=True, exist_ok=True)
     if args.figure == "regions":
         regions_figure(DOCS / "regions.png")
+    elif args.figure == "avatars":
+        avatars_figure(DOCS / "avatar-kinds.png")
     elif args.figure == "multilingual":  # clip: a sequence name of the corpus
         tag = Path(args.model).stem
         multilingual_figure(

@@ -278,3 +278,100 @@ def make_avatar(
     )
     path.write_bytes(struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body)
     return path
+
+
+# --- the bundled head as the three kinds of avatar ------------------------------------------
+
+# Shapes of the VRM presets and the Oculus visemes, as sums of ARKit shapes (plausible mouths for
+# pictures and tests; an exporter's own shapes differ).
+VRM_PRESETS = {
+    "aa": {"jawOpen": 0.8},
+    "ih": {"jawOpen": 0.2, "mouthSmileLeft": 0.6, "mouthSmileRight": 0.6},
+    "ou": {"jawOpen": 0.15, "mouthPucker": 0.9},
+    "ee": {"jawOpen": 0.25, "mouthStretchLeft": 0.6, "mouthStretchRight": 0.6},
+    "oh": {"jawOpen": 0.35, "mouthFunnel": 0.8},
+    "blink": {"eyeBlinkLeft": 1.0, "eyeBlinkRight": 1.0},
+}
+VISEME_SHAPES = {
+    "sil": {},
+    "PP": {"mouthPressLeft": 0.6, "mouthPressRight": 0.6},
+    "FF": {"jawOpen": 0.1, "mouthRollLower": 0.8},
+    "TH": {"jawOpen": 0.2, "tongueOut": 0.6},
+    "DD": {"jawOpen": 0.2},
+    "kk": {"jawOpen": 0.25},
+    "CH": {"jawOpen": 0.15, "mouthFunnel": 0.6},
+    "SS": {"jawOpen": 0.1, "mouthStretchLeft": 0.4, "mouthStretchRight": 0.4},
+    "nn": {"jawOpen": 0.15},
+    "RR": {"jawOpen": 0.15, "mouthPucker": 0.4},
+    "aa": {"jawOpen": 0.8},
+    "E": {"jawOpen": 0.25, "mouthStretchLeft": 0.6, "mouthStretchRight": 0.6},
+    "I": {"jawOpen": 0.2, "mouthSmileLeft": 0.6, "mouthSmileRight": 0.6},
+    "O": {"jawOpen": 0.35, "mouthFunnel": 0.8},
+    "U": {"jawOpen": 0.15, "mouthPucker": 0.9},
+}
+HEAD_KINDS = ("arkit", "vrm", "visemes")
+
+
+def head_avatar(path: Path, kind: str = "arkit") -> Path:
+    """The bundled head in its colours (``COLOR_0``) as an avatar of ``kind``: ``arkit`` (its 52
+    ARKit shapes, as ``talkmesh rig`` writes them), ``vrm`` (a VRM 1.0 with only the mouth and
+    blink presets, bound to targets named as VRoid names them) or ``visemes`` (the 15 Oculus
+    visemes and the two blinks, as Ready Player Me exports them)."""
+    from talkmesh.animation import Animation
+    from talkmesh.face.arkit import ARKIT_NAMES
+    from talkmesh.face.assets import load_head
+    from talkmesh.face.look import head_colors
+    from talkmesh.output.avatar import glb_bytes, read_glb
+    from talkmesh.output.formats import save_animation
+
+    head = load_head()
+    shape = {n: head.blendshapes[ARKIT_NAMES.index(n)] for n in ARKIT_NAMES}
+
+    def mix(parts: dict[str, float]) -> np.ndarray:
+        return sum((w * shape[n] for n, w in parts.items()), np.zeros_like(head.template))
+
+    if kind == "arkit":
+        names, basis = list(ARKIT_NAMES), head.blendshapes
+    elif kind == "vrm":
+        names = [f"Fcl_MTH_{p.upper()}" if p != "blink" else "Fcl_EYE_Close" for p in VRM_PRESETS]
+        basis = np.stack([mix(parts) for parts in VRM_PRESETS.values()])
+    elif kind == "visemes":
+        names = [f"viseme_{v}" for v in VISEME_SHAPES] + ["eyeBlinkLeft", "eyeBlinkRight"]
+        blinks = [shape["eyeBlinkLeft"], shape["eyeBlinkRight"]]
+        basis = np.stack([mix(parts) for parts in VISEME_SHAPES.values()] + blinks)
+    else:
+        raise ValueError(f"kind {kind!r} is not one of {HEAD_KINDS}")
+    rig = Animation(
+        head.template[None],
+        head.faces,
+        30.0,
+        weights=np.zeros((1, len(names)), np.float32),
+        weight_names=names,
+        template=head.template,
+        basis=basis.astype(np.float32),
+        colors=head_colors(head),
+    )
+    plain = path.with_name(path.stem + ".plain.rig.glb")
+    save_animation(rig, plain, format="rig.glb")
+    if kind != "vrm":
+        plain.replace(path)
+        return path
+    gltf, binary = read_glb(plain)
+    plain.unlink()
+    node = next(k for k, n in enumerate(gltf["nodes"]) if "mesh" in n)
+    gltf["extensionsUsed"] = ["VRMC_vrm"]
+    gltf["extensions"] = {
+        "VRMC_vrm": {
+            "specVersion": "1.0",
+            "meta": {"name": "talkmesh head", "authors": ["talkmesh tests"]},
+            "humanoid": {"humanBones": {}},
+            "expressions": {
+                "preset": {
+                    p: {"morphTargetBinds": [{"node": node, "index": i, "weight": 1.0}]}
+                    for i, p in enumerate(VRM_PRESETS)
+                }
+            },
+        }
+    }
+    path.write_bytes(glb_bytes(gltf, binary))
+    return path

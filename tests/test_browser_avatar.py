@@ -200,3 +200,131 @@ def test_server_serves_the_avatar_as_it_is(avatars, tmp_path):
     (tmp_path / "plain.glb").write_bytes(b"not a glb at all, just text")
     with pytest.raises(TalkmeshError, match="not a binary glTF"):
         create_app(avatar=tmp_path / "plain.glb")
+
+
+PRESETS_JS = """
+import * as n from %s;
+import { readFileSync } from "node:fs";
+const [path, frames] = JSON.parse(process.argv[1]);
+const data = readFileSync(path);
+const json = JSON.parse(data.subarray(20, 20 + data.readUInt32LE(12)).toString());
+const meshes = json.meshes.map((m, i) => ({
+  mesh: i,
+  targets: (m.extras || {}).targetNames || (m.primitives[0].extras || {}).targetNames || [],
+}));
+const b = n.bindAvatar(meshes, n.ARKIT_NAMES, n.readVrmExpressions(json));
+const values = new Float32Array(b.presetTerms.length);
+const out = frames.map((w) => {
+  n.presetValues(w, b.presetTerms, values);
+  return b.meshes.map((m, i) => {
+    const inf = new Array(meshes[i].targets.length).fill(0);
+    for (const [k, p, x] of m.presets) inf[k] += values[p] * x;
+    return inf.map((x) => Math.min(1, Math.max(0, x)));
+  });
+});
+console.log(JSON.stringify({ expressions: b.expressions, vrm: b.vrm, out,
+  presets: b.meshes.map((m) => m.presets.length) }));
+"""
+
+
+@pytest.mark.parametrize("version", ["0.x", "1.0", "1.0 one-eye", "arkit"])
+def test_viewer_drives_vrm_presets_as_the_files_do(tmp_path, version):
+    """web/viewer/arkit_names.js binds a VRM's presets and drives them from a stream's ARKit
+    weights to the influences `animate --avatar` writes into the file's clip (VRM 0.x and 1.0,
+    one blink or one per eye); an avatar with ARKit mouth shapes keeps them (no presets)."""
+    import numpy as np
+    from test_avatar import arkit_weights, clip_values
+    from test_visemes import HEAD_NODE, vroid
+
+    from talkmesh.output.avatar import animate_avatar, glb_bytes, read_glb
+
+    if version == "arkit":
+        avatar = make_avatar(tmp_path / "both.vrm", vrm=True)  # preset "a" and ARKit names
+    else:
+        avatar = vroid(tmp_path, version.split()[0])
+    if version == "1.0 one-eye":  # Fcl_EYE_Close bound to blinkLeft and blinkRight at 0.5 and 1
+        gltf, binary = read_glb(avatar)
+        preset = gltf["extensions"]["VRMC_vrm"]["expressions"]["preset"]
+        bind = preset.pop("blink")["morphTargetBinds"][0]
+        preset["blinkLeft"] = {"morphTargetBinds": [{**bind, "weight": 0.5}]}
+        preset["blinkRight"] = {"morphTargetBinds": [bind]}
+        avatar.write_bytes(glb_bytes(gltf, binary))
+    weights = arkit_weights()
+    weights[5:9, :14] = 1.0  # blinks and eye looks at full
+    weights[7:9, 7] = 0.3  # one eye half open
+    out = tmp_path / "talking.vrm"
+    binding = animate_avatar(avatar, weights, 30.0, out)
+    node = shutil.which("node")
+    assert node, "node is not installed (make setup)"
+    script = PRESETS_JS % json.dumps(str(ROOT / "web/viewer/arkit_names.js"))
+    run = subprocess.run(
+        [node, "--input-type=module", "-e", script, json.dumps([str(avatar), weights.tolist()])],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    js = json.loads(run.stdout)
+    assert js["expressions"] == list(binding.expressions) and js["vrm"] == binding.vrm
+    if version == "arkit":
+        assert js["expressions"] == [] and js["presets"] == [0, 0, 0, 0]
+        return
+    head = np.array([frame[0] for frame in js["out"]])  # mesh 0, the head, on node HEAD_NODE
+    np.testing.assert_allclose(head, clip_values(*read_glb(out), HEAD_NODE), atol=1e-5)
+    assert head[:, 0].max() - head[:, 0].min() > 0.3 and head[:, 5].max() > 0.9
+
+
+MOUTH_A = """() => {
+  let out = null;
+  window.talkmesh.head.traverse((o) => {
+    const d = o.morphTargetDictionary || {};
+    if (d.Fcl_MTH_A !== undefined) out = o.morphTargetInfluences[d.Fcl_MTH_A];
+  });
+  return out;
+}"""
+
+
+def test_viewer_drives_a_dropped_vrm_s_presets(avatar_server, tmp_path, speech_wav):  # noqa: F811
+    """A VRoid-like VRM 1.0 (presets only, no ARKit or viseme names) dropped on the page: the
+    panel names its presets and the target its `aa` preset binds opens with the speech."""
+    from playwright.sync_api import sync_playwright
+    from test_visemes import vroid
+
+    avatar = vroid(tmp_path, "1.0")
+    with sync_playwright() as p:
+        browser = p.chromium.launch(
+            executable_path=str(CHROMIUM), headless=True, args=chromium_args(speech_wav)
+        )
+        try:
+            page = browser.new_page(viewport=VIEWPORT)
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(avatar_server)
+            page.wait_for_function(
+                "window.talkmesh.avatar && window.talkmesh.state === 'idle'", timeout=WAIT_MS
+            )
+            page.evaluate(
+                """(data) => {
+                  const dt = new DataTransfer();
+                  dt.items.add(new File([new Uint8Array(data)], "vroid.vrm"));
+                  window.dispatchEvent(new DragEvent("drop", {dataTransfer: dt, cancelable: true}));
+                }""",
+                list(avatar.read_bytes()),
+            )
+            page.wait_for_function("window.talkmesh.avatar.name === 'vroid.vrm'", timeout=WAIT_MS)
+            info = page.evaluate("window.talkmesh.avatar")
+            assert info["expressions"] == ["aa", "ih", "ou", "ee", "oh", "blink"]
+            assert info["vrm"] == "1.0" and info["meshes"] == ["Head"]
+            assert "VRM 1.0 presets aa ih ou ee oh blink" in page.inner_text("#avatar")
+            page.set_input_files("#file", str(speech_wav))
+            seen = []
+            for _ in range(400):
+                seen.append(page.evaluate(MOUTH_A))
+                if page.evaluate("window.talkmesh.state") in ("done", "error"):
+                    break
+                page.wait_for_timeout(50)
+            page.wait_for_function("window.talkmesh.state === 'done'", timeout=WAIT_MS)
+            assert max(seen) - min(seen) > 0.1, seen[:20]
+            assert not errors, errors
+        finally:
+            browser.close()

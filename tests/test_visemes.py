@@ -282,3 +282,64 @@ def test_a_vrm_whose_presets_bind_a_missing_node_is_one_line(tmp_path):
     with pytest.raises(TalkmeshError, match="does not follow the glTF 2.0 schema") as e:
         bind_avatar(gltf, "broken.vrm")
     assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("version", ["0.x", "1.0"])
+def test_vrm_mouth_presets_bound_to_targets_it_lacks_are_one_line(tmp_path, version):
+    """Mouth presets binding a target index past the mesh's last (a broken export) with a valid
+    blink: before, the avatar was written blinking with a still mouth; now one line says so."""
+    from talkmesh.output.avatar import glb_bytes
+
+    gltf, binary = read_glb(vroid(tmp_path, version))
+    if version == "0.x":
+        for g in gltf["extensions"]["VRM"]["blendShapeMaster"]["blendShapeGroups"]:
+            if g["presetName"] != "blink":
+                g["binds"][0]["index"] += 50
+    else:
+        for name, preset in gltf["extensions"]["VRMC_vrm"]["expressions"]["preset"].items():
+            if name != "blink":
+                preset["morphTargetBinds"][0]["index"] += 50
+    with pytest.raises(TalkmeshError, match="mouth presets .* bind no morph target") as e:
+        bind_avatar(gltf, "broken.vrm")
+    message = str(e.value)
+    assert "\n" not in message and "mesh 0 target 50" in message and "export it again" in message
+    avatar = tmp_path / "broken.vrm"
+    avatar.write_bytes(glb_bytes(gltf, binary))
+    with pytest.raises(TalkmeshError, match="bind no morph target"):
+        animate_avatar(avatar, arkit(4), FPS, tmp_path / "o.vrm")
+    assert not (tmp_path / "o.vrm").exists()
+
+
+def test_cli_bad_vrm_and_viseme_avatars_are_one_line_before_the_model(tmp_path, capsys):
+    """The avatars the CLI cannot make talk are refused before any model loads (a model that
+    does not exist is never looked at), in one line saying what is missing and what to do; a
+    viseme avatar with half the set talks, and its line names the visemes it lacks."""
+    import soundfile as sf
+
+    from talkmesh.output.avatar import glb_bytes
+
+    speech = tmp_path / "speech.wav"
+    sf.write(speech, np.zeros(3200, np.float32), 16_000)
+    half = ["viseme_PP", "viseme_DD", "viseme_kk", "viseme_SS"]  # none opens the mouth
+    opener = ["viseme_sil", "viseme_PP", "viseme_aa", "viseme_E", "viseme_I", "viseme_O"]
+    gltf, binary = read_glb(make_avatar(tmp_path / "half.glb", visemes=True, head_names=half))
+    for mesh in gltf["meshes"][1:3]:  # the teeth's viseme_aa and viseme_O, the tongue's TH
+        mesh["extras"]["targetNames"] = [f"custom_{k}" for k in mesh["extras"]["targetNames"]]
+    (tmp_path / "half.glb").write_bytes(glb_bytes(gltf, binary))
+    cases = {
+        vroid(tmp_path, "0.x", groups=False): "a VRM 0.x without mouth expressions",
+        vroid(tmp_path, "1.0", groups=False): "a VRM 1.0 without mouth expressions",
+        tmp_path / "half.glb": "none that opens",
+    }
+    for avatar, message in cases.items():
+        out = tmp_path / f"o{avatar.suffix}"
+        args = ["animate", str(speech), "--avatar", str(avatar), "--model", "missing.safetensors"]
+        assert main([*args, "-o", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1 and not out.exists(), err
+        assert "add the mouth presets" in err or "export the full set of 15" in err
+    avatar = make_avatar(tmp_path / "six.glb", visemes=True, head_names=opener)
+    args = ["animate", str(speech), "--avatar", str(avatar), "--model", "procedural"]
+    assert main([*args, "-o", str(tmp_path / "six_talking.glb")]) == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    assert "lacks visemes FF, DD, kk, CH, SS, nn, RR, U: export all 15 to drive them" in line

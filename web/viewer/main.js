@@ -6,17 +6,20 @@
 //
 // An avatar (`talkmesh serve --avatar FILE`, or a .glb/.vrm dropped on the page) replaces the
 // head: every mesh whose morph targets carry ARKit names (in exporters' spellings, see
-// arkit_names.js) follows the stream; one with Oculus visemes only gets them from the ARKit weights.
+// arkit_names.js) follows the stream; one with Oculus visemes only gets them from the ARKit weights,
+// and a VRM without ARKit mouth shapes its expression presets (aa ih ou ee oh, blinks, looks)
+// through the morph targets the VRM extension binds to them, as `animate --avatar` files do.
 //
 // For tests, `window.talkmesh` is the live state: state, framesReceived, latencyMs {median, p95},
 // fps, weightHistory {jawOpen}, lastWeights, plus names, streamFps, lookaheadMs, model, endFrames,
-// error, avatar {name, meshes, channels, missing, visemes} and head (the three.js scene).
+// error, avatar {name, meshes, channels, missing, visemes, expressions, vrm} and head (the three.js
+// scene).
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { RoomEnvironment } from "three/addons/environments/RoomEnvironment.js";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
-import { ARKIT_NAMES, bindAvatar } from "./arkit_names.js";
+import { ARKIT_NAMES, bindAvatar, presetValues, readVrmExpressions } from "./arkit_names.js";
 
 const SAMPLE_RATE = 16000; // what the server expects
 const CHUNK_MS = 20;
@@ -204,6 +207,9 @@ let morphMeshes = []; // every mesh of the model that has morph targets
 let drivers = []; // per mesh: [[morph index, stream index]...] and [[morph index, viseme]...]
 let visemeTerms = []; // per viseme: [[stream index, coefficient]...]
 let visemeValues = new Float32Array(0);
+let presetTerms = []; // per VRM preset: [[stream index, coefficient]...]
+let presetValuesNow = new Float32Array(0);
+let expressions = null; // the shown VRM's presets and their binds (readVrmExpressions)
 
 function frameHead(object) {
   const box = new THREE.Box3().setFromObject(object);
@@ -242,11 +248,14 @@ function meshDef(mesh, parser) {
 
 function bind() {
   const names = talkmesh.names || ARKIT_NAMES;
-  const binding = bindAvatar(morphMeshes.map((m) => ({ targets: m.userData.talkmeshTargets })), names);
+  const meshes = morphMeshes.map((m) => ({ targets: m.userData.talkmeshTargets, mesh: m.userData.talkmeshMesh }));
+  const binding = bindAvatar(meshes, names, expressions);
   drivers = morphMeshes.map((mesh, i) => ({ mesh, ...binding.meshes[i] }));
   visemeTerms = binding.visemeTerms;
   visemeValues = new Float32Array(visemeTerms.length);
-  const driven = drivers.filter((d) => d.arkit.length || d.visemes.length);
+  presetTerms = binding.presetTerms;
+  presetValuesNow = new Float32Array(presetTerms.length);
+  const driven = drivers.filter((d) => d.arkit.length || d.visemes.length || d.presets.length);
   return { binding, meshes: driven.map((d) => d.mesh.userData.talkmeshName) };
 }
 
@@ -256,10 +265,15 @@ function applyWeights(weights) {
     for (const [i, c] of visemeTerms[v]) x += c * weights[i];
     visemeValues[v] = Math.min(1, Math.max(0, x));
   }
-  for (const { mesh, arkit, visemes } of drivers) {
+  if (presetTerms.length) presetValues(weights, presetTerms, presetValuesNow);
+  for (const { mesh, arkit, visemes, presets } of drivers) {
     const influences = mesh.morphTargetInfluences;
     for (const [k, i] of arkit) influences[k] = weights[i];
     for (const [k, v] of visemes) influences[k] = visemeValues[v];
+    // a target several presets bind: the sum of preset x bind weight, clipped to [0, 1]
+    for (const [k] of presets) influences[k] = 0;
+    for (const [k, p, w] of presets) influences[k] += presetValuesNow[p] * w;
+    for (const [k] of presets) influences[k] = Math.min(1, Math.max(0, influences[k]));
   }
 }
 
@@ -320,11 +334,14 @@ function show(gltf, label) {
     if (o.isMesh && o.morphTargetInfluences && o.morphTargetInfluences.length) {
       o.userData.talkmeshTargets = targetNames(o, gltf.parser);
       o.userData.talkmeshName = (meshDef(o, gltf.parser) || {}).name || o.name || "mesh";
+      const where = gltf.parser && gltf.parser.associations.get(o);
+      o.userData.talkmeshMesh = where ? where.meshes : undefined;
       meshes.push(o);
     }
   });
   if (talkmesh.head) scene.remove(talkmesh.head);
   morphMeshes = meshes;
+  expressions = gltf.parser ? readVrmExpressions(gltf.parser.json) : null;
   scene.add(head);
   talkmesh.head = head;
   frameHead(head);
@@ -336,13 +353,16 @@ function show(gltf, label) {
     channels: binding.channels,
     missing: binding.missing,
     visemes: binding.visemes,
+    expressions: binding.expressions,
+    vrm: binding.vrm,
   };
   let summary = `${label}: ${binding.channels.length} of ${ARKIT_NAMES.length} ARKit channels`;
   if (binding.visemes.length) summary += ` + ${binding.visemes.length} visemes`;
+  if (binding.expressions.length) summary += ` + VRM ${binding.vrm} presets ${binding.expressions.join(" ")}`;
   $("avatar").textContent = summary;
   $("avatar").title = binding.missing.length ? `lacks ${binding.missing.join(", ")}` : "all 52";
   if (talkmesh.state === "loading" || talkmesh.state === "error") setState("idle");
-  if (!driven.length) showError(`${label} has no morph targets with ARKit names or visemes`);
+  if (!driven.length) showError(`${label} has no morph targets with ARKit names, visemes or VRM mouth presets`);
   else showMessage("");
 }
 

@@ -157,11 +157,13 @@ class Animator:
                 for p in job.outputs
                 if s.avatar is not None and p.suffix.lower() in AVATAR_SUFFIXES
             ]
-            # a user's head: files in its own units and axes, videos seen from its front
+            # a user's head: files in its own units and axes, videos seen from its front; an
+            # avatar's videos show the avatar
             videos = [
                 p
                 for p in job.outputs
-                if self.rig is not None and p.suffix.lower() in VIDEO_SUFFIXES
+                if (self.rig is not None or s.avatar is not None)
+                and p.suffix.lower() in VIDEO_SUFFIXES
             ]
             plain = [p for p in job.outputs if p not in rigged and p not in videos]
             residual = None
@@ -183,6 +185,9 @@ class Animator:
             for p in rigged:
                 write_avatar(whole, Path(s.avatar), p, s.overwrite)
             for p in videos:
+                if s.avatar is not None:
+                    write_avatar_video(whole, Path(s.avatar), p, s)
+                    continue
                 facing = self.rig.facing(whole)
                 write_animation(facing, p, overwrite=s.overwrite, size=s.size, camera=s.camera)
         except TalkmeshError as e:
@@ -239,6 +244,37 @@ def write_avatar(anim, avatar: Path, path: Path, overwrite: bool) -> None:
         head_pose=anim.head_pose,
         phones=anim.phones,
     )
+
+
+def write_avatar_video(anim, avatar: Path, path: Path, s: AnimateSettings) -> None:
+    """A video of ``avatar`` itself playing ``anim``'s clip (as :func:`write_avatar` would write
+    it), with the speech."""
+    from talkmesh.face.arkit import to_arkit_order
+    from talkmesh.output.atomic import writing
+    from talkmesh.output.avatar import talking_scene
+    from talkmesh.output.render import render_avatar_video
+
+    scene = talking_scene(
+        avatar,
+        to_arkit_order(anim.weights, anim.weight_names),
+        anim.fps,
+        head_pose=anim.head_pose,
+        phones=anim.phones,
+    )
+    with writing(path):
+        if path.exists() and not s.overwrite:
+            raise TalkmeshError(f"{path} already exists: choose another -o or pass --overwrite")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        render_avatar_video(
+            scene,
+            path,
+            s.size,
+            audio=anim.audio,
+            sample_rate=anim.sample_rate,
+            audio_file=anim.audio_file,
+            inputs=[avatar],
+            camera=s.camera,
+        )
 
 
 def _failed(job: Job, start: float, message: str) -> Row:

@@ -13,7 +13,7 @@ import sys
 import warnings
 from collections.abc import Callable
 
-from talkmesh.cli.animate import add_animate, add_export, add_export_head, add_render, add_rig
+from talkmesh.cli.animate import add_animate, add_export_head, add_rig
 from talkmesh.cli.common import Subparsers
 from talkmesh.cli.data import (
     add_baseline,
@@ -32,6 +32,7 @@ from talkmesh.cli.models import (
     add_retarget,
     add_train,
 )
+from talkmesh.cli.render import add_export, add_render
 from talkmesh.cli.serve import add_info, add_livelink, add_serve
 from talkmesh.errors import TalkmeshError, os_error_message, show_warnings, warning_line
 from talkmesh.version import __version__

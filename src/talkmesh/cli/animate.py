@@ -1,5 +1,5 @@
-"""``talkmesh animate``, ``render``, ``export`` and ``rig``: speech to animations, animations to
-videos and files, a plain head mesh to a rigged .glb."""
+"""``talkmesh animate``, ``rig`` and ``export-head``: speech to animations, a plain head mesh to a
+rigged .glb, the bundled head as a mesh (``render`` and ``export``: :mod:`talkmesh.cli.render`)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,6 @@ from talkmesh.cli.common import (
     add_quiet,
     check_outputs,
     check_writable,
-    load_input,
     parse_outputs,
 )
 from talkmesh.constants import INT8_LAYERS
@@ -34,7 +33,7 @@ from talkmesh.face.corrections import (
     PAUSE_SOURCES,
 )
 from talkmesh.face.head_motion import NATURAL, check_amount
-from talkmesh.output import output_name, write_animation
+from talkmesh.output import VIDEO_SUFFIXES, output_name
 
 RUNTIMES = ("torch", "onnxruntime")
 RUNTIME_HELP = (
@@ -83,8 +82,9 @@ def add_animate(sub: Subparsers) -> None:
     )
     a.add_argument(
         "--avatar",
-        help="your rigged character (.glb .vrm with ARKit-named morph targets): .glb/.vrm "
-        "outputs are copies of it with the speech as one animation clip",
+        help="your rigged character (.glb .vrm with ARKit-named morph targets, VRM presets or "
+        "Oculus visemes): .glb/.vrm outputs are copies of it with the speech as one animation "
+        "clip, videos show it playing that clip",
     )
     a.add_argument(
         "--text",
@@ -272,11 +272,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
 
         check_reachable(args.cluster)
     if avatar is not None:
-        from talkmesh.output.avatar import bind_avatar, read_glb
-
-        binding = bind_avatar(read_glb(avatar)[0], str(avatar))  # fails before the model runs
-        if not args.quiet:
-            print(f"avatar {avatar}: {binding.summary()}")
+        check_avatar(avatar, outputs, args.quiet)
     _face(args, style_mix, outputs, avatar)  # what cannot work fails before any run
     written = {str(a): paths for a, paths in zip(inputs, outputs)}
     bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
@@ -303,6 +299,20 @@ def cmd_animate(args: argparse.Namespace) -> int:
     if summary is not None:
         write_summary(summary, with_earlier(result.rows, read_summary(summary)))
     return report_batch(result, summary, args.quiet)
+
+
+def check_avatar(avatar: Path, outputs: list[list[Path]], quiet: bool) -> None:
+    """What the avatar cannot do fails before the model runs: no shapes to drive, or (for a
+    video) meshes the renderer cannot draw; else one line says what it drives."""
+    from talkmesh.output.avatar import bind_avatar, read_glb
+    from talkmesh.output.scene import load_scene
+
+    gltf, binary = read_glb(avatar)
+    binding = bind_avatar(gltf, str(avatar))
+    if any(p.suffix.lower() in VIDEO_SUFFIXES for paths in outputs for p in paths):
+        load_scene(gltf, binary, str(avatar))
+    if not quiet:
+        print(f"avatar {avatar}: {binding.summary()}")
 
 
 @contextmanager
@@ -471,102 +481,6 @@ def report_batch(result, summary: Path | None, quiet: bool) -> int:
     elif not quiet and (len(result.rows) > 1 or summary is not None):
         print(f"animated {done} files in {result.seconds:.1f} s ({skipped} already done){where}")
     return 1 if failed else 0
-
-
-def add_render(sub: Subparsers) -> None:
-    r = sub.add_parser("render", help="render animations to an mp4 (several: side by side)")
-    r.add_argument("anim", nargs="+", help="animation files (.npz .glb .npy)")
-    r.add_argument(
-        "-o",
-        "--output",
-        required=True,
-        action="append",
-        help="output .mp4 (.m4v .mov); repeat for several copies of the one video",
-    )
-    r.add_argument("--audio", help="speech to mux into the video")
-    r.add_argument("--labels", help="comma-separated panel labels for side-by-side")
-    r.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
-    add_output_options(r)
-    r.set_defaults(func=cmd_render)
-
-
-def cmd_render(args: argparse.Namespace) -> int:
-    from talkmesh.audio.loading import SAMPLE_RATE, load_audio
-    from talkmesh.output import VIDEO_SUFFIXES
-    from talkmesh.output.atomic import remove_stale_temps, writing
-    from talkmesh.output.render import render_side_by_side, render_video
-
-    outs = [Path(o) for o in args.output]
-    inputs = [Path(a) for a in args.anim] + ([Path(args.audio)] if args.audio else [])
-    check_outputs([outs], inputs, args.overwrite)
-    for out in outs:
-        if out.suffix.lower() not in VIDEO_SUFFIXES:
-            raise TalkmeshError(
-                f"{out}: render writes videos ({' '.join(VIDEO_SUFFIXES)}); "
-                "`talkmesh export` writes the other formats"
-            )
-    anims = [load_input(a, args.fps) for a in args.anim]
-    if args.audio:
-        anims[0].audio, anims[0].sample_rate = load_audio(args.audio), SAMPLE_RATE
-        anims[0].audio_file = Path(args.audio)  # the video keeps its own rate and channels
-    for out in outs:
-        with writing(out):
-            out.parent.mkdir(parents=True, exist_ok=True)
-            remove_stale_temps(out.parent)
-    out = outs[0]
-    if len(anims) == 1:
-        render_video(anims[0], out, size=args.size, progress=not args.quiet, camera=args.camera)
-    else:
-        labels = args.labels.split(",") if args.labels else [Path(a).stem for a in args.anim]
-        if len(labels) != len(anims):
-            raise TalkmeshError(
-                f"--labels names {len(labels)} panels but {len(anims)} animations were given"
-            )
-        render_side_by_side(
-            anims, labels, out, size=args.size, progress=not args.quiet, camera=args.camera
-        )
-    for copy in outs[1:]:  # one encode; the other outputs are byte copies of it
-        copy_file(out, copy)
-    if not args.quiet:
-        print(f"wrote {', '.join(map(str, outs))}")
-    return 0
-
-
-def copy_file(src: Path, dst: Path) -> None:
-    """``src``'s bytes to ``dst``, written beside it and renamed into place."""
-    import shutil
-
-    from talkmesh.output.atomic import writing
-    from talkmesh.output.video import atomic_output
-
-    with writing(dst), atomic_output(dst, (dst.suffix.lower(),)) as tmp:
-        shutil.copyfile(src, tmp)
-
-
-def add_export(sub: Subparsers) -> None:
-    e = sub.add_parser("export", help="convert an animation to other formats")
-    e.add_argument("anim", help="animation file (.npz .glb .npy)")
-    e.add_argument(
-        "-o",
-        "--output",
-        required=True,
-        action="append",
-        help="output file; the extension picks the format; repeat for several",
-    )
-    e.add_argument("--fps", type=float, help="frame rate of .npy inputs (default 30)")
-    add_output_options(e)
-    e.set_defaults(func=cmd_export)
-
-
-def cmd_export(args: argparse.Namespace) -> int:
-    src, outs = Path(args.anim), [Path(o) for o in args.output]
-    check_outputs([outs], [src], args.overwrite)
-    anim = load_input(args.anim, args.fps)
-    for out in outs:
-        write_animation(anim, out, overwrite=args.overwrite, size=args.size, camera=args.camera)
-        if not args.quiet:
-            print(f"wrote {output_name(out, anim.num_frames)}")
-    return 0
 
 
 def add_rig(sub: Subparsers) -> None:

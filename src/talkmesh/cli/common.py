@@ -142,7 +142,7 @@ def check_outputs(
 ) -> None:
     """Refuse unknown formats, writing over an input, two writes to one file, and (without
     ``overwrite``) existing files, before any work starts. With ``avatar``, .glb/.vrm outputs
-    are copies of the avatar and videos (which would show the bundled head) are refused."""
+    are copies of the avatar (and videos show the avatar)."""
     from talkmesh.output.avatar import AVATAR_SUFFIXES
     from talkmesh.output.formats import EXPORTERS
 
@@ -155,11 +155,6 @@ def check_outputs(
     for paths in outputs:
         for p in paths:
             suffix = p.suffix.lower()
-            if avatar and suffix in VIDEO_SUFFIXES:
-                raise TalkmeshError(
-                    f"{p}: a video would show the bundled head, not the avatar: "
-                    "write .glb/.vrm (and .csv/.json) with --avatar"
-                )
             if suffix not in known:
                 raise TalkmeshError(
                     f"{p}: unknown output format '{suffix or '(none)'}': "

@@ -42,7 +42,8 @@ from talkmesh.face.arkit_names import (
 )
 from talkmesh.face.visemes import oculus_visemes
 from talkmesh.output.avatar_head import head_node, head_rotations
-from talkmesh.output.vrm import preset_weights, read_expressions, target_matrix
+from talkmesh.output.scene import AvatarScene, load_scene
+from talkmesh.output.vrm import MOUTH, PRESETS, preset_weights, read_expressions, target_matrix
 
 AVATAR_SUFFIXES = (".glb", ".vrm")
 CLIP_NAME = "talk"
@@ -285,6 +286,8 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
     no_arkit_mouth = not any(ARKIT_NAMES.index(n) in found for n in MOUTH_CHANNELS)
     expressions = read_expressions(gltf)
     use_vrm = no_arkit_mouth and expressions is not None and bool(expressions.mouth)
+    if use_vrm:
+        _check_mouth_binds(expressions, candidates, source)
     use_visemes = no_arkit_mouth and not use_vrm
     meshes = []
     for m, name, nodes, k, arkit, visemes, rest in candidates:
@@ -319,6 +322,21 @@ def _bind(gltf: dict, source: str) -> AvatarBinding:
         clips=tuple(str(a.get("name") or f"animation {i}") for i, a in enumerate(animations)),
         expressions=expressions.names if use_vrm else (),
         vrm=expressions.version if use_vrm else "",
+    )
+
+
+def _check_mouth_binds(expressions, candidates: list, source: str) -> None:
+    """A VRM whose mouth presets bind no morph target the avatar has (a mesh without targets or
+    no node, an index past its last target) would talk without moving: one line instead."""
+    rows = [PRESETS.index(p) for p in MOUTH]
+    if any(target_matrix(expressions, c[0], c[3])[rows].any() for c in candidates):
+        return
+    bound = sorted({(m, i) for p in MOUTH for m, i, _ in expressions.binds.get(p, ())})
+    shown = ", ".join(f"mesh {m} target {i}" for m, i in bound[:3])
+    raise TalkmeshError(
+        f"{source}: its VRM {expressions.version} mouth presets ({' '.join(expressions.mouth)}) "
+        f"bind no morph target the avatar has ({shown}{', ...' if len(bound) > 3 else ''}): "
+        "export it again (VRoid Studio, UniVRM), or with ARKit blendshapes (perfect sync)"
     )
 
 
@@ -426,6 +444,37 @@ def animate_avatar(
     )
     _write_atomic(output, glb_bytes(new_gltf, new_binary), overwrite)
     return binding
+
+
+def talking_scene(
+    avatar: str | Path,
+    weights: np.ndarray,
+    fps: float,
+    *,
+    head_pose: np.ndarray | None = None,
+    phones: list[tuple[str, float, float]] | None = None,
+) -> AvatarScene:
+    """The avatar as :func:`animate_avatar` would write it, ready to render: an
+    :class:`~talkmesh.output.scene.AvatarScene` playing the speech clip (nothing is written)."""
+    gltf, binary = read_glb(avatar)
+    binding = bind_avatar(gltf, str(avatar))
+    new_gltf, new_binary = add_clip(
+        gltf, binary, binding, weights, fps, head_pose=head_pose, phones=phones
+    )
+    return load_scene(new_gltf, new_binary, str(avatar))
+
+
+def load_avatar_scene(path: str | Path, *, clip: bool = True) -> AvatarScene:
+    """A .glb/.vrm file as an :class:`~talkmesh.output.scene.AvatarScene` playing its first clip;
+    with ``clip``, a file without an animation to play is a one-line TalkmeshError."""
+    gltf, binary = read_glb(path)
+    scene = load_scene(gltf, binary, str(path))
+    if clip and not scene.animated:
+        raise TalkmeshError(
+            f"{path} has no animation clip to play: give it the speech with `talkmesh animate "
+            f"speech.wav --avatar {path} -o talking{Path(path).suffix.lower()}` and render that"
+        )
+    return scene
 
 
 def _write_atomic(path: Path, data: bytes, overwrite: bool) -> None:

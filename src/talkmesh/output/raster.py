@@ -190,6 +190,8 @@ class Renderer:
         fov_deg: vertical field of view of the camera.
         supersample: render at this multiple of ``size`` and average (1 turns anti-aliasing off).
         camera: a name in ``CAMERAS``: "front" or "three-quarter" (the head turned 35 degrees).
+        focus: optional (V,) bool, the vertices the camera aims at (an avatar's head); default
+            all of them.
         ctx: an OpenGL context to share (see :func:`create_context`); by default the renderer
             creates its own and releases it in :meth:`close`.
 
@@ -207,6 +209,7 @@ class Renderer:
         supersample: int = SUPERSAMPLE,
         ctx: moderngl.Context | None = None,
         camera: str = "front",
+        focus: np.ndarray | None = None,
     ) -> None:
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -239,6 +242,11 @@ class Renderer:
             c, s = math.cos(turn), math.sin(turn)
             self._turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], np.float32).T
         self._normals = VertexNormals(self.faces.astype(np.int64), self.num_vertices)
+        self._focus = None
+        if focus is not None:
+            self._focus = np.asarray(focus, bool)
+            if self._focus.shape != (self.num_vertices,) or not self._focus.any():
+                raise TalkmeshError(f"focus must be (V,) bool with one True, got {focus.shape}")
         self._framed = False
         self._flags = 0
         self._front_face = "ccw"
@@ -310,15 +318,16 @@ class Renderer:
         return self.width, self.height
 
     def frame(self, vertices: np.ndarray) -> None:
-        """Aims the camera at (V, 3) vertices so that their bounding box fills the image, and
-        decides from their winding whether back faces can be culled."""
+        """Aims the camera at (V, 3) vertices (those of ``focus``) so that their bounding box
+        fills the image, and decides from their winding whether back faces can be culled."""
         vertices = self._check_vertices(vertices)
-        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        aimed = vertices if self._focus is None else vertices[self._focus]
+        lo, hi = aimed.min(axis=0), aimed.max(axis=0)
         center = (lo + hi) / 2
         aspect = self.width / self.height
         half = max((hi[1] - lo[1]) / 2, (hi[0] - lo[0]) / 2 / aspect, 1e-6) * FRAME_MARGIN
         distance = half / math.tan(self.fov_y / 2)  # the front of the box fills the view
-        depth = max(float(hi[2] - lo[2]), 1e-6)
+        depth = max(float(hi[2] - vertices[:, 2].min()), 1e-6)  # all of it behind the front
         near, far = distance / 2, distance + 2 * depth
         self._program["eye"].value = (float(center[0]), float(center[1]), float(hi[2] + distance))
         self._program["proj"].write(_perspective(self.fov_y, aspect, near, far).T.tobytes())
