@@ -116,6 +116,7 @@ train: {lr: 1.0e-3, epochs: 1, accelerator: cpu, out_dir: runs/tiny_voca}
 """
 
 
+@pytest.mark.slow  # minutes on 2 cores: `make test-slow`
 def test_benchmark_cells_on_the_cluster_then_nothing_left_locally(head, tmp_path):
     from talkmesh.datasets.synth import make_corpus
     from talkmesh.evaluation.benchmark import run_benchmark

@@ -154,6 +154,7 @@ def test_fitted_gradients_average_a_field_over_each_triangle():
     np.testing.assert_allclose(np.einsum("fxy,fy->fx", flat[0], edges), edges, atol=1e-9)
 
 
+@pytest.mark.slow  # minutes on 2 cores: `make test-slow`
 def test_landmarks_can_be_given_and_are_checked(head):
     v = 1000 * head.template.astype(np.float64)
     marks = head_landmarks(head)
@@ -291,6 +292,7 @@ def test_cli_rig_then_animate_as_avatar(tmp_path, capsys, monkeypatch):
     assert "bad.obj" in capsys.readouterr().err and not (tmp_path / "b.glb").exists()
 
 
+@pytest.mark.slow  # minutes on 2 cores: `make test-slow`
 def test_cli_rig_of_a_z_up_mesh_stands_up_in_gltf(tmp_path, capsys):
     """glTF is metres and +y up: the .glb of a Z-up millimetre head carries the turn and the unit
     as its root node, and keeps the user's vertices as they were."""
@@ -329,6 +331,7 @@ def test_cli_rig_of_a_z_up_mesh_stands_up_in_gltf(tmp_path, capsys):
 # --------------------------------------------------------------------------- dense meshes
 
 
+@pytest.mark.slow  # minutes on 2 cores: `make test-slow`
 def test_a_dense_mesh_is_registered_on_a_reduced_copy_and_carried_back(head, monkeypatch):
     """Over REDUCE_ABOVE vertices the registration runs on a decimated copy (its cost no longer
     grows with the mesh) and the shapes come back to every vertex, block by block: the bundled

@@ -77,6 +77,7 @@ def test_crops_depend_only_on_seed_epoch_index():
     assert crop_window(20, 30, 0, 0, 0) == (0, 20)
 
 
+@pytest.mark.slow  # minutes on 2 cores: `make test-slow`
 def test_resume_after_kill_continues_the_same_loss_curve(corpus, tmp_path):
     ref = tmp_path / "ref"
     proc = train_cli(*common(corpus, ref, 6))
