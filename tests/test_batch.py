@@ -333,3 +333,30 @@ def test_a_warning_in_a_batch_names_its_file(library, tmp_path, capsys):
             warnings.warn("x.wav: cut off", stacklevel=1)
             warnings.warn("no transcript", stacklevel=1)
     assert [str(w.message) for w in caught] == ["x.wav: cut off", "x.wav: no transcript"]
+
+
+def test_a_resume_with_nothing_to_do_loads_no_model(library, tmp_path):
+    """A rerun whose outputs are all there decides so before importing torch (or scipy) and
+    before loading the model: a no-op takes a moment, not the model's start-up. Run in a fresh
+    process, where nothing was imported before."""
+    (library / "bob" / "broken.wav").unlink()
+    out = tmp_path / "out"
+    for name in ("alice/a1", "alice/a2", "bob/b1"):
+        done = out / f"{name}.glb"
+        done.parent.mkdir(parents=True, exist_ok=True)
+        done.write_bytes(b"written by an earlier run")
+    pattern = f"{out}/{{stem}}.glb"
+    code = (
+        "import sys\n"
+        "from talkmesh.cli import main\n"
+        f"rc = main(['animate', {str(library)!r}, '-o', {pattern!r}, '-q'])\n"
+        "print(rc, 'torch' in sys.modules, 'scipy' in sys.modules)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code], env=dict(os.environ), capture_output=True, text=True
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == ["0", "False", "False"], res.stdout + res.stderr
+    rows = read_rows(out / "summary.csv")
+    assert {r["status"] for r in rows.values()} == {"skipped"} and len(rows) == 3
+    assert (out / "alice" / "a1.glb").read_bytes() == b"written by an earlier run"

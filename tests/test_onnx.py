@@ -62,6 +62,21 @@ def test_onnx_runtime_generates_what_pytorch_generates(exported, speech):
     assert torch.equal(torch.cat(chunks, 1), got)
 
 
+def test_animate_a_file_with_an_onnx_model(exported, speech):
+    """``animate`` on a file with an .onnx model (the path `talkmesh animate --model x.onnx`
+    takes): it hears the polyphase 16 kHz audio PyTorch hears, the same motion."""
+    from talkmesh.face.assets import plain_head
+    from talkmesh.pipeline import animate
+
+    model, path = exported
+    rng = np.random.default_rng(0)
+    head = plain_head(rng.normal(size=(model.num_vertices, 3)) * 0.1, np.array([[0, 1, 2]]), "t")
+    got = animate(str(CLIP), model=load_model(path), head=head, style_mix={"a": 1.0})
+    want = animate(str(CLIP), model=model, head=head, style_mix={"a": 1.0})
+    scale = np.abs(want.vertices - head.template).max()
+    assert scale > 0.01 and np.abs(got.vertices - want.vertices).max() <= TOLERANCE * scale
+
+
 def test_streams_batched_in_one_step_equal_each_alone(exported):
     model, path = exported
     onnx_model = OnnxModel(path)

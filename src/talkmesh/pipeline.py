@@ -63,12 +63,9 @@ def default_model() -> str:
 
 def available_models() -> list[str]:
     """``procedural`` plus the bundled learned models (``talkmesh/data/models/*.safetensors``)."""
-    from talkmesh.models.release import MODELS_DIR
+    from talkmesh.models.bundled import bundled_models
 
-    bundled = (
-        sorted(p.stem for p in MODELS_DIR.glob("*.safetensors")) if MODELS_DIR.is_dir() else []
-    )
-    return [*MODELS, *bundled]
+    return [*MODELS, *bundled_models()]
 
 
 def num_frames_for(num_samples: int, sr: int, fps: float) -> int:

@@ -331,6 +331,8 @@ def run_local(jobs: list[Job], settings: AnimateSettings, workers: int = 1) -> I
     loading it again.
     """
     global _PRELOADED
+    if not jobs:  # every file done: no model to load (a resumed batch's quick no-op)
+        return
     if workers <= 1 or len(jobs) <= 1:
         animator = Animator(settings)
         for job in jobs:
@@ -503,9 +505,9 @@ def check_settings(settings: AnimateSettings) -> None:
 
         load_rig(settings.head)
     if settings.model != "procedural":
-        from talkmesh.models.release import resolve
+        from talkmesh.models.bundled import resolve
 
-        resolve(settings.model)
+        resolve(settings.model)  # the file only: torch is imported by the workers that run it
 
 
 def face_for(settings):

@@ -10,8 +10,6 @@ every normal is unit length, as glTF requires.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.csgraph
 
 MIN_NORMAL_LENGTH = 1e-20  # summed cross products shorter than this have no direction: use +z
 FALLBACK_NORMAL = (0.0, 0.0, 1.0)  # +z: towards the viewer in the bundled head's frame
@@ -32,6 +30,8 @@ class VertexNormals:
     """
 
     def __init__(self, faces: np.ndarray, num_vertices: int, dtype=np.float32) -> None:
+        import scipy.sparse  # here, not above: a .glb export's vertex_normals needs no scipy
+
         faces = np.asarray(faces, dtype=np.int64)
         self.dtype = np.dtype(dtype)
         num_faces = len(faces)
@@ -94,6 +94,8 @@ def winding_sign(vertices: np.ndarray, faces: np.ndarray) -> int:
     Every connected part must enclose some volume with the same sign: a flat or inside-out part
     (a backdrop plane, a separately modelled eyeball) turns culling off.
     """
+    import scipy.sparse.csgraph
+
     faces = np.asarray(faces, dtype=np.int64)
     num_vertices = len(vertices)
     edges = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)

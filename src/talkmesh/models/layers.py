@@ -190,8 +190,9 @@ def folded_linear(
     if key is not None and cached is not None and cached[0] == key:
         return cached[1]
     with torch.inference_mode(False), torch.no_grad():
-        fold = nn.utils.skip_init(
-            nn.Linear,
+        # a plain Linear (its small random init overwritten), not nn.utils.skip_init, whose
+        # meta-device pass imports sympy: 0.8 s of a `talkmesh animate` run
+        fold = nn.Linear(
             inner.in_features,
             outer.out_features,
             device=inner.weight.device,

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from talkmesh.audio.resamplers import POLYPHASE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.models.base import CHUNK_FRAMES, frames_for_audio
 from talkmesh.models.frames import fit_sample_frames
@@ -127,6 +128,7 @@ class OnnxModel:
     """
 
     family = "onnx"
+    resampler = POLYPHASE  # an export of talkmesh's own models, which hear polyphase audio
 
     def __init__(self, path: str | Path, threads: int | None = None) -> None:
         try:

@@ -19,11 +19,12 @@ import torch
 from talkmesh.config import from_dict, to_dict
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.models.base import MotionModel
+from talkmesh.models.bundled import MODELS_DIR, resolve
 from talkmesh.models.registry import FAMILIES
 
 FORMAT_VERSION = 1
 MAX_CONFIG_CHARS = 1_000_000  # a config is a few kB of JSON; more is not one talkmesh wrote
-MODELS_DIR = Path(__file__).resolve().parents[1] / "data" / "models"
+__all__ = ["MODELS_DIR", "load_model", "resolve", "save_model"]
 
 
 def save_model(model: MotionModel, path: str | Path, *, dtype: torch.dtype | None = None) -> Path:
@@ -51,20 +52,6 @@ def save_model(model: MotionModel, path: str | Path, *, dtype: torch.dtype | Non
     save_file(state, str(tmp), metadata=meta)
     tmp.replace(path)
     return path
-
-
-def resolve(name_or_path: str | Path) -> Path:
-    path = Path(name_or_path)
-    if path.is_file():
-        return path
-    bundled = MODELS_DIR / f"{name_or_path}.safetensors"
-    if bundled.is_file():
-        return bundled
-    names = sorted(p.stem for p in MODELS_DIR.glob("*.safetensors")) if MODELS_DIR.is_dir() else []
-    raise TalkmeshError(
-        f"model '{name_or_path}' is neither a file nor a bundled model"
-        + (f" ({', '.join(names)})" if names else "")
-    )
 
 
 def load_model(

@@ -13,6 +13,8 @@ GLB_MAX_ERROR = 1e-4  # metres: PCA morph targets reproduce every vertex to 0.1 
 MAX_PCA_TARGETS = 64  # ... using at most this many targets
 PCA_TOLERANCE = GLB_MAX_ERROR / 2  # headroom for rounding the targets to float32
 EXACT_SVD_LIMIT = 512  # above this many frames and coordinates, use a randomised SVD
+GRAM_COLUMNS = 65536  # coordinates upcast to float64 at a time for the Gram matrix
+MIN_SINGULAR = 1e-7  # of the largest singular value: smaller directions are lost to rounding
 
 
 @dataclass
@@ -187,8 +189,7 @@ def principal_components(
 def _row_space(data: np.ndarray, max_components: int) -> np.ndarray:
     """(T, D) -> (D, R) orthonormal basis of the top R <= max_components right singular vectors."""
     if min(data.shape) <= EXACT_SVD_LIMIT:
-        _, _, vt = np.linalg.svd(data, full_matrices=False)
-        return vt[:max_components].T
+        return _row_space_gram(data, max_components)
     # Randomised SVD with power iterations (Halko et al. 2011, Alg. 4.4); the caller measures the
     # reconstruction error itself, so an approximate subspace only costs extra components.
     # Small factors take the data's dtype: mixing float32 data with float64 factors would make
@@ -205,3 +206,41 @@ def _row_space(data: np.ndarray, max_components: int) -> np.ndarray:
         q = orth(data.T @ orth(data @ q))
     _, _, vt = np.linalg.svd(data @ q, full_matrices=False)
     return (q @ vt.T.astype(dt))[:, :max_components]
+
+
+def _row_space_gram(data: np.ndarray, max_components: int) -> np.ndarray:
+    """:func:`_row_space` through the eigenvectors of the small Gram matrix (T x T for T frames
+    of D coordinates, or D x D), in float64: the SVD's singular subspaces at a fraction of its
+    cost (8.3 s of the bundled head's motion, 249 x 14298: 0.1 s instead of 1-4 s). Directions
+    whose singular value is below ``MIN_SINGULAR`` of the largest are dropped (the Gram matrix
+    squares the spread, so rounding decides them); the caller measures the reconstruction
+    error, so the basis needs to be orthonormal, not exactly the SVD's."""
+    num_t, dim = data.shape
+    if num_t <= dim:
+        gram = np.zeros((num_t, num_t))
+        for a in range(0, dim, GRAM_COLUMNS):
+            block = data[:, a : a + GRAM_COLUMNS].astype(np.float64)
+            gram += block @ block.T
+    else:
+        gram = np.zeros((dim, dim))
+        for a in range(0, num_t, GRAM_COLUMNS):
+            block = data[a : a + GRAM_COLUMNS].astype(np.float64)
+            gram += block.T @ block
+    values, vectors = np.linalg.eigh(gram)  # ascending
+    order = np.argsort(values)[::-1][:max_components]
+    values, vectors = np.maximum(values[order], 0.0), vectors[:, order]
+    keep = values > (MIN_SINGULAR**2) * max(float(values[0]), np.finfo(float).tiny)
+    values, vectors = values[keep], vectors[:, keep]
+    if not len(values):  # no motion at all: any unit direction reproduces it
+        basis = np.zeros((dim, 1))
+        basis[0] = 1.0
+        return basis
+    if num_t > dim:
+        return vectors
+    # right singular vectors v = X^T u / s, orthonormalised again (QR keeps their order)
+    right = np.empty((dim, len(values)))
+    for a in range(0, dim, GRAM_COLUMNS):
+        right[a : a + GRAM_COLUMNS] = data[:, a : a + GRAM_COLUMNS].astype(np.float64).T @ vectors
+    right /= np.sqrt(values)
+    q, r = np.linalg.qr(right)
+    return q * np.sign(np.diag(r))  # QR's signs flipped back to the vectors' own
