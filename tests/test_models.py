@@ -157,3 +157,21 @@ def test_attention_bias_rows_are_aligned_for_cuda_kernels():
     )
     assert aligned_mask(row) is row  # the CPU kernels read any layout
     assert aligned_mask(None) is None
+
+
+def test_no_random_init_leaves_the_draws_out_and_puts_them_back():
+    """load_model builds a model without torch.nn.init's random draws (its weights are loaded
+    next, strict): inside, a fresh tensor is not drawn; after, even on an error, the draws are
+    torch's own again."""
+    from torch import nn
+
+    from talkmesh.models.release import RANDOM_INITS, no_random_init
+
+    before = {name: getattr(nn.init, name) for name in RANDOM_INITS}
+    with pytest.raises(RuntimeError, match="in the middle"):
+        with no_random_init():
+            zeros = torch.zeros(64)
+            assert nn.init.uniform_(zeros, 1.0, 2.0) is zeros and not zeros.any()
+            raise RuntimeError("in the middle")
+    assert {name: getattr(nn.init, name) for name in RANDOM_INITS} == before
+    assert nn.init.uniform_(torch.zeros(64), 1.0, 2.0).min() >= 1.0
