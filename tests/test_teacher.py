@@ -128,3 +128,27 @@ def test_sampa_of_any_voice_maps_to_the_animator_labels(symbol, label):
 
 def test_an_unknown_symbol_is_speech_not_silence():
     assert sampa_label("QQQ") not in (SILENCE, "")
+
+
+def test_bounded_lstsq_finds_what_scipy_finds():
+    """The closure's bounded least squares (talkmesh's own, to spare importing scipy.optimize)
+    reaches the minimum scipy's BVLS reaches, on boxes that bind and boxes that do not."""
+    from scipy.optimize import lsq_linear
+
+    from talkmesh.face.teacher import bounded_lstsq
+
+    rng = np.random.default_rng(1)
+    bound_somewhere = 0
+    for k in range(300):
+        n = int(rng.integers(1, 9))
+        a = rng.standard_normal((n + int(rng.integers(0, 5)), n)) * 10 ** rng.uniform(-3, 1)
+        b = rng.standard_normal(len(a))
+        lo, hi = -rng.uniform(0, 1, n) * (k % 3 > 0), rng.uniform(0, 1, n)
+        x = bounded_lstsq(a, b, lo, hi)
+        want = lsq_linear(a, b, bounds=(lo, hi), method="bvls", tol=1e-14).x
+        assert np.all(x >= lo) and np.all(x <= hi)
+        cost, best = np.sum((a @ x - b) ** 2), np.sum((a @ want - b) ** 2)
+        assert cost <= best * (1 + 1e-9) + 1e-24
+        np.testing.assert_allclose(x, want, atol=1e-7)
+        bound_somewhere += bool(np.any((x == lo) | (x == hi)))
+    assert 50 < bound_somewhere < 300  # both kinds of problem were met

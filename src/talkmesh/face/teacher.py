@@ -155,8 +155,6 @@ def close_lips(
 ) -> np.ndarray:
     """Rule 3, in place: lips within :data:`CLOSURE_MM` through every /p b m/. Returns the (n,)
     bool mask of the closure frames."""
-    from scipy.optimize import lsq_linear
-
     n = len(weights)
     g0, D = lip_gap_model(head)
     cols = np.array([INDEX[c] for c in CLOSURE_CHANNELS])
@@ -181,7 +179,7 @@ def close_lips(
             # min |gap + d @ Dc|^2 + reg |d|^2, with 0 <= w + d <= 1
             A = np.vstack([Dc.T, np.sqrt(reg) * np.eye(len(cols))])
             b = np.concatenate([-gap, np.zeros(len(cols))])
-            d = lsq_linear(A, b, bounds=(-w, 1 - w)).x
+            d = bounded_lstsq(A, b, -w, 1 - w)
             if np.linalg.norm(gap + d @ Dc) <= target:
                 break
         delta[t] = d
@@ -226,3 +224,47 @@ def teach(
     weights[:, MOUTH_CHANNELS] *= gate[:, None].astype(weights.dtype)
     close_lips(weights, phones, fps, head)
     return weights
+
+
+def bounded_lstsq(
+    a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_steps: int = 200
+) -> np.ndarray:
+    """min |a @ x - b|^2 subject to lo <= x <= hi, for a few variables: (M, N) ``a`` of full
+    column rank, (M,) ``b``, (N,) bounds -> (N,) x, exact to rounding.
+
+    An active-set method (Lawson and Hanson's NNLS with two bounds a variable, as BVLS does):
+    the free variables are solved by least squares with the others at their bounds, moving no
+    further than the first bound met; a bound whose gradient pulls the solution inwards frees its
+    variable. Used instead of ``scipy.optimize.lsq_linear``, whose package takes longer to import
+    (0.3-1.4 s) than every solve of a run together; ``tests/test_teacher.py`` checks it against it.
+    """
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    x = np.clip(np.linalg.lstsq(a, b, rcond=None)[0], lo, hi)
+    free = (x > lo) & (x < hi)
+    tol = 1e-12 * max(1.0, float(np.abs(a.T @ b).max()))
+    for _ in range(max_steps):
+        while free.any():  # the free variables' least squares, as far as the box allows
+            rest = b - a[:, ~free] @ x[~free]
+            z = np.linalg.lstsq(a[:, free], rest, rcond=None)[0]
+            low, high = z < lo[free], z > hi[free]
+            if not (low.any() or high.any()):
+                x[free] = z
+                break
+            start, move = x[free], z - x[free]
+            bound = np.where(low, lo[free], hi[free])
+            out = low | high
+            step = np.ones_like(z)
+            step[out] = (bound[out] - start[out]) / move[out]
+            k = int(np.argmin(step))
+            x[free] = start + step[k] * move
+            index = np.flatnonzero(free)[k]
+            x[index] = lo[index] if low[k] else hi[index]  # exactly on the bound it met
+            free[index] = False
+        grad = a.T @ (a @ x - b)
+        # at a lower bound the cost must not fall inwards (grad >= 0), at an upper one (grad <= 0)
+        pull = np.where(~free & (x <= lo), -grad, 0.0) + np.where(~free & (x >= hi), grad, 0.0)
+        if pull.max(initial=0.0) <= tol:
+            return x
+        free[int(np.argmax(pull))] = True
+    return x
