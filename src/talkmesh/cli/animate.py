@@ -229,8 +229,6 @@ def add_batch_options(a: argparse.ArgumentParser) -> None:
 def cmd_animate(args: argparse.Namespace) -> int:
     """Folders and lists are a library: files whose outputs exist are skipped (the run resumes)
     and a summary CSV is written; files named one by one refuse existing outputs as before."""
-    from tqdm import tqdm
-
     from talkmesh.batch import animate_batch, find_inputs, is_batch_source, write_summary
     from talkmesh.batch.summary import read_summary, with_earlier
     from talkmesh.heap import fix_mmap_threshold
@@ -274,15 +272,16 @@ def cmd_animate(args: argparse.Namespace) -> int:
     if avatar is not None:
         check_avatar(avatar, outputs, args.quiet)
     _face(args, style_mix, outputs, avatar)  # what cannot work fails before any run
+    bar, say = progress(len(inputs), args.quiet)
     written = {str(a): paths for a, paths in zip(inputs, outputs)}
-    bar = tqdm(total=len(inputs), unit="file", disable=args.quiet or len(inputs) < 2)
 
     def on_row(row) -> None:
-        bar.update()
+        if bar is not None:
+            bar.update()
         if row.status == "ok" and not args.quiet:
             names = ", ".join(output_name(p, row.frames) for p in written[row.file])
             note = f"; {row.note}" if row.note else ""
-            tqdm.write(f"wrote {names} ({row.frames} frames, {row.duration:.2f} s{note})")
+            say(f"wrote {names} ({row.frames} frames, {row.duration:.2f} s{note})")
 
     try:
         with exit_on_sigterm():  # `timeout`, systemd, `docker stop`: the workers stop too
@@ -295,7 +294,8 @@ def cmd_animate(args: argparse.Namespace) -> int:
                 on_row=on_row,
             )
     finally:
-        bar.close()
+        if bar is not None:
+            bar.close()
     if summary is not None:
         write_summary(summary, with_earlier(result.rows, read_summary(summary)))
     return report_batch(result, summary, args.quiet)
@@ -313,6 +313,16 @@ def check_avatar(avatar: Path, outputs: list[list[Path]], quiet: bool) -> None:
         load_scene(gltf, binary, str(avatar))
     if not quiet:
         print(f"avatar {avatar}: {binding.summary()}")
+
+
+def progress(files: int, quiet: bool):
+    """A progress bar over ``files`` (None for one file or ``quiet``) and how to print a line
+    beside it; tqdm is imported only when there is a bar to show."""
+    if quiet or files < 2:
+        return None, print
+    from tqdm import tqdm
+
+    return tqdm(total=files, unit="file"), tqdm.write
 
 
 @contextmanager
