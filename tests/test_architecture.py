@@ -21,6 +21,7 @@ LEVELS: dict[str, int] = {
     "constants": 0,
     "version": 0,
     "heap": 0,
+    "blas": 0,
     "safe_load": 1,
     "config": 1,
     "animation": 1,

@@ -11,11 +11,11 @@ adds nine head and eye rotations (61 values per row, its ``BlendShapeCount``).
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 
 import numpy as np
 
+from talkmesh.blas import one_blas_thread
 from talkmesh.errors import TalkmeshError
 
 # fmt: skip keeps one line per face region, as Apple lists them.
@@ -156,17 +156,3 @@ class WeightFitter:
             for _ in range(self.iterations):
                 w = np.clip(w - self.step * (w @ self.gram - proj), 0.0, 1.0)
         return w.astype(np.float32)
-
-
-@contextmanager
-def one_blas_thread() -> Iterator[None]:
-    """numpy's BLAS on one thread for the body: a loop of small products (the fit's 200 steps
-    of (T, 52) @ (52, 52)), where a team of threads meets after every product. With the cores
-    busy (other processes) the team made the fit of 8 s of motion take 4 s instead of 0.1 s."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # a dependency, but the fit works without it
-        yield
-        return
-    with threadpool_limits(1, user_api="blas"):
-        yield

@@ -3,11 +3,13 @@ animation within ``GLB_MAX_ERROR``; the .glb exporter writes them as glTF morph 
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
 
 from talkmesh.animation import Animation
+from talkmesh.blas import one_blas_thread
 
 GLB_MAX_ERROR = 1e-4  # metres: PCA morph targets reproduce every vertex to 0.1 mm ...
 MAX_PCA_TARGETS = 64  # ... using at most this many targets
@@ -120,13 +122,8 @@ def morph_rig(anim: Animation) -> MorphRig:
 
         names, targets, weights, rest = [], [], [], []
         prefix = "pca"
-    # Long animations (10 min is 1 GB of float32 vertices) are checked in blocks of frames; the
-    # full residual is only built when principal components are really needed.
-    needs_pca = not has_basis or _max_over_blocks(residual_block, anim.num_frames) >= PCA_TOLERANCE
-    if needs_pca:
-        residual = np.empty((anim.num_frames, num_v, 3), np.float32)  # float32: 10 min is 1 GB
-        for s in range(0, anim.num_frames, BLOCK_FRAMES):
-            residual[s : s + BLOCK_FRAMES] = residual_block(slice(s, s + BLOCK_FRAMES))
+    residual = _residual(residual_block, anim.num_frames, checked=has_basis)
+    if residual is not None:
         components, coeffs = principal_components(residual, MAX_PCA_TARGETS, PCA_TOLERANCE)
         # Blender clamps shape-key values to [slider_min, slider_max] (0..1 by default) and its
         # glTF importer widens that range from the first keyframe only, so keep weights in [0, 1]:
@@ -150,6 +147,26 @@ def morph_rig(anim: Animation) -> MorphRig:
     )
 
 
+def _residual(block, num_frames: int, checked: bool) -> np.ndarray | None:
+    """(T, V, 3) float32 residual that ``block(slice)`` gives a block of frames at a time; with
+    ``checked``, None when it stays under PCA_TOLERANCE (no PCA targets needed). Long animations
+    (10 min is 1 GB of float32 vertices) are checked in blocks and the whole residual is built
+    only when needed; a clip of one block is computed once and kept."""
+    if num_frames <= BLOCK_FRAMES:
+        whole = block(slice(0, num_frames))
+        if checked and float(np.abs(whole).max()) < PCA_TOLERANCE:
+            return None
+        return whole.astype(np.float32)
+    if checked and _max_over_blocks(block, num_frames) < PCA_TOLERANCE:
+        return None
+    first = block(slice(0, BLOCK_FRAMES))
+    residual = np.empty((num_frames, *first.shape[1:]), np.float32)  # float32: 10 min is 1 GB
+    residual[:BLOCK_FRAMES] = first
+    for s in range(BLOCK_FRAMES, num_frames, BLOCK_FRAMES):
+        residual[s : s + BLOCK_FRAMES] = block(slice(s, s + BLOCK_FRAMES))
+    return residual
+
+
 def principal_components(
     offsets: np.ndarray, max_components: int, tolerance: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -163,14 +180,27 @@ def principal_components(
     data = offsets.reshape(num_t, -1)  # float32 stays float32 (no 2 GB copy for 10 minutes)
     if data.dtype not in (np.float32, np.float64):
         data = data.astype(np.float64)
+    # a short clip's medium products on one thread (talkmesh.blas); long ones keep the team
+    small = min(data.shape) <= EXACT_SVD_LIMIT
+    with one_blas_thread() if small else nullcontext():
+        return _fewest_components(data, num_v, max_components, tolerance)
+
+
+def _fewest_components(
+    data: np.ndarray, num_v: int, max_components: int, tolerance: float
+) -> tuple[np.ndarray, np.ndarray]:
+    num_t = len(data)
     basis = _row_space(data, max_components)  # (3V, R), most important first
     coeffs = data @ basis.astype(data.dtype, copy=False)
+    # the check in the data's precision: float32 rounds a reconstruction by ~1e-7 of the
+    # offsets, far under the tolerance, at half the memory traffic of float64
+    check = basis.astype(data.dtype, copy=False)
 
     def max_error(k: int) -> float:
         err = 0.0
         for start in range(0, num_t, 256):  # in blocks of frames to bound memory
             block = slice(start, start + 256)
-            approx = coeffs[block, :k] @ basis[:, :k].T
+            approx = coeffs[block, :k] @ check[:, :k].T
             err = max(err, float(np.abs(data[block] - approx).max()))
         return err
 
