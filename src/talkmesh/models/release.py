@@ -109,9 +109,11 @@ def load_model(
         raise TalkmeshError(f"{path}: a malformed talkmesh model release (its config)")
     with no_random_init():  # strict=True below replaces every parameter the init would draw
         model = cls(from_dict(cls.config_class, stored))
-    # assign: the file's tensors become the parameters (no second copy of every weight)
+    # assign: the loaded tensors become the parameters, with no random init before them. Each is
+    # a fresh copy (copy=True; the conversion itself for float16 files), not a view into the
+    # file's buffer, whose alignment changed the last bits of some models' products
     model.load_state_dict(
-        {k: v.to(dtype) if v.is_floating_point() else v for k, v in state.items()},
+        {k: v.to(dtype if v.is_floating_point() else v.dtype, copy=True) for k, v in state.items()},
         strict=True,
         assign=True,
     )
