@@ -26,12 +26,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from avatars import head_avatar, make_avatar  # noqa: E402
 
+from talkmesh.blas import one_blas_thread  # noqa: E402
 from talkmesh.output.avatar import glb_bytes, read_glb, talking_scene  # noqa: E402
-from talkmesh.output.render import (  # noqa: E402
-    avatar_renderer,
-    one_blas_thread,
-    render_avatar_video,
-)
+from talkmesh.output.render import avatar_renderer, render_avatar_video  # noqa: E402
 
 FPS = 30.0
 

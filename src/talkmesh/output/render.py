@@ -12,7 +12,6 @@ so the face fills the image.
 
 from __future__ import annotations
 
-import contextlib
 import os
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
@@ -21,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from talkmesh.animation import Animation
+from talkmesh.blas import one_blas_thread  # posing: many small products (talkmesh.blas)
 from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.geometry import winding_sign
@@ -141,17 +141,6 @@ def avatar_renderer(
         camera=camera,
         focus=scene.focus,
     )
-
-
-def one_blas_thread():
-    """numpy's BLAS on one thread (threadpoolctl, where installed): posing a frame is many small
-    products, which a team of threads slows down when other processes hold the cores (the bundled
-    head's 52 shapes: 1.3 ms a frame on one thread, 3.0 ms on two, on a busy 2-core machine)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        return contextlib.nullcontext()
-    return threadpool_limits(1)
 
 
 def render_avatar_video(

@@ -28,12 +28,15 @@ import json
 import os
 import struct
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse
 
 from talkmesh.errors import TalkmeshError
 from talkmesh.output.avatar_head import head_node
+
+if TYPE_CHECKING:
+    import scipy.sparse
 
 MAX_JSON_BYTES = 256 * 2**20  # a glTF JSON chunk larger than this is not read to classify the file
 MAX_ZEROS = 2**26  # values an accessor without a buffer view may stand for (sparse bases)
@@ -311,6 +314,8 @@ class AvatarScene:
                 num_joints = len(self._skins[skin][0])
                 if prim.joints.max(initial=0) >= num_joints:
                     raise ValueError(f"mesh {m} names a joint its skin does not have")
+                import scipy.sparse  # here: animate's output checks import this module
+
                 rows = np.repeat(np.arange(len(positions)), prim.joints.shape[1])
                 prim.skinning = scipy.sparse.csr_matrix(
                     (prim.weights.ravel(), (rows, prim.joints.ravel())),
