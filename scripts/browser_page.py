@@ -5,7 +5,7 @@
 
 ``page.js`` (web/browser/main.js bundled by esbuild with three.js and onnxruntime-web from
 node_modules: `npm ci` first), onnxruntime-web's WebAssembly files (the plain build, and the
-asyncify build that onnxruntime-web's WebGPU bundle loads, for WebGPU and WebAssembly alike), the model's ONNX graphs
+asyncify build that its WebGPU bundle loads where WebGPU can run), the model's ONNX graphs
 (``ct.onnx``, ``ct.speech.onnx``: ``talkmesh export-onnx``), the bundled head (``head.glb``) and
 ``model.json`` (frame rate, mel bins, feature width, the mean style vector, the state's shapes).
 """
@@ -21,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "web" / "browser"
 NODE = ROOT / "node_modules"
-WASM = tuple(f"ort-wasm-simd-threaded{v}.{e}" for v in (".asyncify",) for e in ("wasm", "mjs"))
+WASM = tuple(f"ort-wasm-simd-threaded{v}.{e}" for v in ("", ".asyncify") for e in ("wasm", "mjs"))
 
 
 def build(out: Path, model: str = "codetalker-synth") -> Path:
