@@ -281,3 +281,21 @@ def test_page_refuses_a_non_avatar_file_and_a_refused_microphone_in_one_line(
     assert avatar_error.startswith("face.glb: not a glTF binary") and avatar is None, lines
     assert mic_error.startswith("the microphone was refused") and mic is None, lines
     assert status == mic_error and all("\n" not in e for e, _ in lines) and not errors
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("version", ["0.x", "1.0"])
+def test_page_drives_a_vroid_model_through_its_vrm_presets(
+    site, speech_then_pause, tmp_path, version
+):
+    """A VRoid-like .vrm (no ARKit or viseme target names; tests/test_visemes.py's ``vroid``):
+    the page drives its expression presets through three-vrm, and the head's target that the aa
+    preset binds opens and closes with the speech."""
+    from test_visemes import vroid
+
+    _, url = site
+    result = run_page(url, speech_then_pause, avatar=vroid(tmp_path, version))
+    assert result["error"] is None and not result["errors"], (result["error"], result["errors"])
+    assert {"aa", "ih", "ou", "ee", "oh"} <= set(result["avatar"]["presets"]), result["avatar"]
+    seen = [next(iter(frame.values())) for frame in result["opening"]]
+    assert len(seen) > 60 and max(seen) - min(seen) > 0.1, seen

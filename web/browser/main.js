@@ -17,6 +17,7 @@ import { addCapture, microphone, openCapture } from "../viewer/capture.js";
 import { WeightFitter } from "./fit.js";
 import { SAMPLE_RATE } from "./logmel.js";
 import { Model, Streamer, openSessions } from "./model.js";
+import { VrmPresets, parseAvatar } from "./vrm.js";
 
 const CHUNK_SAMPLES = SAMPLE_RATE / 50; // 20 ms from the microphone
 const $ = (id) => document.getElementById(id);
@@ -69,7 +70,7 @@ function showScene(object) {
 function show(motion) {
   if (rig) {
     rig.apply(fitter.fit(motion));
-    page.opening.push(opening());
+    page.opening.push(rig.opening ? rig.opening() : opening());
     return;
   }
   const pos = head.geometry.attributes.position;
@@ -220,17 +221,27 @@ async function loadAvatar(file) {
   if (!/\.(glb|vrm)$/i.test(file.name)) throw new Error(`${file.name}: choose a .glb or .vrm avatar`);
   let gltf;
   try {
-    gltf = await new GLTFLoader().parseAsync(await file.arrayBuffer(), "");
+    gltf = await parseAvatar(await file.arrayBuffer());
   } catch (e) {
     throw new Error(`${file.name}: not a glTF binary three.js can read (${String(e.message || e).split("\n")[0]})`);
   }
   const candidate = new AvatarRig(gltf);
-  if (!candidate.driven.length) throw new Error(`${file.name} has no morph targets with ARKit names or visemes`);
-  rig = candidate;
+  const mouth = candidate.binding.channels.includes("jawOpen") || candidate.binding.visemes.length;
+  const presets = mouth ? null : VrmPresets.of(gltf); // a VRoid model: its expression presets
+  if (!candidate.driven.length && !presets) {
+    throw new Error(`${file.name} has no morph targets with ARKit names or visemes, nor VRM mouth presets`);
+  }
+  rig = presets || candidate;
   showScene(gltf.scene);
-  page.avatar = { name: file.name, meshes: rig.driven.map((m) => m.userData.talkmeshName), channels: rig.binding.channels };
+  page.avatar = {
+    name: file.name,
+    meshes: candidate.driven.map((m) => m.userData.talkmeshName),
+    channels: candidate.binding.channels,
+    presets: presets ? presets.names : [],
+  };
   page.opening = [];
-  say(`${file.name}: ${rig.binding.channels.length} ARKit channels driven`);
+  const what = presets ? `VRM presets ${presets.names.join(", ")}` : `${candidate.binding.channels.length} ARKit channels`;
+  say(`${file.name}: ${what} driven`);
 }
 
 const guard = (f) => (...args) => f(...args).catch(fail); // prettier-ignore
