@@ -124,10 +124,18 @@ async function decode(context, file) {
   return { decoded, audio };
 }
 
+let fileContext = null; // the last file's, closed when another file or the microphone starts
+
+function stopFile() {
+  if (fileContext) fileContext.close();
+  fileContext = null;
+}
+
 async function playFile(file) {
   stopMic();
+  stopFile();
   page.done = false;
-  const context = new AudioContext({ sampleRate: SAMPLE_RATE });
+  const context = (fileContext = new AudioContext({ sampleRate: SAMPLE_RATE }));
   const { decoded, audio } = await decode(context, file);
   const frames = Math.max(1, Math.round((audio.length / SAMPLE_RATE) * model.info.fps));
   say(`animating ${frames} frames`);
@@ -162,6 +170,7 @@ let mic = null;
 
 async function startMic() {
   stopMic();
+  stopFile();
   const context = new AudioContext({ sampleRate: SAMPLE_RATE, latencyHint: "interactive" });
   let stream;
   try {
