@@ -289,8 +289,8 @@ def test_page_drives_a_vroid_model_through_its_vrm_presets(
     site, speech_then_pause, tmp_path, version
 ):
     """A VRoid-like .vrm (no ARKit or viseme target names; tests/test_visemes.py's ``vroid``):
-    the page drives its expression presets through three-vrm, and the head's target that the aa
-    preset binds opens and closes with the speech."""
+    the page drives its expression presets through the targets its extension binds, as the
+    viewer does, and the head's target that the aa preset binds opens and closes with the speech."""
     from test_visemes import vroid
 
     _, url = site

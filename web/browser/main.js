@@ -17,7 +17,6 @@ import { addCapture, microphone, openCapture } from "../viewer/capture.js";
 import { WeightFitter } from "./fit.js";
 import { SAMPLE_RATE } from "./logmel.js";
 import { Model, Streamer, openSessions } from "./model.js";
-import { VrmPresets, parseAvatar } from "./vrm.js";
 
 const CHUNK_SAMPLES = SAMPLE_RATE / 50; // 20 ms from the microphone
 const $ = (id) => document.getElementById(id);
@@ -70,23 +69,12 @@ function showScene(object) {
 function show(motion) {
   if (rig) {
     rig.apply(fitter.fit(motion));
-    page.opening.push(rig.opening ? rig.opening() : opening());
+    page.opening.push(rig.opening());
     return;
   }
   const pos = head.geometry.attributes.position;
   for (let i = 0; i < motion.length; i++) pos.array[i] = base[i] + motion[i];
   pos.needsUpdate = true;
-}
-
-// Each driven avatar mesh's first jaw-open (or viseme aa) influence.
-function opening() {
-  const out = {};
-  for (const mesh of rig.driven) {
-    const d = mesh.morphTargetDictionary;
-    const name = Object.keys(d).find((n) => /jaw.?open|viseme_aa/i.test(n));
-    if (name !== undefined) out[mesh.userData.talkmeshName] = mesh.morphTargetInfluences[d[name]];
-  }
-  return out;
 }
 
 async function setup() {
@@ -230,26 +218,25 @@ async function loadAvatar(file) {
   if (!/\.(glb|vrm)$/i.test(file.name)) throw new Error(`${file.name}: choose a .glb or .vrm avatar`);
   let gltf;
   try {
-    gltf = await parseAvatar(await file.arrayBuffer());
+    gltf = await new GLTFLoader().parseAsync(await file.arrayBuffer(), "");
   } catch (e) {
     throw new Error(`${file.name}: not a glTF binary three.js can read (${String(e.message || e).split("\n")[0]})`);
   }
   const candidate = new AvatarRig(gltf);
-  const mouth = candidate.binding.channels.includes("jawOpen") || candidate.binding.visemes.length;
-  const presets = mouth ? null : VrmPresets.of(gltf); // a VRoid model: its expression presets
-  if (!candidate.driven.length && !presets) {
-    throw new Error(`${file.name} has no morph targets with ARKit names or visemes, nor VRM mouth presets`);
+  const { binding } = candidate;
+  if (!candidate.driven.length) {
+    throw new Error(`${file.name} has no morph targets with ARKit names, visemes or VRM mouth presets`);
   }
-  rig = presets || candidate;
+  rig = candidate;
   showScene(gltf.scene);
   page.avatar = {
     name: file.name,
     meshes: candidate.driven.map((m) => m.userData.talkmeshName),
-    channels: candidate.binding.channels,
-    presets: presets ? presets.names : [],
+    channels: binding.channels,
+    presets: binding.expressions,
   };
   page.opening = [];
-  const what = presets ? `VRM presets ${presets.names.join(", ")}` : `${candidate.binding.channels.length} ARKit channels`;
+  const what = binding.expressions.length ? `VRM ${binding.vrm} presets ${binding.expressions.join(" ")}` : `${binding.channels.length} ARKit channels`;
   say(`${file.name}: ${what} driven`);
 }
 
