@@ -4,7 +4,8 @@
     python -m http.server -d OUT 8080     # then open http://127.0.0.1:8080/
 
 ``page.js`` (web/browser/main.js bundled by esbuild with three.js and onnxruntime-web from
-node_modules: `npm ci` first), onnxruntime-web's WebAssembly files, the model's ONNX graphs
+node_modules: `npm ci` first), onnxruntime-web's WebAssembly files (the plain build, and the
+asyncify build that its WebGPU bundle loads where WebGPU can run), the model's ONNX graphs
 (``ct.onnx``, ``ct.speech.onnx``: ``talkmesh export-onnx``), the bundled head (``head.glb``) and
 ``model.json`` (frame rate, mel bins, feature width, the mean style vector, the state's shapes).
 """
@@ -20,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "web" / "browser"
 NODE = ROOT / "node_modules"
-WASM = ("ort-wasm-simd-threaded.wasm", "ort-wasm-simd-threaded.mjs")
+WASM = tuple(f"ort-wasm-simd-threaded{v}.{e}" for v in ("", ".asyncify") for e in ("wasm", "mjs"))
 
 
 def build(out: Path, model: str = "codetalker-synth") -> Path:

@@ -5,12 +5,14 @@
 //   const client = new TalkmeshClient("ws://127.0.0.1:8000/ws/stream");
 //   client.attach(gltf.scene);                // or vrm.scene
 //   await client.playAudio(audioBuffer);      // an AudioBuffer: plays it and animates in step
+//   await client.streamMicrophone();          // or the microphone, live, until stopMicrophone()
 //   client.update();                          // every animation frame
 //
 // The protocol (docs/guide/streaming.md): 16 kHz mono int16 PCM in binary messages, then
 // {"type": "end"}; the server answers a hello, one "TMF1" binary message per frame and an end.
 
 import { ARKIT_NAMES, bindAvatar } from "../viewer/arkit_names.js";
+import { addCapture, microphone, openCapture } from "../viewer/capture.js";
 
 export const SAMPLE_RATE = 16000;
 const CHUNK_SAMPLES = SAMPLE_RATE / 10; // 100 ms per message
@@ -94,14 +96,75 @@ export class TalkmeshClient {
   // Play `buffer` (an AudioBuffer) and stream it to the server: the frames are shown as the
   // audio reaches their time. Resolves with the number of frames once the server has ended.
   async playAudio(buffer) {
+    this.live = false;
     const pcm = await toPcm16(buffer);
+    return this._stream((ws) => {
+      for (let i = 0; i < pcm.length; i += CHUNK_SAMPLES) ws.send(pcm.slice(i, i + CHUNK_SAMPLES).buffer);
+      ws.send(JSON.stringify({ type: "end" }));
+      const source = this.context.createBufferSource();
+      source.buffer = buffer;
+      source.connect(this.context.destination);
+      this.start = this.context.currentTime + 0.05; // a frame's time is from here
+      source.start(this.start);
+      source.onended = () => { this.playing = false; }; // prettier-ignore
+      this.playing = true;
+    });
+  }
+
+  // Stream the microphone (resampled to 16 kHz in an AudioWorklet) until stopMicrophone(); each
+  // frame is shown as soon as it arrives. Resolves with the number of frames once the server has
+  // ended; a refused or missing microphone rejects with a one-line Error.
+  async streamMicrophone() {
+    await this.context.resume();
+    const stream = await microphone();
+    await addCapture(this.context, SAMPLE_RATE, CHUNK_SAMPLES);
+    const source = this.context.createMediaStreamSource(stream);
+    this.live = true;
+    this.latencies = []; // ms from sending a frame's audio to receiving the frame
+    this.sent = []; // [samples sent so far, performance.now()]
+    let samples = 0;
+    let capture = null;
+    const stop = () => {
+      stream.getTracks().forEach((t) => t.stop());
+      if (capture) capture.close();
+    };
+    this.stopMicrophone = () => {
+      if (capture) capture.node.port.postMessage("finish"); // what it holds, then "end"
+      else stop();
+    };
+    try {
+      return await this._stream((ws) => {
+        capture = openCapture(
+          this.context,
+          source,
+          (chunk) => {
+            if (ws.readyState !== WebSocket.OPEN) return;
+            ws.send(chunk);
+            samples += chunk.byteLength / 2;
+            this.sent.push([samples, performance.now()]);
+          },
+          () => {
+            if (ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify({ type: "end" }));
+            stop();
+          },
+        );
+      });
+    } finally {
+      stop();
+    }
+  }
+
+  // Connect, then begin(ws) once the server said hello; frames are queued for update().
+  _stream(begin) {
     const ws = new WebSocket(this.url);
     ws.binaryType = "arraybuffer";
     this.state = "connecting";
-    const ended = new Promise((resolve, reject) => {
+    return new Promise((resolve, reject) => {
       ws.onmessage = (event) => {
         if (typeof event.data !== "string") {
-          this.frames.push(parseFrame(event.data));
+          const frame = parseFrame(event.data);
+          if (this.live) this._measure(frame);
+          this.frames.push(frame);
           this.received++;
           return;
         }
@@ -111,15 +174,7 @@ export class TalkmeshClient {
           this.fps = message.fps;
           this._bind();
           this.state = "streaming";
-          for (let i = 0; i < pcm.length; i += CHUNK_SAMPLES) ws.send(pcm.slice(i, i + CHUNK_SAMPLES).buffer);
-          ws.send(JSON.stringify({ type: "end" }));
-          const source = this.context.createBufferSource();
-          source.buffer = buffer;
-          source.connect(this.context.destination);
-          this.start = this.context.currentTime + 0.05; // a frame's time is from here
-          source.start(this.start);
-          source.onended = () => { this.playing = false; };
-          this.playing = true;
+          begin(ws);
         } else if (message.type === "end") {
           this.state = "done";
           resolve(message.frames);
@@ -133,20 +188,28 @@ export class TalkmeshClient {
         if (this.state !== "done") reject(new Error(`closed (${event.code}) ${event.reason}`));
       };
     });
-    return ended;
+  }
+
+  // A live frame's latency: from when the audio up to its end was sent to now.
+  _measure(frame) {
+    const end = Math.round((frame.time + 1 / this.fps) * SAMPLE_RATE);
+    while (this.sent.length > 1 && this.sent[1][0] <= end) this.sent.shift();
+    const hit = this.sent.find(([n]) => n >= end);
+    if (hit) this.latencies.push(performance.now() - hit[1]);
   }
 
   // Show the latest frame whose time the audio has reached; call every animation frame.
+  // Live (the microphone): the newest frame received.
   update() {
-    if (this.start === null || !this.frames.length) return;
-    const now = this.context.currentTime - this.start;
+    if ((this.start === null && !this.live) || !this.frames.length) return;
+    const now = this.live ? Infinity : this.context.currentTime - this.start;
     let frame = null;
     while (this.frames.length && this.frames[0].time <= now) frame = this.frames.shift();
     if (!frame) return;
     for (const { mesh, pairs } of this.targets) {
       for (const [k, i] of pairs) mesh.morphTargetInfluences[k] = frame.weights[i];
     }
-    this.shown.push([frame.time, now]);
+    this.shown.push([frame.time, this.live ? frame.time : now]);
     if (this.onframe) this.onframe(frame);
   }
 }

@@ -20,6 +20,8 @@ import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { RoomEnvironment } from "three/addons/environments/RoomEnvironment.js";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { ARKIT_NAMES, bindAvatar, presetValues, readVrmExpressions } from "./arkit_names.js";
+import { meshDef, targetNames } from "./avatar.js";
+import { addCapture } from "./capture.js";
 
 const SAMPLE_RATE = 16000; // what the server expects
 const CHUNK_MS = 20;
@@ -56,110 +58,12 @@ window.talkmesh = talkmesh;
 
 const $ = (id) => document.getElementById(id);
 
-// --- audio capture: an AudioWorklet that mixes to mono, resamples to 16 kHz and posts int16 chunks
-
-// Linear interpolation after a 4th-order Butterworth low-pass (two biquads, RBJ cookbook) at 0.45x
-// the output rate, so that 44.1/48 kHz input does not alias into the 16 kHz stream.
-const WORKLET_SOURCE = `
-const TARGET_RATE = ${SAMPLE_RATE};
-const CHUNK = ${CHUNK_SAMPLES};
-
-class LowPass {
-  constructor(cutoff, q) {
-    const w0 = (2 * Math.PI * cutoff) / sampleRate;
-    const alpha = Math.sin(w0) / (2 * q);
-    const cos = Math.cos(w0);
-    const a0 = 1 + alpha;
-    this.b0 = (1 - cos) / 2 / a0;
-    this.b1 = (1 - cos) / a0;
-    this.b2 = this.b0;
-    this.a1 = (-2 * cos) / a0;
-    this.a2 = (1 - alpha) / a0;
-    this.z1 = 0;
-    this.z2 = 0;
-  }
-  run(x) {
-    for (let i = 0; i < x.length; i++) {
-      const v = x[i];
-      const y = this.b0 * v + this.z1;
-      this.z1 = this.b1 * v - this.a1 * y + this.z2;
-      this.z2 = this.b2 * v - this.a2 * y;
-      x[i] = y;
-    }
-  }
-}
-
-class Capture extends AudioWorkletProcessor {
-  constructor() {
-    super();
-    this.step = sampleRate / TARGET_RATE;
-    const cutoff = 0.45 * TARGET_RATE;
-    this.filters = this.step > 1 ? [new LowPass(cutoff, 0.5412), new LowPass(cutoff, 1.3066)] : [];
-    this.t = 0; // position of the next output sample, in input samples from the block start
-    this.prev = 0; // last input sample of the previous block (position -1)
-    this.mono = new Float32Array(128);
-    this.out = new Int16Array(CHUNK);
-    this.fill = 0;
-    this.running = true;
-    this.port.onmessage = (e) => {
-      if (e.data === "finish") this.finish();
-      else if (e.data === "stop") this.running = false;
-    };
-  }
-
-  process(inputs) {
-    const input = inputs[0];
-    if (!this.running || input.length === 0) return this.running;
-    const n = input[0].length;
-    if (this.mono.length !== n) this.mono = new Float32Array(n);
-    const x = this.mono;
-    x.fill(0);
-    for (const channel of input) for (let i = 0; i < n; i++) x[i] += channel[i] / input.length;
-    for (const f of this.filters) f.run(x);
-    let t = this.t;
-    while (t <= n - 1) {
-      const i = Math.floor(t);
-      const f = t - i;
-      const a = i < 0 ? this.prev : x[i];
-      this.push(f === 0 ? a : a + f * (x[i + 1] - a));
-      t += this.step;
-    }
-    this.t = t - n;
-    this.prev = x[n - 1];
-    return true;
-  }
-
-  push(v) {
-    this.out[this.fill++] = Math.round(Math.max(-1, Math.min(1, v)) * 32767);
-    if (this.fill === CHUNK) {
-      this.port.postMessage(this.out.buffer, [this.out.buffer]);
-      this.out = new Int16Array(CHUNK);
-      this.fill = 0;
-    }
-  }
-
-  finish() {
-    if (this.fill > 0) this.port.postMessage(this.out.slice(0, this.fill).buffer);
-    this.fill = 0;
-    this.running = false;
-    this.port.postMessage("finished");
-  }
-}
-
-registerProcessor("talkmesh-capture", Capture);
-`;
-
 let audioContext = null;
 
 async function audio() {
   if (!audioContext) {
     audioContext = new AudioContext({ latencyHint: "interactive" });
-    const url = URL.createObjectURL(new Blob([WORKLET_SOURCE], { type: "text/javascript" }));
-    try {
-      await audioContext.audioWorklet.addModule(url);
-    } finally {
-      URL.revokeObjectURL(url);
-    }
+    await addCapture(audioContext, SAMPLE_RATE, CHUNK_SAMPLES);
   }
   if (audioContext.state === "suspended") await audioContext.resume();
   return audioContext;
@@ -222,28 +126,6 @@ function frameHead(object) {
   camera.updateProjectionMatrix();
   controls.target.copy(center);
   controls.update();
-}
-
-// Morph target names of a three.js mesh: its dictionary (from mesh.extras.targetNames), else the
-// glTF primitive's extras.targetNames (UniVRM writes them there), which then fill the dictionary.
-function targetNames(mesh, parser) {
-  const count = mesh.morphTargetInfluences.length;
-  const names = new Array(count).fill("");
-  for (const [name, k] of Object.entries(mesh.morphTargetDictionary || {})) names[k] = name;
-  if (names.some((n, k) => n !== String(k)) || !parser) return names; // three.js numbers unnamed ones
-  const def = meshDef(mesh, parser);
-  const where = parser.associations.get(mesh);
-  const primitive = def && (def.primitives[where.primitives ?? 0] || def.primitives[0]);
-  const stored = primitive && primitive.extras && primitive.extras.targetNames;
-  if (!Array.isArray(stored) || stored.length !== count) return names;
-  mesh.morphTargetDictionary = Object.fromEntries(stored.map((n, k) => [String(n), k]));
-  return stored.map(String);
-}
-
-// The glTF mesh a three.js mesh came from (three.js names the object after the node).
-function meshDef(mesh, parser) {
-  const where = parser && parser.associations.get(mesh);
-  return where && where.meshes !== undefined && parser.json.meshes ? parser.json.meshes[where.meshes] : null;
 }
 
 function bind() {

@@ -13,6 +13,11 @@ LIVELINK_HELP = (
     "by default; a session names its subject with ?livelink=NAME, or opts out with ?livelink=0)"
 )
 
+RUNTIME_HELP = (
+    "what runs the learned models: torch (releases) or onnxruntime (.onnx files of export-onnx, "
+    "for POST /animate jobs; their streams are refused); default: by the file"
+)
+
 
 def add_serve(sub: Subparsers) -> None:
     sv = sub.add_parser(
@@ -90,11 +95,35 @@ def add_serve(sub: Subparsers) -> None:
         "server process itself)",
     )
     sv.add_argument("--livelink", metavar="HOST:PORT", help=LIVELINK_HELP)
+    sv.add_argument("--runtime", choices=("torch", "onnxruntime"), help=RUNTIME_HELP)
     add_quiet(sv, "log only warnings and errors")
     sv.set_defaults(func=cmd_serve)
 
 
+def check_serve_runtime(runtime: str | None, models: list[str]) -> None:
+    """``--runtime`` must agree with every ``--model``: ONNX Runtime runs .onnx files only,
+    torch runs releases (and the procedural animator, which is neither)."""
+    from talkmesh.errors import TalkmeshError
+
+    for model in models:
+        onnx = model.lower().endswith(".onnx")
+        if runtime == "onnxruntime" and not onnx:
+            raise TalkmeshError(
+                f"--runtime onnxruntime serves .onnx files: export {model} with `talkmesh "
+                f"export-onnx {model} -o model.onnx` and pass --model model.onnx"
+                if model != "procedural"
+                else "--runtime onnxruntime serves .onnx files of export-onnx, and procedural is "
+                "not one: pass --model model.onnx (talkmesh export-onnx codetalker-synth -o "
+                "model.onnx), or drop --runtime"
+            )
+        if runtime == "torch" and onnx:
+            raise TalkmeshError(
+                f"--runtime torch runs releases, not {model}: pass --runtime onnxruntime"
+            )
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
+    check_serve_runtime(args.runtime, args.model or ["procedural"])
     try:
         from talkmesh.serve.server import serve
     except ImportError as e:

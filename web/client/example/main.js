@@ -1,5 +1,6 @@
 // talkmesh-client's example: the server's bundled head (GET /head.glb) in a three.js scene,
-// animated by a speech file streamed through TalkmeshClient, in step with its audio. Served by
+// animated by a speech file streamed through TalkmeshClient, in step with its audio, or by the
+// microphone, live. Served by
 // `talkmesh serve` itself, so the page and the stream share an origin.
 
 import * as THREE from "three";
@@ -48,6 +49,21 @@ document.getElementById("file").addEventListener("change", async (event) => {
     status.textContent = window.example.error;
   }
 });
+
+document.getElementById("mic").addEventListener("click", async () => {
+  window.example.error = null;
+  document.getElementById("stop").disabled = false;
+  try {
+    status.textContent = "streaming the microphone";
+    const frames = await client.streamMicrophone();
+    status.textContent = `${frames} frames`;
+  } catch (e) {
+    window.example.error = String(e.message || e);
+    status.textContent = window.example.error;
+  }
+  document.getElementById("stop").disabled = true;
+});
+document.getElementById("stop").addEventListener("click", () => client.stopMicrophone());
 
 renderer.setAnimationLoop(() => {
   client.update();
