@@ -580,7 +580,7 @@ COMMANDS = {
         [],
         "--avatar --batch-wait-ms --first-message-timeout --host --idle-timeout --jobs "
         "--livelink --max-message-bytes --max-queue --max-seconds --max-sessions --max-upload-mb "
-        "--model --port --quiet --request-timeout --torch-threads --workers",
+        "--model --port --quiet --request-timeout --runtime --torch-threads --workers",
     ),
     "livelink": (["audio"], "--head-motion --model --no-audio --quiet --seed --subject --to"),
     "info": ([], ""),
