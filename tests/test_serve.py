@@ -200,6 +200,30 @@ def test_when_the_audio_stops_the_face_keeps_moving(client, pcm):
     assert np.ptp(np.stack([f.weights[eyes] for f in idle]), axis=0).max() > 0.01
 
 
+def test_the_silence_streamed_in_a_pause_is_announced_before_the_audio_after_it(client, pcm):
+    """1 s of speech, 1.5 s without audio, 0.5 s more: a silence message names where the idle
+    silence went and how long it was, before the frames of the later audio."""
+    with client.websocket_connect("/ws/stream") as ws:
+        ws.receive_json()
+        ws.send_bytes(pcm[: 10 * CHUNK])
+        time.sleep(1.5)
+        ws.send_bytes(pcm[10 * CHUNK : 15 * CHUNK])
+        ws.send_json({"type": "end"})
+        order = []
+        while (message := ws.receive())["type"] != "websocket.close":
+            order.append(decode_frame(message["bytes"]) if message.get("bytes") else message)
+    texts = [json.loads(m["text"]) for m in order if isinstance(m, dict)]
+    frames = [m for m in order if not isinstance(m, dict)]
+    (notice,) = [t for t in texts if t["type"] == "silence"]
+    audio = 15 * CHUNK // 2  # samples the client sent (16-bit)
+    # the wall clock passes the 1 s sent at once after 1 s; silence then until the audio at 1.5 s
+    assert notice["sample"] == 10 * CHUNK // 2 and notice["samples"] >= SAMPLE_RATE // 5
+    assert abs(len(frames) - (audio + notice["samples"]) / SAMPLE_RATE * FPS) <= 1
+    first_after = int((notice["sample"] + notice["samples"]) / SAMPLE_RATE * FPS) + 1
+    position = next(i for i, m in enumerate(order) if isinstance(m, dict))
+    assert all(f.index < first_after for f in order[:position] if not isinstance(f, dict))
+
+
 def test_idle_off_sends_only_the_audios_frames(client, pcm):
     with client.websocket_connect("/ws/stream?idle=0") as ws:
         ws.receive_json()

@@ -50,6 +50,12 @@ with the speech (0 to 1, default 0.5; 0 sends no head pose; :mod:`talkmesh.face.
                      v of the face goes to R v + t, R = Ry(yaw) Rx(pitch) Rz(roll)
        then    6V    (flag bit 0 only) float16 vertex offsets from the neutral face, (V, 3), metres
 
+   Idle life (``idle=0`` in the query turns it off): when the client sends no audio for 0.5 s
+   the server streams silence in its place, so frames keep coming. When the client's audio (or
+   its end) comes again, text ``{"type": "silence", "sample": S, "samples": N}`` says that N
+   samples of silence went into the stream from its sample S on; it comes before any frame of
+   the audio after it (a client that times frames against its own audio subtracts them).
+
    After the flush: text ``{"type": "end", "frames": N}`` and a normal close (1000).
 
 4. Errors end the session: text ``{"type": "error", "message": "<what is wrong and what to do>"}``

@@ -309,11 +309,15 @@ class Service:
                 try:  # errors leave the task group as themselves, not as a group
                     sent = 0
                     async for frames in frames_of(work):
+                        for notice in audio.take_notices():  # before the frames after it
+                            await ws.send_json(notice)
                         for frame in (emotion.apply(audio.pose(f)) for f in frames):
                             if link is not None:
                                 link.send(frame, stream.fps)
                             await ws.send_bytes(encode_frame(frame))
                         sent += len(frames)
+                    for notice in audio.take_notices():
+                        await ws.send_json(notice)
                     await ws.send_json({"type": "end", "frames": sent})
                     await ws.close(CLOSE_NORMAL)
                 except Exception as e:

@@ -9,6 +9,11 @@ first message on the session keeps a clock; when no audio has come for ``IDLE_AF
 the head's breathing and sway. When the client speaks again its audio follows the silence. A
 client sending faster than real time is ahead of the clock and gets no silence until the clock
 catches up; ``idle=0`` turns it off.
+
+A client that plays its own audio and times the frames by their index must know where that
+silence went: when the client's audio comes again (or its end), the session notes
+``{"type": "silence", "sample": S, "samples": N}`` (N samples of silence from the stream's
+sample S on), which the server sends before any frame of the audio after it.
 """
 
 from __future__ import annotations
@@ -71,6 +76,9 @@ class SessionAudio:
         self.last_audio: float | None = None
         self.samples = 0
         self.ended = False
+        self.idle_from: int | None = None  # the stream's sample where the silence now began
+        self.idle_samples = 0
+        self.notices: list[dict] = []  # silence messages for the client, oldest first
 
     def heard(self) -> None:
         """A message came (any kind): the session's clock runs from the first."""
@@ -81,11 +89,25 @@ class SessionAudio:
         """The client's next chunk of (S,) float32 audio."""
         self.heard()
         self.last_audio = time.monotonic()
+        self._note_silence()
         await self._submit(pcm)
 
     async def end(self) -> None:
         self.ended = True
+        self._note_silence()
         await self.scheduler.submit(self.work, None)
+
+    def _note_silence(self) -> None:
+        """The silence streamed since the client's last audio, as a message (module docstring)."""
+        if self.idle_samples:
+            notice = {"type": "silence", "sample": self.idle_from, "samples": self.idle_samples}
+            self.notices.append(notice)
+        self.idle_from, self.idle_samples = None, 0
+
+    def take_notices(self) -> list[dict]:
+        """The silence messages noted since the last call, to send before the next frames."""
+        notices, self.notices = self.notices, []
+        return notices
 
     async def _submit(self, pcm: np.ndarray) -> None:
         # the head motion and the scheduler get the audio in the same order: nothing awaits
@@ -116,4 +138,8 @@ class SessionAudio:
                 continue
             due = int((now - self.started) * SAMPLE_RATE) - self.samples
             if due > 0:
-                await self._submit(np.zeros(min(due, int(MAX_IDLE_PIECE_S * SAMPLE_RATE)), "f4"))
+                piece = min(due, int(MAX_IDLE_PIECE_S * SAMPLE_RATE))
+                if self.idle_from is None:
+                    self.idle_from = self.samples
+                self.idle_samples += piece
+                await self._submit(np.zeros(piece, "f4"))
