@@ -21,6 +21,7 @@ import torch
 pytest.importorskip("transformers")
 pytest.importorskip("safetensors")
 
+from fixtures import TINY_WHISPER  # noqa: E402
 from transformers import WhisperConfig, WhisperFeatureExtractor  # noqa: E402
 from transformers.models.whisper.modeling_whisper import WhisperEncoder  # noqa: E402
 
@@ -82,18 +83,7 @@ def quantize_int8(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def tiny_encoder(seed: int = 0) -> WhisperEncoder:
     """A random 1-layer Whisper encoder (d_model 16), every weight nonzero and distinct."""
-    config = WhisperConfig(
-        d_model=16,
-        encoder_layers=1,
-        encoder_attention_heads=2,
-        encoder_ffn_dim=32,
-        decoder_layers=1,
-        decoder_attention_heads=2,
-        decoder_ffn_dim=32,
-        num_mel_bins=80,
-        max_source_positions=POSITIONS,
-        vocab_size=64,
-    )
+    config = WhisperConfig(**{**TINY_WHISPER, "max_source_positions": POSITIONS})
     encoder = WhisperEncoder(config).eval()
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():

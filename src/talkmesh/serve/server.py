@@ -311,7 +311,7 @@ class Service:
                     async for frames in frames_of(work):
                         for notice in audio.take_notices():  # before the frames after it
                             await ws.send_json(notice)
-                        for frame in (emotion.apply(audio.pose(f)) for f in frames):
+                        for frame in (emotion.apply(f) for f in audio.pose(frames)):
                             if link is not None:
                                 link.send(frame, stream.fps)
                             await ws.send_bytes(encode_frame(frame))

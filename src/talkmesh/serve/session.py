@@ -117,12 +117,16 @@ class SessionAudio:
         self.samples += len(pcm)
         await self.scheduler.submit(self.work, pcm)
 
-    def pose(self, frame: StreamFrame) -> StreamFrame:
-        """``frame`` with its head pose (itself when the head is still)."""
-        if self.motion is None:
-            return frame
-        frame.head_pose = self.motion.poses(frame.index, frame.index + 1)[0]
-        return frame
+    def pose(self, frames: list[StreamFrame]) -> list[StreamFrame]:
+        """``frames`` (in order) with their head poses, computed at once (as they are when the
+        head is still)."""
+        if self.motion is None or not frames:
+            return frames
+        first = frames[0].index
+        poses = self.motion.poses(first, frames[-1].index + 1)
+        for frame in frames:
+            frame.head_pose = poses[frame.index - first]
+        return frames
 
     async def keep_alive(self) -> None:
         """Silence in the client's place while it sends no audio (module docstring); returns
