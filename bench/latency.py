@@ -5,7 +5,10 @@ left to do, for two versions of talkmesh side by side.
     python bench/latency.py --after src --split      # where one run's time goes (cProfile)
 
 Each run is a fresh process, as a user runs it (start-up and imports included): ``glb`` is
-``talkmesh animate SPEECH -o OUT/x.glb --overwrite -q`` (the bundled model, default settings);
+``talkmesh animate SPEECH -o OUT/x.glb --overwrite -q`` (the bundled model, default settings),
+with the version's cache folder (``TALKMESH_CACHE``) warmed by one untimed run first (the bundled
+model's ONNX graphs are exported there on first use); ``glb-first`` is the same with an empty
+cache folder every run (a first run after installing); ``glb-torch`` adds ``--runtime torch``;
 ``resume`` is ``talkmesh animate LIB/ -o OUT/ -q`` on a folder whose output is already there (a
 rerun of a finished library: nothing to animate). The versions alternate run by run (before,
 after, before, ...), so that load from other processes falls on both alike; the 1-minute load
@@ -13,8 +16,8 @@ average is read before each run. ``SPEECH`` defaults to the demo recording in ex
 (8.3 s of speech). Prints a markdown table: per case and version, the median, minimum and maximum
 wall time, the median CPU time (user + system of the process) and the median load average.
 
-``--split`` profiles one ``glb`` run of ``--after`` instead and prints its parts: importing torch,
-loading the model, generation, voice activity, the other mouth corrections, the ARKit fit with
+``--split`` profiles one ``glb`` run of ``--after`` instead (its cache warmed; ``--torch``: with
+``--runtime torch``) and prints its parts: importing torch or ONNX Runtime, loading the model, generation, voice activity, the other mouth corrections, the ARKit fit with
 blinks and head pose, the .glb's morph targets, writing it, and the rest (start-up, the other
 imports, reading the audio).
 """
@@ -36,10 +39,15 @@ ROOT = Path(__file__).resolve().parents[1]
 SPEECH = ROOT / "examples" / "librivox-sense-and-sensibility.flac"
 
 
-def run(src: Path, args: list[str]) -> tuple[float, float, float]:
+def run(src: Path, args: list[str], cache: Path) -> tuple[float, float, float]:
     """(wall s, CPU s, load average) of ``python -m talkmesh ARGS`` with ``src`` first on the
-    path."""
-    env = {**os.environ, "PYTHONPATH": str(src), "HF_HUB_OFFLINE": "1"}
+    path and ``cache`` as its cache folder."""
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(src),
+        "HF_HUB_OFFLINE": "1",
+        "TALKMESH_CACHE": str(cache),
+    }
     load = os.getloadavg()[0]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
@@ -59,20 +67,28 @@ def cases(speech: Path, work: Path) -> dict[str, list[str]]:
     done.mkdir()
     (lib / speech.name).symlink_to(speech.resolve())
     (done / f"{speech.stem}.mp4").write_bytes(b"an earlier run's output")  # what resume checks
+    glb = ["animate", str(speech), "-o", str(work / "x.glb"), "--overwrite", "-q"]
     return {
-        "glb": ["animate", str(speech), "-o", str(work / "x.glb"), "--overwrite", "-q"],
+        "glb": glb,
+        "glb-first": glb,
+        "glb-torch": [*glb, "--runtime", "torch"],
         "resume": ["animate", str(lib), "-o", f"{done}/", "-q"],
     }
 
 
 def compare(versions: dict[str, Path], speech: Path, repeats: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
-        commands = cases(speech, Path(tmp))
+        work = Path(tmp)
+        commands = cases(speech, work)
+        caches = {name: work / f"cache-{name}" for name in versions}
+        for name, src in versions.items():  # warm each version's cache
+            run(src, commands["glb"], caches[name])
         times: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
-        for _ in range(repeats):
+        for i in range(repeats):
             for case, args in commands.items():
                 for name, src in versions.items():
-                    times.setdefault((case, name), []).append(run(src, args))
+                    cache = work / f"empty-{name}-{i}" if case == "glb-first" else caches[name]
+                    times.setdefault((case, name), []).append(run(src, args, cache))
     print("| case | version | wall median (s) | min | max | CPU median (s) | load avg |")
     print("|---|---|---|---|---|---|---|")
     for (case, name), rows in times.items():
@@ -87,7 +103,9 @@ def compare(versions: dict[str, Path], speech: Path, repeats: int) -> None:
 # (label, function as pstats names it: file suffix and name); parts are made disjoint below
 PARTS = {
     "torch": ("torch/__init__.py", "<module>"),
+    "onnxruntime": ("onnxruntime/__init__.py", "<module>"),
     "load": ("talkmesh/models/release.py", "load_model"),
+    "open": ("talkmesh/models/runtime.py", "open_model"),
     "generation": ("talkmesh/pipeline.py", "_learned_chunks"),
     "vad": ("talkmesh/audio/vad.py", "speech_pauses"),
     "corrections": ("talkmesh/face/corrections.py", "correct_mouth_chunks"),
@@ -97,11 +115,14 @@ PARTS = {
 }
 
 
-def split(src: Path, speech: Path) -> None:
+def split(src: Path, speech: Path, extra: list[str]) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         prof = Path(tmp) / "run.prof"
-        args = ["animate", str(speech), "-o", f"{tmp}/x.glb", "-q"]
+        args = ["animate", str(speech), "-o", f"{tmp}/x.glb", "-q", *extra]
         env = {**os.environ, "PYTHONPATH": str(src), "HF_HUB_OFFLINE": "1"}
+        env["TALKMESH_CACHE"] = f"{tmp}/cache"
+        run(src, [*args, "--overwrite"], Path(f"{tmp}/cache"))  # the cache warmed
+        Path(f"{tmp}/x.glb").unlink()
         load = os.getloadavg()[0]
         start = time.perf_counter()
         cmd = [sys.executable, "-m", "cProfile", "-o", str(prof), "-m", "talkmesh", *args]
@@ -115,7 +136,8 @@ def split(src: Path, speech: Path) -> None:
                 cum[label] = max(cum[label], total)
     parts = {
         "importing torch": cum["torch"],
-        "loading the model": cum["load"],
+        "importing onnxruntime": cum["onnxruntime"],
+        "loading the model": max(cum["load"], cum["open"] - cum["onnxruntime"] - cum["torch"]),
         "generation": cum["generation"],
         "voice activity (Silero VAD)": cum["vad"],
         "other mouth corrections": cum["corrections"] - cum["generation"] - cum["vad"],
@@ -137,9 +159,10 @@ def main() -> None:
     p.add_argument("--speech", type=Path, default=SPEECH)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--split", action="store_true", help="profile one run of --after instead")
+    p.add_argument("--torch", action="store_true", help="--split: the run with --runtime torch")
     a = p.parse_args()
     if a.split:
-        split(a.after.resolve(), a.speech)
+        split(a.after.resolve(), a.speech, ["--runtime", "torch"] if a.torch else [])
         return
     versions = {"after": a.after.resolve()}
     if a.before is not None:

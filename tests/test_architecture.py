@@ -22,6 +22,7 @@ LEVELS: dict[str, int] = {
     "version": 0,
     "heap": 0,
     "blas": 0,
+    "cache": 0,
     "safe_load": 1,
     "config": 1,
     "animation": 1,

@@ -149,7 +149,8 @@ def test_cli_export_refuses_existing_outputs_and_other_suffixes(tmp_path, export
     cases = [
         (["export-onnx", "codetalker-synth", "-o", str(path)], "already exists"),
         (["export-onnx", "codetalker-synth", "-o", str(tmp_path / "m.bin")], "ending in .onnx"),
-        (["animate", str(CLIP), "--runtime", "onnxruntime"], "runs an .onnx model"),
+        (["animate", str(CLIP), "--runtime", "onnxruntime", "--model", "procedural"], "not one"),
+        (["animate", str(CLIP), "--runtime", "torch", "--model", str(path)], "runs releases"),
     ]
     for args, fragment in cases:
         assert main(args) != 0
@@ -166,7 +167,8 @@ def test_bundled_model_exports_and_animates_as_pytorch_does(tmp_path):
     res = subprocess.run([*run, "export-onnx", "codetalker-synth", "-o", str(out)], text=True)
     assert res.returncode == 0 and out.is_file() and speech_path(out).is_file()
     common = [str(CLIP), "--head-motion", "0", "-q"]
-    for name, extra in (("torch", []), ("onnx", ["--model", str(out), "--runtime", "onnxruntime"])):
+    torch_run = ["--runtime", "torch"]
+    for name, extra in (("torch", torch_run), ("onnx", ["--model", str(out)])):
         args = [*run, "animate", *common, *extra, "-o", str(tmp_path / f"{name}.npy")]
         assert subprocess.run(args).returncode == 0
     # .npy: float32 vertex positions (.npz keeps float16 offsets, whose rounding is 4 um)

@@ -3,6 +3,12 @@
 SAMPLE_RATE = 16_000  # Hz: the audio rate of the phone recogniser, the speech encoders and streams
 MOTION_FPS = 30.0  # motion frames per second by default: VOCASET's (captured at 60 fps, read at 30)
 INT8_LAYERS = ("speech", "decoders", "all")  # layers a learned model can run in int8 on the CPU
+CHUNK_FRAMES = 256  # frames per chunk of generate_chunks (15 MB of float32 vertices at V=4766)
+
+
+def frames_for_audio(samples: int, fps: float) -> int:
+    """Motion frames of ``samples`` audio samples at ``fps`` (at least one)."""
+    return max(1, round(samples / SAMPLE_RATE * fps))
 
 # The released datasets' training speakers, in the order of the official one-hot style columns
 # (FaceFormer and CodeTalker): the dataset readers' splits and the checkpoint importer share them.

@@ -94,6 +94,7 @@ def animate(
     pause_source: str = PAUSE_SOURCE,
     performance: Performance | None = None,
     head_motion: float = NATURAL,
+    runtime: str = "auto",
 ) -> Animation:
     """Animate a face from speech.
 
@@ -137,6 +138,9 @@ def animate(
             (:mod:`talkmesh.face.composition`); ``[happy]`` tags in ``text`` add spans to it.
         head_motion: how much the head moves with the speech's prosody, 0 (still) to 1
             (:mod:`talkmesh.face.head_motion`; the bundled topology only), as ``head_pose``.
+        runtime: what runs a learned model named by ``model`` (:mod:`talkmesh.models.runtime`):
+            ``auto`` (ONNX Runtime for the bundled model and .onnx files, torch otherwise),
+            ``torch`` or ``onnxruntime``.
 
     Returns:
         An :class:`Animation` with vertices (T, V, 3), the audio and the ARKit weights (T, 52).
@@ -189,6 +193,7 @@ def animate_blocks(
     block: int = BLOCK,
     performance: Performance | None = None,
     head_motion: float = NATURAL,
+    runtime: str = "auto",
 ) -> AnimationBlocks:
     """:func:`animate` ``block`` frames at a time (arguments as there; the same frames): memory
     does not grow with the audio when the model generates in chunks (the procedural animator,
@@ -216,10 +221,9 @@ def animate_blocks(
         )
         made.audio_file = source
         return made
-    corrections = Corrections(
-        pause_gate, lip_closure, procedural_mix, loudness_gain, bilabial_closure, pause_source
-    )
-    net, weights = _learned_model(model, head, style_mix, int8)
+    mouth = (pause_gate, lip_closure, procedural_mix, loudness_gain, bilabial_closure)
+    corrections = Corrections(*mouth, pause_source)
+    net, weights = _learned_model(model, head, style_mix, int8, runtime)
     wave = _wave_for(net, wave, source)
     fps = net.motion_fps if fps is None else fps
     frames = net.default_frames(len(wave))  # imported official models count as the official code
@@ -296,6 +300,22 @@ def _check_options(int8: str | None, model, text: str | None, phones) -> None:
         raise TalkmeshError("--int8 applies to CodeTalker models, not the procedural animator")
 
 
+def _torch_chunks(net, wave, head: Head, weights, n_in: int, seed: int, block: int):
+    import torch
+
+    return (
+        c[0].numpy().astype(np.float32, copy=False)
+        for c in net.generate_chunks(
+            wave if isinstance(wave, Waveform) else torch.from_numpy(wave)[None],
+            torch.from_numpy(head.template)[None],
+            style_weights=None if weights is None else torch.from_numpy(weights)[None],
+            num_frames=n_in,
+            seed=seed,
+            chunk=block,
+        )
+    )
+
+
 def _finish_learned(
     chunks: Iterator[np.ndarray],
     head: Head,
@@ -347,6 +367,7 @@ def animate_procedural(
     block: int = BLOCK,
     performance: Performance | None = None,
     head_motion: float = NATURAL,
+    runtime: str = "auto",
 ) -> AnimationBlocks:
     """The phone-driven animator on ``head`` (arguments as in :func:`animate_blocks`): the weight
     curves (T, 52) at once, the vertices a block at a time."""
@@ -439,24 +460,31 @@ def _learned_model(
     head: Head,
     style_mix: dict[str, float] | None,
     int8: str | None,
+    runtime: str = "auto",
 ) -> tuple[Any, np.ndarray | None]:
     """A released learned model (any family of talkmesh.models.registry; ``model``: a name, a
-    release file or a loaded model) for ``head`` and its style weights (K,) over the training
-    speakers (None: the model has none)."""
-    try:
-        import torch
-    except ImportError:
-        raise TalkmeshError("learned models need torch: run `make setup`") from None
-    from talkmesh.models.release import load_model
+    release file or a loaded model) on ``runtime`` (:mod:`talkmesh.models.runtime`) for ``head``
+    and its style weights (K,) over the training speakers (None: the model has none)."""
+    from talkmesh.models.onnx import OnnxModel
+    from talkmesh.models.runtime import open_model
 
-    net = load_model(model) if isinstance(model, (str, Path)) else model
+    if not isinstance(model, (str, Path, OnnxModel)) or runtime == "torch":
+        try:
+            import torch  # noqa: F401
+        except ImportError:
+            raise TalkmeshError("learned models need torch: run `make setup`") from None
+    net = open_model(model, runtime, int8=int8)
+    if not isinstance(net, OnnxModel):
+        import torch
+
+        torch.set_num_threads(max(1, torch.get_num_threads()))
     if net.num_vertices != head.num_vertices:
         raise TalkmeshError(
             f"model {model_name(model)} animates {net.num_vertices}-vertex meshes but the face "
             f"has {head.num_vertices}: pass --template with a neutral face of the model's topology "
             "(e.g. VOCASET's templates.pkl:SUBJECT or FLAME_sample.ply, BIWI's BIWI.ply)"
         )
-    if int8 is not None:
+    if int8 is not None and not isinstance(model, (str, Path)):
         net = net.int8_copy(int8)
     styles = list(net.styles)
     weights = None
@@ -474,7 +502,6 @@ def _learned_model(
         if total <= 0:
             raise TalkmeshError("--style weights must add up to more than 0")
         weights = np.array([style_mix.get(s, 0.0) / total for s in styles], np.float32)
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     return net, weights
 
 
@@ -490,23 +517,16 @@ def _learned_chunks(
 ) -> Iterator[np.ndarray]:
     """The model's vertices (t, V, 3) in consecutive chunks, resampled from its frame rate to
     ``frames`` frames at ``fps`` (linear interpolation) when they differ."""
-    import torch
+    from talkmesh.models.onnx import OnnxModel
 
-    chunks = (
-        c[0].numpy().astype(np.float32, copy=False)
-        for c in net.generate_chunks(
-            wave if isinstance(wave, Waveform) else torch.from_numpy(wave)[None],
-            torch.from_numpy(head.template)[None],
-            style_weights=None if weights is None else torch.from_numpy(weights)[None],
-            num_frames=net.default_frames(len(wave)),
-            seed=seed,
-            chunk=block,
-        )
-    )
+    n_in = net.default_frames(len(wave))
+    if isinstance(net, OnnxModel):  # numpy in and out: no torch
+        chunks = net.frames(np.asarray(wave), head.template, weights, n_in, block)
+    else:
+        chunks = _torch_chunks(net, wave, head, weights, n_in, seed, block)
     if abs(fps - net.motion_fps) <= 1e-6:
         yield from chunks
         return
-    n_in = net.default_frames(len(wave))
     pos = np.clip(np.arange(frames) / fps * net.motion_fps, 0, n_in - 1)
     i0 = np.floor(pos).astype(int)
     i1 = np.minimum(i0 + 1, n_in - 1)

@@ -10,6 +10,7 @@ way they run :class:`Animator`, so a file gives the same outputs wherever it is 
 from __future__ import annotations
 
 import os
+import sys
 import time
 import warnings
 from collections.abc import Iterator
@@ -60,6 +61,7 @@ class AnimateSettings:
     performance: Performance | None = field(default=None, hash=False)  # None: neutral
     head_motion: float = NATURAL  # 0: the head still
     int8: str | None = None
+    runtime: str = "auto"  # torch, onnxruntime or auto (talkmesh.models.runtime)
     size: int = VIDEO_SIZE
     camera: str = "front"
     overwrite: bool = False
@@ -99,8 +101,6 @@ class Animator:
         from talkmesh.face.assets import load_head
 
         self.settings = settings
-        if threads is not None:
-            _set_threads(threads)
         s = settings
         self.head = face_for(s) if s.template else load_head(s.identity)
         self.rig = None
@@ -111,10 +111,12 @@ class Animator:
         self.model: object = s.model
         self.int8 = s.int8
         if s.model != "procedural":
-            from talkmesh.models.release import load_model
+            from talkmesh.models.runtime import open_model
 
-            net = load_model(s.model)
-            self.model, self.int8 = (net.int8_copy(s.int8) if s.int8 else net), None
+            self.model = open_model(s.model, s.runtime, int8=s.int8, threads=threads)
+            self.int8 = None
+        if threads is not None:  # after the model: torch's threads if it runs on torch
+            _set_threads(threads)
 
     def __call__(self, job: Job) -> Row:
         """Animate ``job`` into its outputs; its row, failed or not. A warning shown meanwhile
@@ -294,11 +296,9 @@ def _set_threads(threads: int) -> None:
         threadpool_limits(max(1, threads))
     except ImportError:  # an optional speed-up: without it only PyTorch's threads are set
         pass
-    try:
-        import torch
-    except ImportError:
-        return
-    torch.set_num_threads(max(1, threads))
+    torch = sys.modules.get("torch")  # not imported for a model on ONNX Runtime
+    if torch is not None:
+        torch.set_num_threads(max(1, threads))
 
 
 def plan_jobs(

@@ -33,12 +33,13 @@ from talkmesh.face.corrections import (
     PAUSE_SOURCES,
 )
 from talkmesh.face.head_motion import NATURAL, check_amount
+from talkmesh.models.runtime import RUNTIMES
 from talkmesh.output import VIDEO_SUFFIXES, output_name
 
-RUNTIMES = ("torch", "onnxruntime")
 RUNTIME_HELP = (
-    "what runs a learned model: torch (releases) or onnxruntime (an .onnx file of export-onnx); "
-    "default: by the --model file"
+    "what runs a learned model: auto (default: ONNX Runtime for an .onnx file and for the "
+    "bundled model, whose graphs are exported once into the cache folder; torch otherwise), "
+    "torch, or onnxruntime (an .onnx file, or a CodeTalker release exported once)"
 )
 
 
@@ -100,7 +101,7 @@ def add_animate(sub: Subparsers) -> None:
         help="a bundled model (default codetalker-synth), procedural, a .safetensors release, or "
         "an .onnx file of export-onnx (run by ONNX Runtime)",
     )
-    a.add_argument("--runtime", choices=RUNTIMES, help=RUNTIME_HELP)
+    a.add_argument("--runtime", choices=RUNTIMES, default="auto", help=RUNTIME_HELP)
     a.add_argument(
         "--style", help="learned models: speaker mix, e.g. A:0.7,B:0.3 (default: all alike)"
     )
@@ -343,13 +344,13 @@ def exit_on_sigterm() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
-def check_runtime(runtime: str | None, model: str | None) -> None:
-    """``--runtime`` must agree with the model file: ONNX Runtime runs .onnx files only."""
+def check_runtime(runtime: str, model: str | None) -> None:
+    """``--runtime`` must agree with the model: torch runs releases (not an .onnx file), and
+    the procedural animator is no learned model."""
     onnx = model is not None and model.lower().endswith(".onnx")
-    if runtime == "onnxruntime" and not onnx:
+    if runtime == "onnxruntime" and model == "procedural":
         raise TalkmeshError(
-            f"--runtime onnxruntime runs an .onnx model: export {model or 'codetalker-synth'} with "
-            "`talkmesh export-onnx MODEL -o model.onnx` and pass --model model.onnx"
+            "--runtime onnxruntime runs learned models, and procedural is not one: drop --runtime"
         )
     if runtime == "torch" and onnx:
         raise TalkmeshError(f"--runtime torch runs releases, not {model}: drop --runtime")
@@ -460,6 +461,7 @@ def animate_settings(args: argparse.Namespace, *, triangles: bool = True):
         performance=performance_from(args),
         head_motion=args.head_motion,
         int8=args.int8,
+        runtime=args.runtime,
         size=args.size,
         camera=args.camera,
         overwrite=args.overwrite,

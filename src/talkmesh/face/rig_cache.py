@@ -24,28 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from talkmesh.cache import CACHE_ENV, cache_dir
+from talkmesh.cache import file_digest as file_digest  # the saved files are named by it
 from talkmesh.errors import TalkmeshWarning
 
 FORMAT = 1  # bump when the saved fields or their meaning change
-CACHE_ENV = "TALKMESH_CACHE"
 FIELDS = ("scale", "rotation", "translation", "residual", "corners", "weights")
-
-
-def cache_dir() -> Path:
-    """Where registrations are saved: $TALKMESH_CACHE, else the user's cache folder."""
-    if os.environ.get(CACHE_ENV):
-        return Path(os.environ[CACHE_ENV]).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "talkmesh"
-
-
-def file_digest(path: str | Path) -> str:
-    """SHA-256 of a file's bytes (hex), read in blocks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def saved_path(digest: str) -> Path:

@@ -19,15 +19,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from talkmesh.constants import SAMPLE_RATE
+from talkmesh.constants import CHUNK_FRAMES as CHUNK_FRAMES  # the models' chunks
+from talkmesh.constants import frames_for_audio as frames_for_audio
 from talkmesh.errors import TalkmeshError
-
-CHUNK_FRAMES = 256  # frames per chunk of generate_chunks (15 MB of float32 vertices at V=4766)
-
-
-def frames_for_audio(samples: int, fps: float) -> int:
-    """Motion frames of ``samples`` audio samples at ``fps`` (at least one)."""
-    return max(1, round(samples / SAMPLE_RATE * fps))
 
 
 class FrameStream(ABC):

@@ -17,8 +17,11 @@ mean is a speaker the model has not heard), the state's names and shapes. Opset 
 
 :class:`OnnxModel` has the surface :func:`talkmesh.pipeline.animate` uses of a model, so a
 ``.onnx`` file is a ``--model`` like a release (:func:`talkmesh.models.release.load_model`
-dispatches on the suffix). It computes the log-mel and the interpolation of the features to the
-motion frames with torch, as ``generate`` does, and the networks with ONNX Runtime.
+dispatches on the suffix). It runs without torch: the log-mel and the interpolation of the
+features to the motion frames in numpy (:mod:`talkmesh.audio.logmel`, the numbers ``generate``
+computes), the networks in ONNX Runtime, the speech graph on ONNX Runtime's threads and the step
+graph on :func:`~talkmesh.models.threads.step_thread_count`'s (one: a frame's small products
+lose more to a team of threads than they gain).
 """
 
 from __future__ import annotations
@@ -28,21 +31,24 @@ import os
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
-from torch import Tensor, nn
 
+from talkmesh.audio.logmel import HOP_LENGTH, interpolate_rows, log_mel
 from talkmesh.audio.resamplers import POLYPHASE
+from talkmesh.constants import CHUNK_FRAMES, frames_for_audio
 from talkmesh.errors import MissingDependencyError, TalkmeshError
-from talkmesh.models.base import CHUNK_FRAMES, frames_for_audio
-from talkmesh.models.frames import fit_sample_frames
-from talkmesh.models.whisper import ENCODER_HOP, log_mel
+from talkmesh.models.threads import step_thread_count
+
+if TYPE_CHECKING:
+    from torch import Tensor, nn
 
 FORMAT = "1"
 OPSET = 17
 FIXED = ("feature", "t", "style")  # the step's inputs before the state
 MAX_WINDOW = 1500  # encoder frames per window (30 s at 50 Hz): Whisper's positions
+ENCODER_HOP = 2 * HOP_LENGTH  # one speech feature per 20 ms (50 Hz)
 
 
 def speech_path(path: Path) -> Path:
@@ -61,6 +67,8 @@ def _onnx():
 def export_onnx(model: nn.Module, path: str | Path, opset: int = OPSET) -> list[Path]:
     """Write ``model``'s two graphs (module docstring) -> the files written (step, speech).
     Each is written under a temporary name and renamed into place."""
+    import torch
+
     onnx = _onnx()
     path = Path(path)
     encoder, step = model.onnx_graphs()
@@ -136,10 +144,13 @@ class OnnxModel:
         except ImportError:
             raise MissingDependencyError("onnxruntime", "onnx", "ONNX models") from None
         self.path = Path(path)
-        options = ort.SessionOptions()
+        options, step_options = ort.SessionOptions(), ort.SessionOptions()
         if threads:
             options.intra_op_num_threads = threads
-        self.step = _session(ort, self.path, options)
+        for o in (options, step_options):  # idle threads sleep: they would spin on the cores
+            o.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        step_options.intra_op_num_threads = threads or step_thread_count() or 0
+        self.step = _session(ort, self.path, step_options)
         meta = self.step.get_modelmeta().custom_metadata_map
         if "talkmesh_format" not in meta:
             raise TalkmeshError(
@@ -171,15 +182,14 @@ class OnnxModel:
         n = len(audio)
         padded = np.zeros(-(-n // ENCODER_HOP) * ENCODER_HOP, np.float32)
         padded[:n] = audio
-        mel = log_mel(torch.from_numpy(padded)[None], self.n_mels).numpy()
+        mel = log_mel(padded, self.n_mels)[None]
         parts = [
             self.speech.run(None, {"mel": mel[..., i : i + 2 * MAX_WINDOW]})[0][0]
             for i in range(0, mel.shape[-1], 2 * MAX_WINDOW)
         ]
-        feats = torch.from_numpy(np.concatenate(parts)[: -(-n // ENCODER_HOP)])
-        return fit_sample_frames(feats, n, n, num_frames).numpy()
+        return interpolate_rows(np.concatenate(parts)[: -(-n // ENCODER_HOP)], num_frames)
 
-    def style(self, style_weights: Tensor | np.ndarray | None) -> np.ndarray:
+    def style(self, style_weights: np.ndarray | None) -> np.ndarray:
         """(K,) or (1, K) weights over the styles (None: all alike) -> (1, d) style vector."""
         K = len(self.styles)
         w = np.full(K, 1.0 / K) if style_weights is None else np.asarray(style_weights)
@@ -199,6 +209,30 @@ class OnnxModel:
         out = self.step.run(None, feed)
         return out[0], dict(zip(self.state, out[1:]))
 
+    def frames(
+        self,
+        wave: np.ndarray,
+        template: np.ndarray,
+        style_weights: np.ndarray | None = None,
+        num_frames: int | None = None,
+        chunk: int = CHUNK_FRAMES,
+    ) -> Iterator[np.ndarray]:
+        """(S,) 16 kHz audio, template (V, 3) -> vertices (t, V, 3) float32, ``chunk`` frames at
+        a time: generation without torch."""
+        wave = np.asarray(wave, np.float32)
+        num_frames = num_frames or self.default_frames(len(wave))
+        feats = self.features(wave, num_frames)
+        style = self.style(style_weights)
+        state = self.start(style)
+        base = np.asarray(template, np.float32).reshape(1, -1)
+        out = []
+        for t in range(num_frames):
+            motion, state = self.step_frames(feats[t : t + 1], np.array([t]), style, state)
+            out.append(motion[0] + base[0])
+            if len(out) == chunk or t == num_frames - 1:
+                yield np.stack(out).reshape(len(out), -1, 3)
+                out = []
+
     def generate_chunks(
         self,
         audio,
@@ -210,25 +244,21 @@ class OnnxModel:
         mode: str = "fast",
         chunk: int = CHUNK_FRAMES,
     ) -> Iterator[Tensor]:
-        """Vertices (1, t, V, 3) ``chunk`` frames at a time, as a model's ``generate_chunks``."""
-        wave = np.asarray(audio[0] if isinstance(audio, Tensor) else audio, np.float32)
-        num_frames = num_frames or self.default_frames(len(wave))
-        feats = self.features(wave, num_frames)
-        style = self.style(None if style_weights is None else style_weights.numpy())
-        state = self.start(style)
-        base = template.numpy().reshape(1, -1)
-        out = []
-        for t in range(num_frames):
-            motion, state = self.step_frames(feats[t : t + 1], np.array([t]), style, state)
-            out.append(motion + base)
-            if len(out) == chunk or t == num_frames - 1:
-                yield torch.from_numpy(np.stack(out, 1).reshape(1, len(out), -1, 3))
-                out = []
+        """Vertices (1, t, V, 3) ``chunk`` frames at a time, as a model's ``generate_chunks``
+        (torch tensors in and out; :meth:`frames` is the same without torch)."""
+        import torch
+
+        wave = np.asarray(audio[0] if isinstance(audio, torch.Tensor) else audio, np.float32)
+        weights = None if style_weights is None else style_weights.numpy()
+        for verts in self.frames(wave, template.numpy()[0], weights, num_frames, chunk):
+            yield torch.from_numpy(verts)[None]
 
     def generate(
         self, audio: Tensor, template: Tensor, *, style_weights: Tensor | None = None, **options
     ) -> Tensor:
         """audio (1, S), template (1, V, 3) -> vertices (1, T, V, 3)."""
+        import torch
+
         chunks = self.generate_chunks(audio, template, style_weights=style_weights, **options)
         return torch.cat(list(chunks), dim=1)
 

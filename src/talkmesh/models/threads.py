@@ -18,8 +18,6 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-import torch
-
 from talkmesh.errors import TalkmeshError
 
 STEP_THREADS = 1  # bench/threads.py: the fastest for every family's steps, idle or busy
@@ -45,6 +43,8 @@ def step_thread_count() -> int | None:
 def step_threads() -> Iterator[None]:
     """Run the body (a step loop over small tensors) on :func:`step_thread_count` threads, never
     more than PyTorch has now; its count is restored after."""
+    import torch
+
     n, before = step_thread_count(), torch.get_num_threads()
     if n is None or n >= before:
         yield
@@ -74,4 +74,6 @@ def worker_threads(processes: int, cpus: int | None = None) -> int:
 def set_process_threads(threads: int | None, processes: int) -> None:
     """PyTorch's threads in this process: ``threads``, else its share of the cores among
     ``processes`` that share them (:func:`worker_threads`: the server beside its workers)."""
+    import torch
+
     torch.set_num_threads(threads or worker_threads(processes))

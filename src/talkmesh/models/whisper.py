@@ -38,7 +38,6 @@ import tempfile
 import zipfile
 from collections.abc import Iterator
 from contextlib import contextmanager
-from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -47,6 +46,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from talkmesh.audio.logmel import mel_filters as _mel_filters
 from talkmesh.constants import SAMPLE_RATE
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.models.frames import fit_sample_frames
@@ -493,39 +493,6 @@ def load_whisper_encoder(path: str | Path) -> nn.Module:
 
 
 # --------------------------------------------------------------------------- log-mel
-
-
-@lru_cache(maxsize=8)
-def _mel_filters(sample_rate: int, n_fft: int, n_mels: int) -> np.ndarray:
-    """(n_mels, n_fft // 2 + 1) triangular filters on the Slaney mel scale, Slaney-normalized
-    (area-normalized), as Whisper and librosa's defaults use."""
-    f_sp = 200.0 / 3  # Hz per mel below 1 kHz
-    min_log_hz = 1000.0
-    min_log_mel = min_log_hz / f_sp
-    logstep = np.log(6.4) / 27.0
-
-    def hz_to_mel(f: np.ndarray) -> np.ndarray:
-        f = np.asarray(f, dtype=np.float64)
-        return np.where(
-            f >= min_log_hz,
-            min_log_mel + np.log(np.maximum(f, min_log_hz) / min_log_hz) / logstep,
-            f / f_sp,
-        )
-
-    def mel_to_hz(m: np.ndarray) -> np.ndarray:
-        return np.where(
-            m >= min_log_mel, min_log_hz * np.exp(logstep * (m - min_log_mel)), f_sp * m
-        )
-
-    fft_hz = np.linspace(0.0, sample_rate / 2, n_fft // 2 + 1)
-    mel_hz = mel_to_hz(np.linspace(hz_to_mel(0.0), hz_to_mel(sample_rate / 2), n_mels + 2))
-    ramps = mel_hz[:, None] - fft_hz[None, :]
-    widths = np.diff(mel_hz)
-    lower = -ramps[:-2] / widths[:-1, None]
-    upper = ramps[2:] / widths[1:, None]
-    weights = np.maximum(0.0, np.minimum(lower, upper))
-    weights *= (2.0 / (mel_hz[2:] - mel_hz[:-2]))[:, None]
-    return weights.astype(np.float32)
 
 
 def log_mel(audio: Tensor, n_mels: int = N_MELS) -> Tensor:
