@@ -1,14 +1,24 @@
-"""Many languages, many voices: the MBROLA voices of Debian's ``mbrola-*`` packages through espeak-ng.
+"""Many languages, many voices: MBROLA voices and espeak-ng's own voices, with exact phone times.
 
-Each :class:`Language` names its espeak-ng code, its family, the MBROLA voices the multilingual
-corpus trains on (``train``), the voices kept out for its test split (``test``), and a few
-sentences rich in the sounds that lips show (/p b m/, open vowels, rounded vowels, /f v/). A
-language with no ``train`` voice is never trained on: it exists to test.
+Each :class:`Language` names its espeak-ng code, its family, the voices the multilingual corpus
+trains on (``train``), the voices kept out for its test split (``test``), and a few sentences rich
+in the sounds that lips show (/p b m/, open vowels, rounded vowels, /f v/). A language with no
+``train`` voice is never trained on: it exists to test.
 
-The synthesiser's exact phone timings come from ``espeak-ng --pho`` (the file MBROLA renders). The
-voices write their phones in their own SAMPA dialects; :func:`sampa_label` maps any of them onto
-the phone labels of the procedural animator (ARPABET, plus ``UY`` and ``OE`` for the rounded front
-vowels /y/ and /ø/ that English lacks), from the IPA features the symbols stand for.
+Two engines give the synthesiser's exact phone timings:
+
+* ``mbrola``: the voices of Debian's ``mbrola-*`` packages through espeak-ng; ``train`` and
+  ``test`` name MBROLA databases (``de2``), the times come from ``espeak-ng --pho`` (the file
+  MBROLA renders). The voices write their phones in their own SAMPA dialects; :func:`sampa_label`
+  maps any of them onto the phone labels of the procedural animator (ARPABET, plus ``UY`` and
+  ``OE`` for the rounded front vowels /y/ and /ø/ that English lacks), from the IPA features the
+  symbols stand for.
+* ``espeak-lib``: espeak-ng's own voice ``voice`` (Mandarin from pinyin with tone numbers,
+  Cantonese, Korean, ...), whose variants (``m3``, ``f2``: another larynx, formants and pitch)
+  make the several voices of a language; ``train`` and ``test`` name variants, and a test variant
+  is never a training variant of any language. The times come from the library's phoneme events
+  (:mod:`talkmesh.audio.espeak_lib`); :func:`espeak_label` maps espeak-ng's phoneme mnemonics.
+  Tones are not visemes: a tone is no phone of its own there.
 
 Some voices and languages are reserved for checks made outside the project and are never used
 here, for training, tuning or evaluation (:data:`RESERVED_VOICES`, :data:`RESERVED_LANGUAGES`):
@@ -27,6 +37,9 @@ from talkmesh.errors import TalkmeshError
 RESERVED_VOICES = frozenset({"de1", "fr1", "es1", "it3", "pl1", "nl2", "br1", "en1"})
 RESERVED_LANGUAGES = frozenset({"tr", "hu", "ro", "sv", "el", "cs"})  # any voice of them
 RESERVED_DBS_PREFIXES = ("tr", "hu", "ro", "sw", "gr", "cz")  # their MBROLA databases
+# espeak-ng's own voices of them, by language code and by name ("grc" is Ancient Greek)
+RESERVED_ESPEAK_LANGUAGES = RESERVED_LANGUAGES | {"grc"}
+RESERVED_ESPEAK_NAMES = ("turkish", "hungarian", "romanian", "moldav", "swedish", "greek", "czech")
 
 
 @dataclass(frozen=True)
@@ -34,9 +47,17 @@ class Language:
     code: str  # espeak-ng language
     name: str
     family: str
-    train: tuple[str, ...]  # MBROLA databases (us1, de2, ...) the corpus trains on
+    train: tuple[str, ...]  # MBROLA databases (us1, de2, ...) or espeak-ng variants (m3, f2)
     test: tuple[str, ...]  # held-out voices of the test split
     sentences: tuple[str, ...]
+    engine: str = "mbrola"  # or "espeak-lib": espeak-ng's own voice, times from its library
+    voice: str = ""  # espeak-lib: the espeak-ng voice the variants attach to
+
+    def voice_name(self, variant: str) -> str:
+        """The synthesiser's voice for one of ``train`` / ``test``: ``mb-de2``, ``yue+m3``."""
+        if self.engine == "espeak-lib":
+            return f"{self.voice or self.code}+{variant}"
+        return f"mb-{variant}"
 
 
 # fmt: off
@@ -202,6 +223,65 @@ LANGUAGES: tuple[Language, ...] = (
         "ఈ పుస్తకం చాలా బాగుంది",
         "వర్షం పడుతోంది",
     )),
+    # espeak-ng's own voices (times from its library's phoneme events); variants are the voices:
+    # training ones from m1-m3, f1-f3, held-out ones from m6, m7, f4, f5 (no language trains on them)
+    Language("cmn", "Mandarin", "Sinitic", ("m3", "f2", "m1"), ("f4",), (
+        "Ba4 ba5 mai3 le5 yi1 ge4 da4 mian4 bao1.",
+        "Ma1 ma5 pao3 bu4 pao3 de5 hen3 kuai4.",
+        "Fu4 mu3 pei2 wo3 qu4 pa2 shan1.",
+        "Wo3 men5 bu2 pa4 bo1 lang4 he2 da4 feng1.",
+        "Xiao3 yu2 zai4 lv4 se4 de5 hu2 li3 you2 yong3.",
+        "Pang4 pang5 de5 mao1 mi1 zai4 fang2 jian1 li3 shui4 jiao4.",
+    ), "espeak-lib", "cmn-latn-pinyin"),  # pinyin: Debian's espeak-ng reads hanzi as English
+    Language("ko", "Korean", "Koreanic", ("m1", "f3"), ("m7",), (
+        "아빠가 바다에서 물고기를 봤어요.",
+        "엄마는 매일 아침 밥을 먹어요.",
+        "우리는 버스를 타고 바닷가에 가요.",
+        "할머니가 맛있는 빵을 만들었어요.",
+        "봄에는 예쁜 꽃이 많이 피어요.",
+        "오빠는 파란 모자를 좋아해요.",
+    ), "espeak-lib"),
+    Language("vi", "Vietnamese", "Austroasiatic", ("m2", "f1"), ("f5",), (
+        "Mẹ mua bánh mì ở chợ.",
+        "Bố em pha cà phê mỗi buổi sáng.",
+        "Bà ngoại nấu phở bò rất ngon.",
+        "Chúng tôi đi bơi ở biển vào mùa hè.",
+        "Bé Mai mặc áo màu vàng.",
+        "Buổi tối ba mẹ đi bộ trong công viên.",
+    ), "espeak-lib"),
+    Language("sw", "Swahili", "Bantu", ("m3", "f3"), ("m6",), (
+        "Mama anapika mboga na wali.",
+        "Baba amenunua mkate mpya sokoni.",
+        "Watoto wanapenda kucheza mpira.",
+        "Mbwa mdogo amelala chini ya meza.",
+        "Tafadhali nipe maji baridi.",
+        "Bibi anapenda maua mazuri.",
+    ), "espeak-lib"),
+    Language("ru", "Russian", "Slavic", ("m2", "f2"), ("f4",), (
+        "Мама мыла раму утром.",
+        "Папа пьёт молоко и ест булку.",
+        "Бабушка пошла в магазин за хлебом.",
+        "Мы видели большой белый пароход.",
+        "Мой брат любит играть в футбол.",
+        "Повар приготовил вкусный борщ.",
+    ), "espeak-lib"),
+    # never trained on
+    Language("yue", "Cantonese", "Sinitic", (), ("f4", "m7"), (
+        "爸爸買咗一個大麵包。",
+        "媽媽每朝都去跑步。",
+        "婆婆喺菜市場買魚。",
+        "我哋一齊去海邊玩。",
+        "呢本書好好睇。",
+        "阿爸飲咗杯熱咖啡。",
+    ), "espeak-lib"),
+    Language("uk", "Ukrainian", "Slavic", (), ("m6", "f5"), (
+        "Мама купила білий хліб.",
+        "Батько варить каву щоранку.",
+        "Бабуся пече смачні пиріжки.",
+        "Ми підемо до моря влітку.",
+        "Мій брат любить футбол.",
+        "Пташка співає у парку.",
+    ), "espeak-lib"),
 )
 # fmt: on
 BY_CODE = {lang.code: lang for lang in LANGUAGES}
@@ -219,6 +299,21 @@ def check_not_reserved(db: str, language: str = "") -> None:
         raise TalkmeshError(f"MBROLA voice '{db}' is reserved for outside checks: choose another")
     if language.split("-")[0] in RESERVED_LANGUAGES:
         raise TalkmeshError(f"language '{language}' is reserved for outside checks")
+
+
+def check_espeak_not_reserved(voice: str, language: str = "", name: str = "") -> None:
+    """Refuses espeak-ng voices of reserved languages (by code, file or name) and MBROLA voices,
+    which go through the ``mbrola`` engine where their databases are checked."""
+    base = voice.split("+")[0].strip().lower()
+    if base.startswith(("mb-", "mb/")) or "/mb-" in base:
+        raise TalkmeshError(
+            f"'{voice}' is an MBROLA voice: use the mbrola engine (talkmesh.audio.voices.mbrola_voice)"
+        )
+    for tag in (base.rsplit("/", 1)[-1], language.lower()):
+        if tag and tag.split("-")[0] in RESERVED_ESPEAK_LANGUAGES:
+            raise TalkmeshError(f"espeak-ng voice '{voice}' is reserved for outside checks")
+    if any(n in f"{base} {name.lower()}" for n in RESERVED_ESPEAK_NAMES):
+        raise TalkmeshError(f"espeak-ng voice '{voice}' is reserved for outside checks")
 
 
 def trained_languages() -> list[Language]:
@@ -296,3 +391,66 @@ def sampa_label(symbol: str) -> str:
             if cand in table:
                 return table[cand]
     return "HH"
+
+
+# --- espeak-ng's phoneme mnemonics -> the procedural animator's phone labels ----------------
+# espeak-ng names its phones in its own ASCII scheme (Kirshenbaum-like, the symbols of
+# ``espeak-ng -x``): most consonants and plain vowels read as SAMPA (:func:`sampa_label` takes
+# them); these differ, or carry espeak-ng's marks (";" palatalised, "." retroflex, "-"
+# unreleased or syllabic, "[" dental, "#" a variant). A multi-vowel phone (Mandarin "uai") takes
+# its nucleus; the glide before it is a phone of its own where espeak-ng makes one ("X w A").
+# fmt: off
+_ESPEAK_COMMON = {
+    # bilabial, labiodental
+    "m-": "M", "p-": "P", "b-": "B", "ph": "P",
+    # flaps and trills (the tongue tip, like SAMPA "r")
+    "*": "D", "R": "D", "R2": "D", "R3": "D", "R4": "D", "r.": "R",
+    # alveolar, dental, retroflex, postalveolar, alveolo-palatal
+    "t-": "T", "d-": "D", "t[": "T", "d[": "D", "d_": "D", "n-": "N", "n.": "N", "l.": "L",
+    "s-": "S", "ts": "S", "tsh": "S", "dz": "Z", "s.": "SH", "z.": "ZH", "ts.": "CH",
+    "ts.h": "CH", "cr": "CH", "tS;": "CH", "tS;h": "CH", "tSh": "CH", "tS;-": "CH",
+    "dZ;": "JH", "S;": "SH", "Z;": "ZH", "n^": "N", "l^": "L", "L": "L",
+    # palatal, velar, glottal
+    "J": "JH", "J^": "JH", ";": "Y", "k-": "K", "q": "K", "q-": "K", "kh": "K", "N-": "NG",
+    "X": "HH", "x": "HH",
+    # vowels: espeak-ng's unrounded back /ɯ ɤ/, apical /ɿ ʅ/, central /ɵ/, reduced and variants
+    "u-": "IH", "o-": "AH", "i.": "IH", "i[": "IH", "8": "OE", "@-": "AH", "@r": "ER",
+    "a#": "AH", "V#": "AH", "I#": "IH", "I2": "IH", "I3": "IH", "I^": "IY", "E#": "EH",
+    "E2": "EH", "E3": "EH", "E%": "EH", "u#": "UW", 'u"': "UW", "o#": "OW", "O#": "AO",
+    "O+": "AO", "O-": "OW", "ju": "UW", "ja": "AA", "ja#": "AH", "a:I": "AY", "a:U": "AW",
+    # diphthongs and multi-vowel phones (Mandarin finals), by nucleus
+    "Au": "AW", "ai": "AY", "ei": "EY", "ou": "OW", "iA": "AA", "iE": "EH", "iAu": "AW",
+    "io": "OW", "iou": "OW", "ong": "UH", "uA": "AA", "ua": "AA", "uai": "AY", "uei": "EY",
+    "uo": "OW", "u@": "AH", "yu": "UY", "y&": "UY", "yE": "EH", "y@": "UY", "yi": "UY",
+}
+# Where a language's phoneme table gives a mnemonic another sound (espeak-ng's phoneme tables)
+_ESPEAK_BY_TABLE = {
+    "ru": {"y": "IH", "Y": "IH"},  # ы /ɨ/, unrounded
+    "uk": {"y": "IH", "Y": "IH"},  # Ukrainian reads with the Russian table
+    "vi": {"y": "IH", "y@": "IH", "yI": "IH", "u@": "UW", "i@": "IY"},  # ư /ɯ/; ua, ia
+    "yue": {  # jyutping-named: z /ts/, c /tsʰ/, a /ɐ/, eo /ɵ/, oe /œ/, yu /y/, finals with -ng
+        "z": "S", "c": "S", "a": "AH", "aa": "AA", "aai": "AY", "aau": "AW", "e": "EH",
+        "eu": "EH", "iu": "IY", "o": "AO", "oi": "OY", "ui": "UW", "oe": "OE", "eo": "OE",
+        "eoi": "OE", "ang": "AH", "aang": "AA", "eng": "EH", "ing": "IH", "ong": "AO",
+        "ung": "UH", "oeng": "OE",
+    },
+}
+# fmt: on
+ESPEAK_PAUSES = ("_", "||")  # "_", "_:", "_|", "_!" ...: pauses (silent); "||": a clause break
+
+
+def espeak_label(mnemonic: str, language: str = "") -> str:
+    """One espeak-ng phoneme mnemonic (as ``espeak-ng -x`` writes it) -> a procedural-animator
+    phone label. ``language``: the voice's espeak-ng language (``cmn-latn-pinyin``, ``yue``, ...),
+    whose phoneme table decides the few mnemonics that differ between tables. Stress marks and
+    tone digits are not phones; a pause is silence."""
+    s = unicodedata.normalize("NFC", mnemonic.strip()).lstrip("',")
+    if not s or s.startswith(ESPEAK_PAUSES):
+        return SILENCE
+    table = _ESPEAK_BY_TABLE.get(language.lower().split("-")[0], {})
+    for cand in (s, s.rstrip("0123456789") or s):
+        if cand in table:
+            return table[cand]
+        if cand in _ESPEAK_COMMON:
+            return _ESPEAK_COMMON[cand]
+    return sampa_label(s)

@@ -1,11 +1,13 @@
 """Synthetic voices with exact phone timings, for the synthetic corpus.
 
-Two Debian synthesisers give the times of the phones they actually render:
+Three Debian synthesisers give the times of the phones they actually render:
 
 * MBROLA through espeak-ng: ``espeak-ng -v mb-us1 --pho`` writes the phones with durations in ms
   and ``mbrola`` renders exactly that file, so the durations are the truth.
 * Festival: the utterance's ``Segment`` relation holds each phone's end time
   (``utt.save.segs``), for diphone and HTS voices alike.
+* espeak-ng's own voices (engine ``espeak-lib``, :func:`espeak_voice`; the multilingual corpus):
+  the library reports each phone's first output sample (:mod:`talkmesh.audio.espeak_lib`).
 
 Twelve voices: the four MBROLA voices at two prosody settings (pitch and rate change the
 rendered durations, which the .pho carries) and four Festival voices. They make the default
@@ -41,14 +43,15 @@ FESTIVAL_RATE = 16_000  # Hz of the diphone voices; HTS voices are resampled to 
 
 @dataclass(frozen=True)
 class Voice:
-    """A synthesiser voice: ``engine`` is "mbrola" or "festival" (exact phone times), or
-    "espeak", "flite" or "pico" (phone times by forced alignment)."""
+    """A synthesiser voice: ``engine`` is "mbrola", "festival" or "espeak-lib" (espeak-ng's own
+    voices through its library: exact phone times), or "espeak", "flite" or "pico" (phone times
+    by forced alignment)."""
 
     name: str
     engine: str
-    voice: str  # mb-us1 ... for MBROLA, the Festival voice function name otherwise
-    pitch: int = 50  # espeak-ng -p (0-99), MBROLA voices only
-    speed: int = 160  # espeak-ng -s (words per minute), MBROLA voices only
+    voice: str  # mb-us1 ... for MBROLA, cmn-latn-pinyin+f2 for espeak-lib, Festival's function
+    pitch: int = 50  # espeak-ng -p (0-99), MBROLA and espeak-ng voices
+    speed: int = 160  # espeak-ng -s (words per minute), MBROLA and espeak-ng voices
     description: str = ""
     phoneset: str = "radio"  # Festival voices: "radio" (US) or "mrpa" (British rab)
     language: str = "en"  # espeak-ng language; MBROLA voices of other languages map their SAMPA
@@ -217,6 +220,59 @@ def mbrola_voice(db: str, language: str, pitch: int = 50, speed: int = 160) -> V
     )
 
 
+def espeak_voice(voice: str, language: str, pitch: int = 50, speed: int = 160) -> Voice:
+    """espeak-ng's own voice ``voice`` (``cmn-latn-pinyin+m3``: a variant after '+') for the
+    ``espeak-lib`` engine, refused when its language is reserved for outside checks."""
+    from talkmesh.audio.languages import check_espeak_not_reserved
+
+    check_espeak_not_reserved(voice, language)
+    name = f"es-{voice}" + ("" if (pitch, speed) == (50, 160) else f"-p{pitch}-s{speed}")
+    return Voice(
+        name,
+        "espeak-lib",
+        voice,
+        pitch,
+        speed,
+        f"{language} (espeak-ng {voice})",
+        language=language,
+    )
+
+
+def espeak_phones(events: list[tuple[str, int]], num_samples: int, sr: int, language: str):
+    """The library's phoneme events -> contiguous timed phones: each phone from its event's
+    sample to the next event's (the last to the end of the audio), silences merged."""
+    from talkmesh.audio.languages import espeak_label
+
+    starts = [min(max(s, 0), num_samples) for _, s in events] + [num_samples]
+    phones = [
+        Phone(espeak_label(m, language), a / sr, b / sr)
+        for (m, _), a, b in zip(events, starts, starts[1:])
+    ]
+    if not any(p.label != SILENCE and p.end > p.start for p in phones):
+        return []
+    return _merge(phones, num_samples / sr)
+
+
+def synthesize_espeak_lib(voice: Voice, text: str, wav: Path) -> tuple[list[Phone], int]:
+    """Render ``text`` with espeak-ng's own voice into ``wav``; returns (phones, sample rate),
+    each phone with the times the synthesiser's phoneme events gave it."""
+    import soundfile as sf
+
+    from talkmesh.audio.espeak_lib import render
+    from talkmesh.audio.languages import check_espeak_not_reserved
+
+    check_espeak_not_reserved(voice.voice, voice.language)
+    out = render(voice.voice, text, voice.pitch, voice.speed)
+    phones = espeak_phones(out.events, len(out.audio), out.sample_rate, out.language)
+    if not phones:
+        raise TalkmeshError(
+            f"espeak-ng voice '{voice.voice}' made no phones of {text[:40]!r}: "
+            "give it text in its language (pinyin with tone numbers for cmn-latn-pinyin)"
+        )
+    sf.write(str(wav), out.audio, out.sample_rate, format="WAV", subtype="PCM_16")
+    return phones, out.sample_rate
+
+
 def _merge(phones: list[Phone], duration: float) -> list[Phone]:
     """Contiguous phones from 0 to ``duration``: silences merged, leading/trailing gaps filled."""
     out: list[Phone] = []
@@ -353,6 +409,8 @@ def synthesize(voice: Voice, items: list[tuple[str, Path]]) -> list[tuple[list[P
     """Speak each (text, wav path) with ``voice``; returns (phones, sample rate) per item."""
     if voice.engine == "festival":
         return synthesize_festival(voice, items)
+    if voice.engine == "espeak-lib":
+        return [synthesize_espeak_lib(voice, text, wav) for text, wav in items]
     if voice.engine in ALIGNED_ENGINES:
         return [synthesize_aligned(voice, text, wav) for text, wav in items]
     return [synthesize_mbrola(voice, text, wav) for text, wav in items]

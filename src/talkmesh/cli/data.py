@@ -26,8 +26,9 @@ def add_synth(sub: Subparsers) -> None:
     sy.add_argument(
         "--multilingual",
         action="store_true",
-        help="the multilingual corpus: every MBROLA voice of talkmesh.audio.languages (19 "
-        "languages; held-out voices and never-trained languages make the test split), motion "
+        help="the multilingual corpus: every voice of talkmesh.audio.languages (MBROLA and "
+        "espeak-ng's own voices, 27 languages; held-out voices and never-trained languages make "
+        "the test split), motion "
         "truth from the teacher (lips met through /p b m/, rest in pauses)",
     )
     sy.add_argument(

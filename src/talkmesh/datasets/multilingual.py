@@ -4,7 +4,8 @@ Every voice of :data:`talkmesh.audio.languages.LANGUAGES` is a subject: its ``tr
 the train split (one per language goes to val where a language has three or more), its ``test``
 voices (held-out voices of trained languages, and every voice of the never-trained languages) the
 test split. Each utterance is two of the language's sentences with the pause between them, read by
-an MBROLA voice at the pitch and rate given to its subject; the motion truth is the procedural
+an MBROLA voice or one of espeak-ng's own voices (a variant of the language's voice, phone times
+from the library's phoneme events) at the pitch and rate given to its subject; the motion truth is the procedural
 animator with the teacher's rules (:mod:`talkmesh.face.teacher`) on the synthesiser's exact phone
 timings, which are also saved (``phones/NAME.json``: ``[[label, start, end], ...]``) for the
 multilingual benchmark.
@@ -38,8 +39,9 @@ def utterances(sentences: tuple[str, ...], count: int, rng: np.random.Generator)
 
 
 def plan_subjects(languages: list[str] | None = None) -> list[tuple[str, str, str]]:
-    """(split, language code, MBROLA database) of every subject, in corpus order."""
-    from talkmesh.audio.languages import LANGUAGES, check_not_reserved
+    """(split, language code, voice) of every subject, in corpus order; the voice is an MBROLA
+    database or, for a language of the ``espeak-lib`` engine, a variant of its espeak-ng voice."""
+    from talkmesh.audio.languages import LANGUAGES, check_espeak_not_reserved, check_not_reserved
 
     chosen = [lang for lang in LANGUAGES if languages is None or lang.code in languages]
     unknown = set(languages or ()) - {lang.code for lang in LANGUAGES}
@@ -47,17 +49,32 @@ def plan_subjects(languages: list[str] | None = None) -> list[tuple[str, str, st
         raise TalkmeshError(f"unknown language(s) {', '.join(sorted(unknown))}")
     out = []
     for lang in chosen:
-        for k, db in enumerate(lang.train):
-            check_not_reserved(db, lang.code)
-            out.append(("val" if k == 2 else "train", lang.code, db))
-        for db in lang.test:
-            check_not_reserved(db, lang.code)
-            out.append(("test", lang.code, db))
+        for split, db in [("val" if k == 2 else "train", db) for k, db in enumerate(lang.train)] + [
+            ("test", db) for db in lang.test
+        ]:
+            if lang.engine == "espeak-lib":
+                check_espeak_not_reserved(lang.voice_name(db), lang.code)
+            else:
+                check_not_reserved(db, lang.code)
+            out.append((split, lang.code, db))
     return out
 
 
-def installed(db: str) -> bool:
-    return (Path("/usr/share/mbrola") / db / db).is_file()
+def installed(db: str, code: str = "") -> bool:
+    """Whether the voice ``db`` of language ``code`` can speak here: its MBROLA database, or
+    espeak-ng's library and the voice it names."""
+    from talkmesh.audio.languages import get_language
+
+    lang = get_language(code) if code else None
+    if lang is None or lang.engine == "mbrola":
+        return (Path("/usr/share/mbrola") / db / db).is_file()
+    from talkmesh.audio.espeak_lib import voice_details
+
+    try:
+        voice_details(lang.voice_name(db))
+    except TalkmeshError:
+        return False
+    return True
 
 
 def make_multilingual_corpus(
@@ -73,11 +90,11 @@ def make_multilingual_corpus(
     """Write the multilingual corpus to ``out``; returns a summary."""
     root = Path(out)
     _check_request(root, 1, utterances_per_voice, overwrite)
-    plan = [row for row in plan_subjects(languages) if installed(row[2])]
+    plan = [row for row in plan_subjects(languages) if installed(row[2], row[1])]
     if not plan:
         raise TalkmeshError(
-            "no MBROLA voice of the chosen languages is installed: "
-            "`sudo apt-get install mbrola-de2 mbrola-fr2 ...` (see docs/results/multilingual.md)"
+            "no voice of the chosen languages is installed: `sudo apt-get install mbrola-de2 "
+            "mbrola-fr2 ...` or libespeak-ng1 (see docs/results/multilingual.md)"
         )
     jobs, subjects, texts, splits = _jobs(root, plan, utterances_per_voice, seed)
     for sub in ("wav", "vertices_npy", "arkit", "regions", "phones"):
@@ -108,7 +125,7 @@ def make_multilingual_corpus(
 def _jobs(root: Path, plan: list, count: int, seed: int) -> tuple[list, dict, dict, dict]:
     """One synthesis job per planned voice; the manifest's subjects, texts and splits."""
     from talkmesh.audio.languages import get_language
-    from talkmesh.audio.voices import mbrola_voice
+    from talkmesh.audio.voices import espeak_voice, mbrola_voice
     from talkmesh.face.assets import list_identities
     from talkmesh.face.lipsync import SpeakingStyle
 
@@ -121,7 +138,10 @@ def _jobs(root: Path, plan: list, count: int, seed: int) -> tuple[list, dict, di
         identity = identities[s % len(identities)]
         subject = f"ML_{code.replace('-', '')}_{db}_{identity}"
         pitch, speed = int(rng.integers(35, 66)), int(rng.integers(135, 186))
-        voice = mbrola_voice(db, code, pitch, speed)
+        if lang.engine == "espeak-lib":
+            voice = espeak_voice(lang.voice_name(db), code, pitch, speed)
+        else:
+            voice = mbrola_voice(db, code, pitch, speed)
         style = SpeakingStyle.random(rng)
         mine = utterances(lang.sentences, count, rng)
         subjects[subject] = {
