@@ -25,9 +25,10 @@ $(STAMP): pyproject.toml package.json package-lock.json scripts/setup_system.sh
 	npm ci --silent --no-audit --no-fund
 	touch $(STAMP)
 
-# The browser viewer of `talkmesh serve` (web/viewer -> talkmesh/serve/static): three.js comes from
-# node_modules, bundled by esbuild, so the page needs no CDN. Built after `npm ci`.
-$(VIEWER): $(wildcard web/viewer/*) package-lock.json | $(STAMP)
+# The browser viewer of `talkmesh serve` (web/viewer and the web/client modules it imports ->
+# talkmesh/serve/static): three.js comes from node_modules, bundled by esbuild, so the page needs
+# no CDN. Built after `npm ci`.
+$(VIEWER): $(wildcard web/viewer/* web/client/*.js) package-lock.json | $(STAMP)
 	npm run --silent build:viewer
 
 viewer: $(STAMP)

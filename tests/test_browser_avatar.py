@@ -139,7 +139,7 @@ def test_viewer_drives_served_and_dropped_avatars(avatar_server, avatars, speech
 
 
 def test_viewer_reads_names_like_python():
-    """web/viewer/arkit_names.js and talkmesh.face.arkit_names agree on every spelling."""
+    """web/client/arkit_names.js and talkmesh.face.arkit_names agree on every spelling."""
     from talkmesh.face.arkit import ARKIT_NAMES
     from talkmesh.face.arkit_names import VISEME_FROM_ARKIT, VISEMES, arkit_channel, viseme_channel
 
@@ -163,7 +163,7 @@ def test_viewer_reads_names_like_python():
         "",
     ]
     script = (
-        f"import * as n from {json.dumps(str(ROOT / 'web/viewer/arkit_names.js'))};"
+        f"import * as n from {json.dumps(str(ROOT / 'web/client/arkit_names.js'))};"
         "const names = JSON.parse(process.argv[1]);"
         "console.log(JSON.stringify({arkit: names.map(n.arkitChannel), visemes: names.map("
         "n.visemeChannel), order: [n.ARKIT_NAMES, n.VISEMES], map: n.VISEME_FROM_ARKIT}));"
@@ -229,7 +229,7 @@ console.log(JSON.stringify({ expressions: b.expressions, vrm: b.vrm, out,
 
 @pytest.mark.parametrize("version", ["0.x", "1.0", "1.0 one-eye", "arkit"])
 def test_viewer_drives_vrm_presets_as_the_files_do(tmp_path, version):
-    """web/viewer/arkit_names.js binds a VRM's presets and drives them from a stream's ARKit
+    """web/client/arkit_names.js binds a VRM's presets and drives them from a stream's ARKit
     weights to the influences `animate --avatar` writes into the file's clip (VRM 0.x and 1.0,
     one blink or one per eye); an avatar with ARKit mouth shapes keeps them (no presets)."""
     import numpy as np
@@ -256,7 +256,7 @@ def test_viewer_drives_vrm_presets_as_the_files_do(tmp_path, version):
     binding = animate_avatar(avatar, weights, 30.0, out)
     node = shutil.which("node")
     assert node, "node is not installed (make setup)"
-    script = PRESETS_JS % json.dumps(str(ROOT / "web/viewer/arkit_names.js"))
+    script = PRESETS_JS % json.dumps(str(ROOT / "web/client/arkit_names.js"))
     run = subprocess.run(
         [node, "--input-type=module", "-e", script, json.dumps([str(avatar), weights.tolist()])],
         capture_output=True,

@@ -2,7 +2,7 @@
 // talkmesh.face.arkit.WeightFitter (least squares on the head's 52 morph targets, clipped to
 // [0, 1], then projected gradient steps), the basis read from head.glb's morph targets.
 
-import { ARKIT_NAMES } from "../viewer/arkit_names.js";
+import { ARKIT_NAMES } from "../client/arkit_names.js";
 
 const ITERATIONS = 200;
 

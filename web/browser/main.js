@@ -12,8 +12,8 @@
 
 import * as THREE from "three";
 import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
-import { AvatarRig } from "../viewer/avatar.js";
-import { addCapture, microphone, openCapture } from "../viewer/capture.js";
+import { AvatarRig } from "../client/avatar.js";
+import { addCapture, microphone, openCapture } from "../client/capture.js";
 import { WeightFitter } from "./fit.js";
 import { SAMPLE_RATE } from "./logmel.js";
 import { Model, Streamer, openSessions } from "./model.js";

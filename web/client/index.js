@@ -1,9 +1,11 @@
 // talkmesh-client: speech in, ARKit weights out, played on any three.js object in step with the
-// audio. No dependency: meshes are found by their morphTargetDictionary (three.js's Mesh and
-// SkinnedMesh, a VRM's scene), names matched as talkmesh.face.arkit_names matches them.
+// audio. No dependency (three.js is the page's own): meshes are found by their morph targets
+// (three.js's Mesh and SkinnedMesh, a VRM's scene), names matched as talkmesh.face.arkit_names
+// matches them; an avatar without ARKit mouth shapes is driven through its VRM mouth presets (pass
+// the loader's gltf, whose parser holds the VRM extension) or its Oculus visemes (AvatarRig).
 //
 //   const client = new TalkmeshClient("ws://127.0.0.1:8000/ws/stream");
-//   client.attach(gltf.scene);                // or vrm.scene
+//   client.attach(gltf);                      // or gltf.scene, vrm.scene: any three.js object
 //   await client.playAudio(audioBuffer);      // an AudioBuffer: plays it and animates in step
 //   await client.streamMicrophone();          // or the microphone, live, until stopMicrophone()
 //   client.update();                          // every animation frame
@@ -11,8 +13,13 @@
 // The protocol (docs/guide/streaming.md): 16 kHz mono int16 PCM in binary messages, then
 // {"type": "end"}; the server answers a hello, one "TMF1" binary message per frame and an end.
 
-import { ARKIT_NAMES, bindAvatar } from "../viewer/arkit_names.js";
-import { addCapture, microphone, openCapture } from "../viewer/capture.js";
+import { ARKIT_NAMES } from "./arkit_names.js";
+import { AvatarRig } from "./avatar.js";
+import { addCapture, microphone, openCapture } from "./capture.js";
+
+export { ARKIT_NAMES, VISEMES, VRM_PRESETS, bindAvatar } from "./arkit_names.js";
+export { AvatarRig, targetNames } from "./avatar.js";
+export { addCapture, microphone, openCapture } from "./capture.js";
 
 export const SAMPLE_RATE = 16000;
 const CHUNK_SAMPLES = SAMPLE_RATE / 10; // 100 ms per message
@@ -21,24 +28,27 @@ const HEADER_BYTES = 16;
 
 const FLAG_HEAD = 2;
 
-// One frame message -> {index, time, weights: Float32Array, headPose} (weights in hello.names
-// order; headPose: Float32Array [pitch, yaw, roll (radians), x, y, z (metres)] or null, a vertex
-// v going to R v + t with R = Ry(yaw) Rx(pitch) Rz(roll), three.js's Euler order "YXZ").
+// One frame message -> {index, time, flags, weights: Float32Array, headPose} (weights in
+// hello.names order; headPose: Float32Array [pitch, yaw, roll (radians), x, y, z (metres)] or
+// null, a vertex v going to R v + t with R = Ry(yaw) Rx(pitch) Rz(roll), three.js's Euler order
+// "YXZ"). Throws on a message that is not a frame or is cut short.
 export function parseFrame(buffer) {
   const view = new DataView(buffer);
   if (buffer.byteLength < HEADER_BYTES || view.getUint32(0, false) !== FRAME_MAGIC) {
     throw new Error("not a talkmesh frame (TMF1)");
   }
   const count = view.getUint16(12, true);
+  const flags = view.getUint16(14, true);
+  const poseAt = HEADER_BYTES + 4 * count;
+  if (buffer.byteLength < poseAt + (flags & FLAG_HEAD ? 24 : 0)) throw new Error("truncated frame");
   const weights = new Float32Array(count);
   for (let i = 0; i < count; i++) weights[i] = view.getFloat32(HEADER_BYTES + 4 * i, true);
   let headPose = null;
-  if (view.getUint16(14, true) & FLAG_HEAD) {
+  if (flags & FLAG_HEAD) {
     headPose = new Float32Array(6);
-    const at = HEADER_BYTES + 4 * count;
-    for (let i = 0; i < 6; i++) headPose[i] = view.getFloat32(at + 4 * i, true);
+    for (let i = 0; i < 6; i++) headPose[i] = view.getFloat32(poseAt + 4 * i, true);
   }
-  return { index: view.getUint32(4, true), time: view.getFloat32(8, true), weights, headPose };
+  return { index: view.getUint32(4, true), time: view.getFloat32(8, true), flags, weights, headPose };
 }
 
 // (S,) float samples at `rate` -> 16 kHz int16, through an OfflineAudioContext (the browser's
@@ -61,7 +71,7 @@ export class TalkmeshClient {
   constructor(url, { audioContext } = {}) {
     this.url = url;
     this.context = audioContext || new AudioContext();
-    this.targets = []; // [{mesh, pairs: [[target index, stream index]...]}]
+    this.rig = null; // the attached object's AvatarRig
     this.frames = []; // received, not yet shown
     this.names = ARKIT_NAMES;
     this.start = null; // the AudioContext time of frame 0
@@ -71,26 +81,12 @@ export class TalkmeshClient {
     this.onframe = null; // called with each frame as it is shown
   }
 
-  // Drive every mesh under `object` whose morph targets carry ARKit names.
-  attach(object) {
-    const meshes = [];
-    object.traverse((o) => {
-      if (o.morphTargetDictionary && o.morphTargetInfluences) meshes.push(o);
-    });
-    this.meshes = meshes;
-    this._bind();
-    return this.targets.reduce((n, t) => n + t.pairs.length, 0);
-  }
-
-  _bind() {
-    if (!this.meshes) return;
-    const described = this.meshes.map((m) => {
-      const targets = [];
-      for (const [name, k] of Object.entries(m.morphTargetDictionary)) targets[k] = name;
-      return { name: m.name, targets };
-    });
-    const binding = bindAvatar(described, this.names);
-    this.targets = this.meshes.map((mesh, i) => ({ mesh, pairs: binding.meshes[i].arkit }));
+  // Drive every mesh under `avatar` (a GLTFLoader result, or any three.js object) whose morph
+  // targets carry ARKit names, Oculus visemes or, from a .vrm's gltf, VRM mouth presets. Returns
+  // how many morph targets it drives.
+  attach(avatar) {
+    this.rig = new AvatarRig(avatar, this.names);
+    return this.rig.targetCount();
   }
 
   // Play `buffer` (an AudioBuffer) and stream it to the server: the frames are shown as the
@@ -172,7 +168,7 @@ export class TalkmeshClient {
         if (message.type === "hello") {
           this.names = message.names;
           this.fps = message.fps;
-          this._bind();
+          if (this.rig) this.rig.bind(this.names);
           this.state = "streaming";
           begin(ws);
         } else if (message.type === "end") {
@@ -206,9 +202,7 @@ export class TalkmeshClient {
     let frame = null;
     while (this.frames.length && this.frames[0].time <= now) frame = this.frames.shift();
     if (!frame) return;
-    for (const { mesh, pairs } of this.targets) {
-      for (const [k, i] of pairs) mesh.morphTargetInfluences[k] = frame.weights[i];
-    }
+    if (this.rig) this.rig.apply(frame.weights);
     this.shown.push([frame.time, this.live ? frame.time : now]);
     if (this.onframe) this.onframe(frame);
   }

@@ -5,10 +5,11 @@
 // "TMF1" message per frame. Bundled by esbuild (`npm run build:viewer`): no CDN.
 //
 // An avatar (`talkmesh serve --avatar FILE`, or a .glb/.vrm dropped on the page) replaces the
-// head: every mesh whose morph targets carry ARKit names (in exporters' spellings, see
-// arkit_names.js) follows the stream; one with Oculus visemes only gets them from the ARKit weights,
-// and a VRM without ARKit mouth shapes its expression presets (aa ih ou ee oh, blinks, looks)
-// through the morph targets the VRM extension binds to them, as `animate --avatar` files do.
+// head, bound by talkmesh-client's AvatarRig (web/client/avatar.js): every mesh whose morph targets
+// carry ARKit names (in exporters' spellings, see web/client/arkit_names.js) follows the stream;
+// one with Oculus visemes only gets them from the ARKit weights, and a VRM without ARKit mouth
+// shapes its expression presets (aa ih ou ee oh, blinks, looks) through the morph targets the VRM
+// extension binds to them, as `animate --avatar` files do.
 //
 // For tests, `window.talkmesh` is the live state: state, framesReceived, latencyMs {median, p95},
 // fps, weightHistory {jawOpen}, lastWeights, plus names, streamFps, lookaheadMs, model, endFrames,
@@ -19,9 +20,10 @@ import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { RoomEnvironment } from "three/addons/environments/RoomEnvironment.js";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
-import { ARKIT_NAMES, bindAvatar, presetValues, readVrmExpressions } from "./arkit_names.js";
-import { meshDef, targetNames } from "./avatar.js";
-import { addCapture } from "./capture.js";
+import { ARKIT_NAMES } from "../client/arkit_names.js";
+import { AvatarRig } from "../client/avatar.js";
+import { addCapture } from "../client/capture.js";
+import { parseFrame } from "../client/index.js";
 
 const SAMPLE_RATE = 16000; // what the server expects
 const CHUNK_MS = 20;
@@ -29,9 +31,6 @@ const CHUNK_SAMPLES = (SAMPLE_RATE * CHUNK_MS) / 1000;
 const HISTORY_FRAMES = 300;
 const LATENCY_WINDOW_MS = 2000;
 const STATS_EVERY_MS = 250;
-const FRAME_MAGIC = 0x544d4631; // "TMF1" read big-endian
-const FRAME_HEADER_BYTES = 16;
-const FLAG_HEAD = 2; // a frame's head pose follows its weights: 6 float32
 
 const talkmesh = {
   state: "loading",
@@ -107,13 +106,7 @@ function resize() {
 window.addEventListener("resize", resize);
 resize();
 
-let morphMeshes = []; // every mesh of the model that has morph targets
-let drivers = []; // per mesh: [[morph index, stream index]...] and [[morph index, viseme]...]
-let visemeTerms = []; // per viseme: [[stream index, coefficient]...]
-let visemeValues = new Float32Array(0);
-let presetTerms = []; // per VRM preset: [[stream index, coefficient]...]
-let presetValuesNow = new Float32Array(0);
-let expressions = null; // the shown VRM's presets and their binds (readVrmExpressions)
+let rig = null; // the shown model's AvatarRig: its morph meshes bound to the stream's names
 
 function frameHead(object) {
   const box = new THREE.Box3().setFromObject(object);
@@ -126,37 +119,6 @@ function frameHead(object) {
   camera.updateProjectionMatrix();
   controls.target.copy(center);
   controls.update();
-}
-
-function bind() {
-  const names = talkmesh.names || ARKIT_NAMES;
-  const meshes = morphMeshes.map((m) => ({ targets: m.userData.talkmeshTargets, mesh: m.userData.talkmeshMesh }));
-  const binding = bindAvatar(meshes, names, expressions);
-  drivers = morphMeshes.map((mesh, i) => ({ mesh, ...binding.meshes[i] }));
-  visemeTerms = binding.visemeTerms;
-  visemeValues = new Float32Array(visemeTerms.length);
-  presetTerms = binding.presetTerms;
-  presetValuesNow = new Float32Array(presetTerms.length);
-  const driven = drivers.filter((d) => d.arkit.length || d.visemes.length || d.presets.length);
-  return { binding, meshes: driven.map((d) => d.mesh.userData.talkmeshName) };
-}
-
-function applyWeights(weights) {
-  for (let v = 0; v < visemeTerms.length; v++) {
-    let x = 0;
-    for (const [i, c] of visemeTerms[v]) x += c * weights[i];
-    visemeValues[v] = Math.min(1, Math.max(0, x));
-  }
-  if (presetTerms.length) presetValues(weights, presetTerms, presetValuesNow);
-  for (const { mesh, arkit, visemes, presets } of drivers) {
-    const influences = mesh.morphTargetInfluences;
-    for (const [k, i] of arkit) influences[k] = weights[i];
-    for (const [k, v] of visemes) influences[k] = visemeValues[v];
-    // a target several presets bind: the sum of preset x bind weight, clipped to [0, 1]
-    for (const [k] of presets) influences[k] = 0;
-    for (const [k, p, w] of presets) influences[k] += presetValuesNow[p] * w;
-    for (const [k] of presets) influences[k] = Math.min(1, Math.max(0, influences[k]));
-  }
 }
 
 // The head pose of a frame: a vertex v goes to R v + t, R = Ry(yaw) Rx(pitch) Rz(roll), which is
@@ -211,24 +173,14 @@ function applyPose(pose) {
 // Show `gltf` (a loaded .glb/.vrm) instead of the current model.
 function show(gltf, label) {
   const head = gltf.scene;
-  const meshes = [];
-  head.traverse((o) => {
-    if (o.isMesh && o.morphTargetInfluences && o.morphTargetInfluences.length) {
-      o.userData.talkmeshTargets = targetNames(o, gltf.parser);
-      o.userData.talkmeshName = (meshDef(o, gltf.parser) || {}).name || o.name || "mesh";
-      const where = gltf.parser && gltf.parser.associations.get(o);
-      o.userData.talkmeshMesh = where ? where.meshes : undefined;
-      meshes.push(o);
-    }
-  });
   if (talkmesh.head) scene.remove(talkmesh.head);
-  morphMeshes = meshes;
-  expressions = gltf.parser ? readVrmExpressions(gltf.parser.json) : null;
+  rig = new AvatarRig(gltf, talkmesh.names || ARKIT_NAMES);
   scene.add(head);
   talkmesh.head = head;
   frameHead(head);
   poseTarget = findPoseTarget(head, label, gltf.parser);
-  const { binding, meshes: driven } = bind();
+  const binding = rig.binding;
+  const driven = rig.driven.map((mesh) => mesh.userData.talkmeshName);
   talkmesh.avatar = {
     name: label,
     meshes: driven,
@@ -313,32 +265,6 @@ window.addEventListener("drop", async (e) => {
 
 // Frames wait here for the next animation frame: at most one stays queued after each display.
 let pending = [];
-
-function parseFrame(buffer) {
-  const view = new DataView(buffer);
-  if (buffer.byteLength < FRAME_HEADER_BYTES || view.getUint32(0, false) !== FRAME_MAGIC) {
-    throw new Error("not a TMF1 frame");
-  }
-  const count = view.getUint16(12, true);
-  if (buffer.byteLength < FRAME_HEADER_BYTES + 4 * count) throw new Error("truncated frame");
-  const weights = new Float32Array(count);
-  for (let i = 0; i < count; i++) weights[i] = view.getFloat32(FRAME_HEADER_BYTES + 4 * i, true);
-  const flags = view.getUint16(14, true);
-  let pose = null;
-  if (flags & FLAG_HEAD) {
-    const at = FRAME_HEADER_BYTES + 4 * count;
-    if (buffer.byteLength < at + 24) throw new Error("truncated frame");
-    pose = new Float32Array(6);
-    for (let i = 0; i < 6; i++) pose[i] = view.getFloat32(at + 4 * i, true);
-  }
-  return {
-    index: view.getUint32(4, true),
-    time: view.getFloat32(8, true),
-    flags,
-    weights,
-    pose,
-  };
-}
 
 function quantile(sorted, q) {
   const x = (sorted.length - 1) * q;
@@ -469,7 +395,7 @@ class Session {
     }
     talkmesh.framesReceived += 1;
     pending.push(frame);
-    if (frame.pose) talkmesh.headPose = Array.from(frame.pose);
+    if (frame.headPose) talkmesh.headPose = Array.from(frame.headPose);
     const named = {};
     talkmesh.names.forEach((name, i) => (named[name] = frame.weights[i]));
     talkmesh.lastWeights = named;
@@ -508,7 +434,7 @@ class Session {
       talkmesh.lookaheadMs = msg.lookahead_ms;
       talkmesh.model = msg.model;
       this.jawIndex = msg.names.indexOf("jawOpen");
-      bind();
+      if (rig) rig.bind(msg.names);
       this.ready = true;
       setState(this.finishing ? "ending" : "streaming");
       for (const chunk of this.backlog.splice(0)) this.send(chunk);
@@ -662,8 +588,8 @@ function tick(now) {
   if (pending.length > 2) pending.splice(0, pending.length - 2);
   if (pending.length) {
     const frame = pending.shift();
-    applyWeights(frame.weights);
-    applyPose(frame.pose);
+    if (rig) rig.apply(frame.weights);
+    applyPose(frame.headPose);
   }
   controls.update();
   renderer.render(scene, camera);

@@ -1,5 +1,6 @@
-// Avatars (a loaded .glb/.vrm) driven by ARKit weights: the morph target names the viewer and the
-// in-browser page read, and the in-browser page's rig (the viewer's binding, arkit_names.js).
+// Avatars (a loaded .glb/.vrm, or any three.js object with morph targets) driven by ARKit
+// weights: the one binding that talkmesh-client, the viewer of `talkmesh serve` and the
+// in-browser page use (the rules are arkit_names.js's bindAvatar).
 
 import { ARKIT_NAMES, VRM_PRESETS, bindAvatar, presetValues, readVrmExpressions } from "./arkit_names.js";
 
@@ -25,28 +26,44 @@ export function meshDef(mesh, parser) {
   return where && where.meshes !== undefined && parser.json.meshes ? parser.json.meshes[where.meshes] : null;
 }
 
-// Drive `gltf`'s morph meshes from weights named `names` (ARKIT_NAMES by default), as the viewer
-// binds them (bindAvatar): ARKit-named targets, else a VRM's mouth presets through the targets its
-// extension binds, else Oculus visemes.
+// Drive the morph meshes of `gltf` (a GLTFLoader result {scene, parser}, or a three.js object:
+// then names come from its meshes' morphTargetDictionary and no VRM extension is read) from
+// weights named `names` (ARKIT_NAMES by default): ARKit-named targets, else a VRM's mouth presets
+// through the targets its extension binds, else Oculus visemes.
 export class AvatarRig {
   constructor(gltf, names = ARKIT_NAMES) {
+    const loaded = Boolean(gltf.scene) && !gltf.isObject3D; // a loader's result, not an object
+    const parser = loaded ? gltf.parser || null : null;
+    this.scene = loaded ? gltf.scene : gltf;
     this.meshes = [];
-    gltf.scene.traverse((o) => {
+    this.scene.traverse((o) => {
       if (o.isMesh && o.morphTargetInfluences && o.morphTargetInfluences.length) {
-        o.userData.talkmeshTargets = targetNames(o, gltf.parser);
-        o.userData.talkmeshName = (meshDef(o, gltf.parser) || {}).name || o.name || "mesh";
-        const where = gltf.parser && gltf.parser.associations.get(o);
+        o.userData.talkmeshTargets = targetNames(o, parser);
+        o.userData.talkmeshName = (meshDef(o, parser) || {}).name || o.name || "mesh";
+        const where = parser && parser.associations.get(o);
         o.userData.talkmeshMesh = where ? where.meshes : undefined;
         this.meshes.push(o);
       }
     });
-    const expressions = gltf.parser ? readVrmExpressions(gltf.parser.json) : null;
+    this.expressions = parser ? readVrmExpressions(parser.json) : null;
+    this.bind(names);
+  }
+
+  // (Re)bind to a stream whose weights are named `names` (a server's hello may name its own).
+  bind(names) {
     const described = this.meshes.map((m) => ({ targets: m.userData.talkmeshTargets, mesh: m.userData.talkmeshMesh }));
-    this.binding = bindAvatar(described, names, expressions);
+    this.binding = bindAvatar(described, names, this.expressions);
     this.visemeValues = new Float32Array(this.binding.visemeTerms.length);
     this.presetValues = new Float32Array(this.binding.presetTerms.length);
     const bound = (b) => b.arkit.length || b.visemes.length || b.presets.length;
     this.driven = this.meshes.filter((_, i) => bound(this.binding.meshes[i]));
+    return this.binding;
+  }
+
+  // How many morph targets the weights move, over all meshes.
+  targetCount() {
+    const count = (m) => m.arkit.length + m.visemes.length + new Set(m.presets.map(([k]) => k)).size;
+    return this.binding.meshes.reduce((n, m) => n + count(m), 0);
   }
 
   apply(weights) {
