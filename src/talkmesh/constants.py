@@ -10,6 +10,7 @@ def frames_for_audio(samples: int, fps: float) -> int:
     """Motion frames of ``samples`` audio samples at ``fps`` (at least one)."""
     return max(1, round(samples / SAMPLE_RATE * fps))
 
+
 # The released datasets' training speakers, in the order of the official one-hot style columns
 # (FaceFormer and CodeTalker): the dataset readers' splits and the checkpoint importer share them.
 VOCASET_TRAIN_SUBJECTS = (
