@@ -23,6 +23,8 @@ $(STAMP): pyproject.toml package.json package-lock.json scripts/setup_system.sh
 	$(PIP) install -q torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(PIP) install -q -e '.[dev]'
 	npm ci --silent --no-audit --no-fund
+	# the bundled model's ONNX graphs, exported once into the cache (talkmesh.models.runtime)
+	$(PY) -c "from talkmesh.models.runtime import cached_graphs; cached_graphs('codetalker-synth')"
 	touch $(STAMP)
 
 # The browser viewer of `talkmesh serve` (web/viewer and the web/client modules it imports ->
