@@ -37,6 +37,7 @@ def test_the_default_runs_the_cached_graphs_as_torch_does_and_never_imports_torc
     wave = load_audio(CLIP)[: 3 * 16000]
     net = open_model(BUNDLED)  # the first use exports into the cache
     assert isinstance(net, OnnxModel)
+    assert open_model(BUNDLED) is net  # opened once per process
     folder = graphs_folder(BUNDLED)
     assert folder.parent == cache / "onnx" and (folder / "model.speech.onnx").is_file()
     assert sorted(p.name for p in (cache / "onnx").iterdir()) == [folder.name]  # no leftovers
@@ -63,7 +64,8 @@ def test_a_damaged_cache_entry_is_exported_again(cache):
     path = cached_graphs(BUNDLED)
     size = path.stat().st_size
     path.write_bytes(path.read_bytes()[:1000])  # truncated
-    assert isinstance(open_model(BUNDLED), OnnxModel)
+    again = open_model(BUNDLED)
+    assert isinstance(again, OnnxModel) and again is open_model(BUNDLED)
     assert path.stat().st_size == size
 
 
