@@ -263,6 +263,7 @@ def test_not_a_head(head):
         rig_head(sphere.vertices[:50], sphere.faces[:10], head)
 
 
+@pytest.mark.slow  # most of a minute on 2 cores: `make test-slow`
 def test_cli_rig_then_animate_as_avatar(tmp_path, capsys, monkeypatch):
     """The rigged .glb drives like any avatar; `animate --head` on the same mesh file reads the
     registration `talkmesh rig` saved instead of registering again."""

@@ -125,6 +125,7 @@ def test_refuses_to_clobber_a_run(corpus, tmp_path):
     assert (out / "last.ckpt").read_bytes() == b"mine"
 
 
+@pytest.mark.slow  # most of a minute on 2 cores: `make test-slow`
 def test_resume_takes_the_newest_checkpoint_and_checks_the_recipe_first(corpus, tmp_path):
     from talkmesh.training.checkpoints import newest_checkpoint
 
