@@ -23,6 +23,7 @@ LEVELS: dict[str, int] = {
     "heap": 0,
     "blas": 0,
     "cache": 0,
+    "forked": 0,
     "safe_load": 1,
     "config": 1,
     "animation": 1,

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -88,54 +89,66 @@ def stream_file(page, wav) -> dict[str, list[float]]:
     return seen
 
 
-def test_viewer_drives_served_and_dropped_avatars(avatar_server, avatars, speech_wav):  # noqa: F811
+@contextmanager
+def _viewer(url: str, wav):
+    """The viewer at ``url`` in headless Chromium, its bundled avatar shown: (page, the page's
+    errors)."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
         browser = p.chromium.launch(
-            executable_path=str(CHROMIUM), headless=True, args=chromium_args(speech_wav)
+            executable_path=str(CHROMIUM), headless=True, args=chromium_args(wav)
         )
         try:
             page = browser.new_page(viewport=VIEWPORT)
             errors: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(avatar_server)
+            page.goto(url)
             page.wait_for_function(
                 "window.talkmesh.avatar && window.talkmesh.state === 'idle'", timeout=WAIT_MS
             )
-            info = page.evaluate("window.talkmesh.avatar")
-            assert info["name"] == "me.vrm"
-            assert sorted(info["meshes"]) == ["Head", "Teeth", "Tongue"]
-            assert len(info["channels"]) == 7 and "eyeLookUpLeft" in info["missing"]
-            assert info["visemes"] == []
-            assert "7 of 52" in page.inner_text("#avatar")
-
-            seen = stream_file(page, speech_wav)
-            # Teeth carry their names on the glTF primitive (UniVRM's place): they move too.
-            for mesh in ("Head", "Teeth", "Tongue"):
-                values = seen.get(mesh, [])
-                assert values and max(values) - min(values) > 0.1, (mesh, values[:20])
-
-            # Drop an avatar with visemes only on the page: viseme_aa follows the speech.
-            data = list(avatars[1].read_bytes())
-            page.evaluate(
-                """(data) => {
-                  const dt = new DataTransfer();
-                  dt.items.add(new File([new Uint8Array(data)], "rpm.glb"));
-                  window.dispatchEvent(new DragEvent("drop", {dataTransfer: dt, cancelable: true}));
-                }""",
-                data,
-            )
-            page.wait_for_function("window.talkmesh.avatar.name === 'rpm.glb'", timeout=WAIT_MS)
-            info = page.evaluate("window.talkmesh.avatar")
-            assert info["visemes"] == ["PP", "TH", "aa", "O", "U"]
-            assert info["channels"] == ["eyeBlinkLeft", "eyeBlinkRight"]
-            seen = stream_file(page, speech_wav)
-            head = seen.get("Head", [])
-            assert head and max(head) - min(head) > 0.1, head[:20]
-            assert not errors, errors
+            yield page, errors
         finally:
             browser.close()
+
+
+def _drop(page, data: bytes, name: str) -> None:
+    """Drop a file called ``name`` holding ``data`` on the page, as a user drags one there."""
+    page.evaluate(
+        """([data, name]) => {
+          const dt = new DataTransfer();
+          dt.items.add(new File([new Uint8Array(data)], name));
+          window.dispatchEvent(new DragEvent("drop", {dataTransfer: dt, cancelable: true}));
+        }""",
+        [list(data), name],
+    )
+    page.wait_for_function(f"window.talkmesh.avatar.name === {name!r}", timeout=WAIT_MS)
+
+
+def test_viewer_drives_served_and_dropped_avatars(avatar_server, avatars, speech_wav):  # noqa: F811
+    with _viewer(avatar_server, speech_wav) as (page, errors):
+        info = page.evaluate("window.talkmesh.avatar")
+        assert info["name"] == "me.vrm"
+        assert sorted(info["meshes"]) == ["Head", "Teeth", "Tongue"]
+        assert len(info["channels"]) == 7 and "eyeLookUpLeft" in info["missing"]
+        assert info["visemes"] == []
+        assert "7 of 52" in page.inner_text("#avatar")
+
+        seen = stream_file(page, speech_wav)
+        # Teeth carry their names on the glTF primitive (UniVRM's place): they move too.
+        for mesh in ("Head", "Teeth", "Tongue"):
+            values = seen.get(mesh, [])
+            assert values and max(values) - min(values) > 0.1, (mesh, values[:20])
+
+        # Drop an avatar with visemes only on the page: viseme_aa follows the speech.
+        _drop(page, avatars[1].read_bytes(), "rpm.glb")
+        info = page.evaluate("window.talkmesh.avatar")
+        assert info["visemes"] == ["PP", "TH", "aa", "O", "U"]
+        assert info["channels"] == ["eyeBlinkLeft", "eyeBlinkRight"]
+        seen = stream_file(page, speech_wav)
+        head = seen.get("Head", [])
+        assert head and max(head) - min(head) > 0.1, head[:20]
+        assert not errors, errors
 
 
 def test_viewer_reads_names_like_python():
@@ -287,44 +300,22 @@ MOUTH_A = """() => {
 def test_viewer_drives_a_dropped_vrm_s_presets(avatar_server, tmp_path, speech_wav):  # noqa: F811
     """A VRoid-like VRM 1.0 (presets only, no ARKit or viseme names) dropped on the page: the
     panel names its presets and the target its `aa` preset binds opens with the speech."""
-    from playwright.sync_api import sync_playwright
     from test_visemes import vroid
 
     avatar = vroid(tmp_path, "1.0")
-    with sync_playwright() as p:
-        browser = p.chromium.launch(
-            executable_path=str(CHROMIUM), headless=True, args=chromium_args(speech_wav)
-        )
-        try:
-            page = browser.new_page(viewport=VIEWPORT)
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(avatar_server)
-            page.wait_for_function(
-                "window.talkmesh.avatar && window.talkmesh.state === 'idle'", timeout=WAIT_MS
-            )
-            page.evaluate(
-                """(data) => {
-                  const dt = new DataTransfer();
-                  dt.items.add(new File([new Uint8Array(data)], "vroid.vrm"));
-                  window.dispatchEvent(new DragEvent("drop", {dataTransfer: dt, cancelable: true}));
-                }""",
-                list(avatar.read_bytes()),
-            )
-            page.wait_for_function("window.talkmesh.avatar.name === 'vroid.vrm'", timeout=WAIT_MS)
-            info = page.evaluate("window.talkmesh.avatar")
-            assert info["expressions"] == ["aa", "ih", "ou", "ee", "oh", "blink"]
-            assert info["vrm"] == "1.0" and info["meshes"] == ["Head"]
-            assert "VRM 1.0 presets aa ih ou ee oh blink" in page.inner_text("#avatar")
-            page.set_input_files("#file", str(speech_wav))
-            seen = []
-            for _ in range(400):
-                seen.append(page.evaluate(MOUTH_A))
-                if page.evaluate("window.talkmesh.state") in ("done", "error"):
-                    break
-                page.wait_for_timeout(50)
-            page.wait_for_function("window.talkmesh.state === 'done'", timeout=WAIT_MS)
-            assert max(seen) - min(seen) > 0.1, seen[:20]
-            assert not errors, errors
-        finally:
-            browser.close()
+    with _viewer(avatar_server, speech_wav) as (page, errors):
+        _drop(page, avatar.read_bytes(), "vroid.vrm")
+        info = page.evaluate("window.talkmesh.avatar")
+        assert info["expressions"] == ["aa", "ih", "ou", "ee", "oh", "blink"]
+        assert info["vrm"] == "1.0" and info["meshes"] == ["Head"]
+        assert "VRM 1.0 presets aa ih ou ee oh blink" in page.inner_text("#avatar")
+        page.set_input_files("#file", str(speech_wav))
+        seen = []
+        for _ in range(400):
+            seen.append(page.evaluate(MOUTH_A))
+            if page.evaluate("window.talkmesh.state") in ("done", "error"):
+                break
+            page.wait_for_timeout(50)
+        page.wait_for_function("window.talkmesh.state === 'done'", timeout=WAIT_MS)
+        assert max(seen) - min(seen) > 0.1, seen[:20]
+        assert not errors, errors

@@ -116,3 +116,12 @@ def test_numpy_log_mel_and_interpolation_equal_torchs():
         assert np.abs(interpolate_rows(rows, frames) - want).max() < 1e-6
     with pytest.raises(TalkmeshError, match="too short"):
         log_mel(np.zeros(100, np.float32))
+
+
+def test_a_release_without_torch_installed_is_one_line(monkeypatch):
+    import talkmesh.models.runtime as runtime
+
+    real = runtime.find_spec
+    monkeypatch.setattr(runtime, "find_spec", lambda name: None if name == "torch" else real(name))
+    with pytest.raises(TalkmeshError, match="learned models need torch"):
+        open_model(BUNDLED, "torch")

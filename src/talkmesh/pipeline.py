@@ -468,11 +468,6 @@ def _learned_model(
     from talkmesh.models.onnx import OnnxModel
     from talkmesh.models.runtime import open_model
 
-    if not isinstance(model, (str, Path, OnnxModel)) or runtime == "torch":
-        try:
-            import torch  # noqa: F401
-        except ImportError:
-            raise TalkmeshError("learned models need torch: run `make setup`") from None
     net = open_model(model, runtime, int8=int8)
     if not isinstance(net, OnnxModel):
         import torch
@@ -484,8 +479,6 @@ def _learned_model(
             f"has {head.num_vertices}: pass --template with a neutral face of the model's topology "
             "(e.g. VOCASET's templates.pkl:SUBJECT or FLAME_sample.ply, BIWI's BIWI.ply)"
         )
-    if int8 is not None and not isinstance(model, (str, Path)):
-        net = net.int8_copy(int8)
     styles = list(net.styles)
     weights = None
     if styles:

@@ -19,9 +19,6 @@ samples and events. POSIX only (``os.fork``), as the rest of the synthetic corpu
 from __future__ import annotations
 
 import ctypes
-import json
-import os
-import struct
 import threading
 from dataclasses import dataclass
 
@@ -29,6 +26,7 @@ import numpy as np
 
 from talkmesh.audio.languages import check_espeak_not_reserved
 from talkmesh.errors import TalkmeshError
+from talkmesh.forked import in_child
 
 LIBRARY = "libespeak-ng.so.1"
 # speak_lib.h constants
@@ -199,32 +197,19 @@ def render(voice: str, text: str, pitch: int = 50, speed: int = 160) -> Renderin
 
 def _render_in_child(lib: _Library, voice: str, text: str, pitch: int, speed: int):
     """(status, audio (S,) int16, events) from a forked child that synthesises and exits."""
-    read_end, write_end = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # the child: synthesise, send, exit without running the parent's cleanup
-        code = 1
-        try:
-            os.close(read_end)
-            status = _synthesise(lib, voice, text, pitch, speed)
-            audio = np.concatenate(lib.chunks) if lib.chunks else np.zeros(0, np.int16)
-            head = json.dumps({"status": status, "events": lib.events}).encode()
-            with os.fdopen(write_end, "wb") as out:
-                out.write(struct.pack("<QQ", len(head), audio.size))
-                out.write(head)
-                out.write(audio.astype("<i2").tobytes())
-            code = 0
-        finally:
-            os._exit(code)
-    os.close(write_end)
-    with os.fdopen(read_end, "rb") as inp:
-        payload = inp.read()
-    _, exit_status = os.waitpid(pid, 0)
-    if exit_status != 0 or len(payload) < 16:
+
+    def speak():
+        status = _synthesise(lib, voice, text, pitch, speed)
+        audio = np.concatenate(lib.chunks) if lib.chunks else np.zeros(0, np.int16)
+        names = np.array([m for m, _ in lib.events], dtype="<U16")
+        samples = np.array([s for _, s in lib.events], dtype=np.int64)
+        return np.array([status]), audio.astype(np.int16), names, samples
+
+    out = in_child(speak)
+    if out is None:
         raise TalkmeshError(f"espeak-ng stopped while speaking with voice '{voice}'")
-    head_len, count = struct.unpack("<QQ", payload[:16])
-    head = json.loads(payload[16 : 16 + head_len])
-    audio = np.frombuffer(payload[16 + head_len :], "<i2", count).astype(np.int16)
-    return head["status"], audio, [(str(m), int(s)) for m, s in head["events"]]
+    status, audio, names, samples = out
+    return int(status[0]), audio, [(str(m), int(s)) for m, s in zip(names, samples)]
 
 
 def _synthesise(lib: _Library, voice: str, text: str, pitch: int, speed: int) -> int:

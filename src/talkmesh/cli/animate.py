@@ -33,7 +33,7 @@ from talkmesh.face.corrections import (
     PAUSE_SOURCES,
 )
 from talkmesh.face.head_motion import NATURAL, check_amount
-from talkmesh.models.runtime import RUNTIMES
+from talkmesh.models.runtime import RUNTIMES, check_runtime
 from talkmesh.output import VIDEO_SUFFIXES, output_name
 
 RUNTIME_HELP = (
@@ -244,7 +244,7 @@ def cmd_animate(args: argparse.Namespace) -> int:
         split_tags(args.text)  # a bad tag is refused before any file is looked at
     performance_from(args)
     check_amount(args.head_motion)
-    check_runtime(args.runtime, args.model)
+    check_runtime(args.runtime, args.model, args.int8)
     style_mix = parse_style(args.style)
     sources = [Path(a) for a in args.audio]
     library = any(is_batch_source(p) for p in sources)
@@ -342,18 +342,6 @@ def exit_on_sigterm() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
-
-
-def check_runtime(runtime: str, model: str | None) -> None:
-    """``--runtime`` must agree with the model: torch runs releases (not an .onnx file), and
-    the procedural animator is no learned model."""
-    onnx = model is not None and model.lower().endswith(".onnx")
-    if runtime == "onnxruntime" and model == "procedural":
-        raise TalkmeshError(
-            "--runtime onnxruntime runs learned models, and procedural is not one: drop --runtime"
-        )
-    if runtime == "torch" and onnx:
-        raise TalkmeshError(f"--runtime torch runs releases, not {model}: drop --runtime")
 
 
 def _face(args: argparse.Namespace, style_mix, outputs: list[list[Path]], avatar: Path | None):

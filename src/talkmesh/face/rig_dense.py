@@ -4,14 +4,12 @@ a time (docs/results/rigging.md, "Dense meshes")."""
 
 from __future__ import annotations
 
-import io
-import os
-
 import numpy as np
 from scipy.spatial import cKDTree
 
 from talkmesh.errors import MissingDependencyError
 from talkmesh.face.registration import closest_points, vertex_normals
+from talkmesh.forked import in_child
 
 
 def closest_shapes(head, corners, weights, scale, rotation, block: int) -> np.ndarray:
@@ -59,33 +57,8 @@ def _simplify(vertices: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.
 def _in_child(fn, *args) -> tuple[np.ndarray, ...]:
     """``fn(*args)`` (a tuple of plain arrays) run in a forked child, its memory given back when
     it exits; in this process where there is no fork or the child failed (it then raises here)."""
-    if not hasattr(os, "fork"):
-        return fn(*args)
-    read, write = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # the child: compute, send the arrays, exit at once (no cleanup of the parent's)
-        code = 1
-        try:
-            os.close(read)
-            buffer = io.BytesIO()  # np.save needs a file it can seek: a pipe is none
-            for array in fn(*args):
-                np.save(buffer, np.ascontiguousarray(array), allow_pickle=False)
-            with os.fdopen(write, "wb") as f:
-                f.write(buffer.getbuffer())
-            code = 0
-        finally:
-            os._exit(code)
-    os.close(write)
-    with os.fdopen(read, "rb") as f:
-        data = f.read()
-    _, status = os.waitpid(pid, 0)
-    if status != 0:
-        return fn(*args)
-    stream = io.BytesIO(data)
-    out = []
-    while stream.tell() < len(data):
-        out.append(np.load(stream, allow_pickle=False))
-    return tuple(out)
+    out = in_child(fn, *args)
+    return fn(*args) if out is None else out
 
 
 def carry_back(vertices, faces, small_v, small_f, small, landmarks, block: int):

@@ -37,27 +37,37 @@ def is_onnx_file(model: Any) -> bool:
     return isinstance(model, (str, Path)) and str(model).lower().endswith(".onnx")
 
 
+def check_runtime(runtime: str, model: Any, int8: str | None = None) -> None:
+    """One-line errors for a ``runtime`` that cannot run ``model`` (with ``int8``): an unknown
+    one, torch for an .onnx file, ONNX Runtime for the procedural animator or with int8 layers."""
+    if runtime not in RUNTIMES:
+        raise TalkmeshError(f"--runtime {runtime}: use one of {', '.join(RUNTIMES)}")
+    if is_onnx_file(model):
+        if runtime == "torch":
+            raise TalkmeshError(f"--runtime torch runs releases, not {model}: drop --runtime")
+        if int8 is not None:
+            raise TalkmeshError("--int8 applies to PyTorch models, not to an .onnx file")
+    elif runtime == "onnxruntime" and model == "procedural":
+        raise TalkmeshError(
+            "--runtime onnxruntime runs learned models, and procedural is not one: drop --runtime"
+        )
+    elif runtime == "onnxruntime" and int8 is not None:
+        raise TalkmeshError("--int8 runs on PyTorch: drop --runtime onnxruntime")
+
+
 def open_model(
     model: str | Path | Any, runtime: str = "auto", *, int8: str | None = None, threads=None
 ) -> Any:
     """``model`` (a bundled name, a release or ``.onnx`` file, or a loaded model) ready to
     generate, on ``runtime``: ``torch``, ``onnxruntime`` (a release is exported to the cache
     first) or ``auto`` (ONNX Runtime for a bundled model when it is installed and ``int8`` is not
-    asked for, else torch). ``threads``: ONNX Runtime's threads (torch's are the caller's)."""
-    if runtime not in RUNTIMES:
-        raise TalkmeshError(f"--runtime {runtime}: use one of {', '.join(RUNTIMES)}")
+    asked for, else torch), with ``int8`` layers if asked. ``threads``: ONNX Runtime's threads
+    (torch's are the caller's)."""
+    check_runtime(runtime, model, int8)
     if not isinstance(model, (str, Path)):
-        return model
+        return model.int8_copy(int8) if int8 is not None else model
     if is_onnx_file(model):
-        if runtime == "torch":
-            raise TalkmeshError(
-                f"--runtime torch runs releases, not {model}: drop --runtime for an .onnx file"
-            )
-        if int8 is not None:
-            raise TalkmeshError("--int8 applies to PyTorch models, not to an .onnx file")
         return _onnx_model(Path(model), threads)
-    if runtime == "onnxruntime" and int8 is not None:
-        raise TalkmeshError("--int8 runs on PyTorch: drop --runtime onnxruntime")
     if runtime == "onnxruntime" or (runtime == "auto" and _auto_onnx(model, int8)):
         graphs = cached_graphs(model, required=runtime == "onnxruntime")
         if graphs is not None:
@@ -66,6 +76,8 @@ def open_model(
             except TalkmeshError:  # a damaged cache entry: export again, once
                 shutil.rmtree(graphs.parent, ignore_errors=True)
                 return _onnx_model(cached_graphs(model, required=True), threads)
+    if find_spec("torch") is None:
+        raise TalkmeshError("learned models need torch: run `make setup`")
     from talkmesh.models.release import load_model
 
     net = load_model(model)
@@ -107,10 +119,18 @@ def _code_digest() -> str:
     return digest.hexdigest()
 
 
+@lru_cache(maxsize=8)
+def _release_digest(path: str, mtime_ns: int, size: int) -> str:
+    """SHA-256 of a release file, read once per process for the same file (47 MB)."""
+    return file_digest(path)
+
+
 def graphs_folder(model: str | Path) -> Path:
     """The cache folder of ``model``'s exported graphs."""
     release = resolve(model)
-    key = hashlib.sha256((file_digest(release) + _code_digest()).encode()).hexdigest()[:20]
+    stat = release.stat()
+    digest = _release_digest(str(release.resolve()), stat.st_mtime_ns, stat.st_size)
+    key = hashlib.sha256((digest + _code_digest()).encode()).hexdigest()[:20]
     return cache_dir() / "onnx" / f"{release.stem}-{key}"
 
 
