@@ -72,9 +72,21 @@ def data_note(data: str, styles) -> str:
     langs = sorted({subjects[s]["language"] for s in train})
     test = manifest["splits"]["test"]
     unseen = sorted({subjects[s]["language"] for s in test} - set(langs))
+    engines = {subjects[s].get("engine", "mbrola") for s in train}
+    voices = " and ".join(
+        text
+        for engine, text in (
+            ("mbrola", "MBROLA voices through espeak-ng"),
+            ("espeak-lib", "espeak-ng's own voices"),
+        )
+        if engine in engines
+    )
+    families = sorted({subjects[s].get("family", "") for s in train} - {""})
     return (
         "The multilingual corpus (`talkmesh synth --multilingual --out corpus/multilingual`: "
-        f"MBROLA voices through espeak-ng, {len(langs)} languages trained on ({', '.join(langs)}), "
+        f"{voices}, {len(langs)} languages "
+        + (f"of {len(families)} families " if families else "")
+        + f"trained on ({', '.join(langs)}), "
         "two sentences with a pause between them per utterance, 60 fps motion truth from the "
         "procedural animator with the teacher's rules (lips met through /p b m/, rest in pauses, "
         "open vowels by loudness; talkmesh.face.teacher) on exact phone timings, read at 30 fps). "

@@ -216,6 +216,48 @@ def test_finetune_continues_a_release_on_augmented_audio(corpus, tmp_path):
         )
 
 
+def test_finetune_adds_the_corpus_new_speakers_at_the_mean_style(corpus, tmp_path):
+    """A release continued on a corpus with more training speakers keeps the styles it learned
+    and starts each new speaker at their mean (the style an unseen speaker gets)."""
+    pytest.importorskip("lightning")
+    import torch
+
+    from talkmesh.datasets.reader import open_dataset
+    from talkmesh.models.codetalker.model import CodeTalker
+    from talkmesh.models.release import load_model, save_model
+    from talkmesh.training.codetalker import with_styles
+    from talkmesh.training.trainer import load_recipe, train
+
+    subjects = tuple(open_dataset("synth", corpus, "train").spec.train_subjects)
+    assert len(subjects) >= 2
+    torch.manual_seed(1)
+    base = CodeTalker(CodeTalker.tiny_config(8, subjects[:1] + ("gone",)))
+    stray = CodeTalker(CodeTalker.tiny_config(8, ("p",)))
+    stray.register_buffer("stray", torch.zeros(1))  # weights its config does not know
+    with pytest.raises(TalkmeshError, match="cannot add speakers"):
+        with_styles(stray, ("p", "q"))
+    grown = with_styles(base, ("new", subjects[0], "gone"))
+    old = base.style.weight.detach()
+    assert torch.equal(grown.style.weight[1], old[0]) and torch.equal(grown.style.weight[2], old[1])
+    assert torch.allclose(grown.style.weight[0], old.mean(0))
+    same = {k: v for k, v in grown.state_dict().items() if k != "style.weight"}
+    assert all(torch.equal(v, base.state_dict()[k]) for k, v in same.items())
+
+    spec = open_dataset("synth", corpus, "train").spec
+    torch.manual_seed(0)
+    first = CodeTalker(CodeTalker.tiny_config(spec.num_vertices, subjects[:1]))
+    save_model(first, tmp_path / "first.safetensors")
+    recipe_file = tmp_path / "more.yaml"
+    recipe_file.write_text(
+        "task: codetalker-finetune\n"
+        f"init: {tmp_path / 'first.safetensors'}\n"
+        f"data: {{kind: synth, root: {corpus}, batch_size: 1, max_seconds: 1.0, val_split: ''}}\n"
+        f"train: {{lr: 1.0e-3, epochs: 1, max_steps: 1, accelerator: cpu, out_dir: {tmp_path}}}\n"
+    )
+    tuned = load_model(train(load_recipe(recipe_file), progress=False))
+    assert tuned.styles == subjects
+
+
 def test_the_finetune_recipe_augments_and_continues_the_bundled_model():
     pytest.importorskip("yaml")
     from pathlib import Path

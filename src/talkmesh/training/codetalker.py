@@ -10,6 +10,7 @@ vertex count and the training speakers come from the data.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -95,17 +96,39 @@ def _build_finetune(model: dict[str, Any], info: DatasetInfo, init: Path | None)
             "task codetalker-finetune takes its model from init: leave the model section empty"
         )
     net = load_model(init, family="codetalker")
-    if tuple(net.cfg.stage2.styles) != tuple(info.train_subjects):
+    if not set(net.cfg.stage2.styles) <= set(info.train_subjects):
+        missing = sorted(set(net.cfg.stage2.styles) - set(info.train_subjects))
         raise TalkmeshError(
-            f"{init}: trained on the speakers {', '.join(net.cfg.stage2.styles)}, not this "
-            f"dataset's training speakers ({', '.join(info.train_subjects)})"
+            f"{init}: trained on the speakers {', '.join(net.cfg.stage2.styles)}; this dataset's "
+            f"training speakers lack {', '.join(missing)}: continue it on data that keeps them"
         )
+    net = with_styles(net, tuple(info.train_subjects))
     if net.cfg.vq.num_vertices != info.num_vertices:
         raise TalkmeshError(
             f"{init}: a {net.cfg.vq.num_vertices}-vertex model, the data has {info.num_vertices}"
         )
     net.vqvae.requires_grad_(False)
     return net.train()
+
+
+def with_styles(net: CodeTalker, styles: tuple[str, ...]) -> CodeTalker:
+    """``net`` with the style rows of ``styles``, in that order: a speaker it knows keeps its
+    learned style, a new one starts at the mean of the known styles (the style an unseen speaker
+    gets when generating), so a release can go on learning on a corpus with more speakers."""
+    if tuple(net.cfg.stage2.styles) == styles:
+        return net
+    cfg = replace(net.cfg, stage2=replace(net.cfg.stage2, styles=styles))
+    grown = CodeTalker(cfg)
+    state = {k: v for k, v in net.state_dict().items() if k != "style.weight"}
+    result = grown.load_state_dict(state, strict=False)
+    if result.missing_keys != ["style.weight"] or result.unexpected_keys:
+        raise TalkmeshError(f"cannot add speakers to this model: {result}")
+    old = net.style.weight.detach()
+    known = {name: n for n, name in enumerate(net.cfg.stage2.styles)}
+    with torch.no_grad():
+        for n, name in enumerate(styles):
+            grown.style.weight[n] = old[known[name]] if name in known else old.mean(0)
+    return grown
 
 
 def _step_stage2(net: CodeTalker, batch: TorchBatch) -> StepOutput:
