@@ -195,6 +195,21 @@ def test_mandarin_phone_events_are_the_synthesisers_phones_at_its_samples():
     assert sum(p.end - p.start for p in phones) == pytest.approx(len(audio) / sr)
 
 
+def test_looking_up_many_voices_does_not_cost_the_first_phones():
+    """A corpus looks up every voice before it speaks: each lookup used to leave commands in the
+    library's wave command queue, and after about 50 the renderings lost the phoneme events of
+    their first 200 ms (Swahili *Mbwa*'s m and b became a leading pause while the audio spoke)."""
+    text = "Mbwa mdogo amelala chini ya meza."
+    before = espeak_lib.render("sw+f3", text, 51, 185)
+    for _ in range(80):
+        espeak_lib.voice_details("sw+f3")
+    after = espeak_lib.render("sw+f3", text, 51, 185)
+    assert after.events == before.events
+    first = [s for m, s in after.events if not m.startswith("_")][0]
+    speaking = np.flatnonzero(np.abs(after.audio.astype(np.int64)) > 300)
+    assert first <= speaking[0]  # no speech before the first phone's event
+
+
 def test_espeak_bad_input_is_one_line(tmp_path, monkeypatch):
     voice = espeak_voice("cmn-latn-pinyin+m3", "cmn")
     with pytest.raises(TalkmeshError, match="made no phones") as err:

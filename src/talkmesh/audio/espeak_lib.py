@@ -160,19 +160,32 @@ def voice_details(voice: str) -> tuple[str, str, str]:
     library resolves it; an unknown voice is an error."""
     lib = _library()
     with lib.lock:
-        return _select(lib, voice)
+        return _details(lib, voice)
 
 
-def _select(lib: _Library, voice: str) -> tuple[str, str, str]:
-    if lib.lib.espeak_SetVoiceByName(voice.encode()) != _EE_OK:
+def _details(lib: _Library, voice: str) -> tuple[str, str, str]:
+    """The voice looked up in a forked child, never in this process: each voice selection leaves
+    commands in the library's wave command queue that only synthesis drains, and a process that
+    selected about 50 voices without speaking would hand its children a queue so full that they
+    drop the phoneme events of their first buffer (their first phones silently lost)."""
+
+    def look():
+        if lib.lib.espeak_SetVoiceByName(voice.encode()) != _EE_OK:
+            return np.array([0]), np.array(["", "", ""])
+        info = lib.lib.espeak_GetCurrentVoice().contents
+        fields = (info.name or b"", (info.languages or b"\0")[1:], info.identifier or b"")
+        return np.array([1]), np.array([f.decode(errors="replace") for f in fields])
+
+    out = in_child(look)
+    if out is None:
+        raise TalkmeshError(f"espeak-ng stopped while looking up voice '{voice}'")
+    found, fields = out
+    if not found[0]:
         raise TalkmeshError(
             f"espeak-ng has no voice '{voice}': `espeak-ng --voices` lists them "
             "(a variant follows a '+': cmn-latn-pinyin+f2)"
         )
-    info = lib.lib.espeak_GetCurrentVoice().contents
-    name = (info.name or b"").decode(errors="replace")
-    language = (info.languages or b"\0")[1:].decode(errors="replace")
-    identifier = (info.identifier or b"").decode(errors="replace")
+    name, language, identifier = (str(f) for f in fields)
     return name, language, identifier
 
 
@@ -187,7 +200,7 @@ def render(voice: str, text: str, pitch: int = 50, speed: int = 160) -> Renderin
     """
     lib = _library()
     with lib.lock:
-        name, language, identifier = _select(lib, voice)
+        name, language, identifier = _details(lib, voice)
         check_espeak_not_reserved(identifier, language, name)
         status, audio, events = _render_in_child(lib, voice, text, pitch, speed)
     if status != _EE_OK:
