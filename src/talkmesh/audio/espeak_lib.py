@@ -128,6 +128,7 @@ class _Library:
         self.lib, self.sample_rate = lib, int(rate)
         self.chunks: list[np.ndarray] = []
         self.events: list[tuple[str, int]] = []
+        self.voices: dict[str, tuple[str, str, str]] = {}  # voice -> its details, looked up once
         self.callback = _CALLBACK(self._on_audio)  # kept alive as long as the library
         lib.espeak_SetSynthCallback(self.callback)
         self.lock = threading.Lock()
@@ -167,7 +168,10 @@ def _details(lib: _Library, voice: str) -> tuple[str, str, str]:
     """The voice looked up in a forked child, never in this process: each voice selection leaves
     commands in the library's wave command queue that only synthesis drains, and a process that
     selected about 50 voices without speaking would hand its children a queue so full that they
-    drop the phoneme events of their first buffer (their first phones silently lost)."""
+    drop the phoneme events of their first buffer (their first phones silently lost). Each voice
+    is looked up once per process."""
+    if voice in lib.voices:
+        return lib.voices[voice]
 
     def look():
         if lib.lib.espeak_SetVoiceByName(voice.encode()) != _EE_OK:
@@ -185,8 +189,8 @@ def _details(lib: _Library, voice: str) -> tuple[str, str, str]:
             f"espeak-ng has no voice '{voice}': `espeak-ng --voices` lists them "
             "(a variant follows a '+': cmn-latn-pinyin+f2)"
         )
-    name, language, identifier = (str(f) for f in fields)
-    return name, language, identifier
+    lib.voices[voice] = (str(fields[0]), str(fields[1]), str(fields[2]))
+    return lib.voices[voice]
 
 
 def render(voice: str, text: str, pitch: int = 50, speed: int = 160) -> Rendering:

@@ -102,11 +102,11 @@ def _build_finetune(model: dict[str, Any], info: DatasetInfo, init: Path | None)
             f"{init}: trained on the speakers {', '.join(net.cfg.stage2.styles)}; this dataset's "
             f"training speakers lack {', '.join(missing)}: continue it on data that keeps them"
         )
-    net = with_styles(net, tuple(info.train_subjects))
     if net.cfg.vq.num_vertices != info.num_vertices:
         raise TalkmeshError(
             f"{init}: a {net.cfg.vq.num_vertices}-vertex model, the data has {info.num_vertices}"
         )
+    net = with_styles(net, tuple(info.train_subjects))
     net.vqvae.requires_grad_(False)
     return net.train()
 
