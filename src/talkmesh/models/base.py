@@ -216,10 +216,14 @@ class MotionModel(nn.Module, ABC):
         raise TalkmeshError(f"{self.family} models have no motion codebook")
 
     def open_frame_stream(
-        self, style_weights: np.ndarray | None, lookahead_ms: float | None
+        self,
+        style_weights: np.ndarray | None,
+        lookahead_ms: float | None,
+        template: np.ndarray | None = None,
     ) -> FrameStream:
         """A new :class:`FrameStream`; ``style_weights`` (K,) (None: the mean style);
-        ``lookahead_ms`` None: the largest the model was trained for."""
+        ``lookahead_ms`` None: the largest the model was trained for; ``template`` (V, 3) the
+        head it drives, for a model whose style reads the head."""
         raise TalkmeshError(f"this {self.family} model cannot stream")
 
     def onnx_graphs(self) -> tuple[nn.Module, nn.Module]:

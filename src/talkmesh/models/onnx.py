@@ -76,7 +76,8 @@ def export_onnx(model: nn.Module, path: str | Path, opset: int = OPSET) -> list[
     shapes = step.state_shapes()
     K = len(model.styles)
     with torch.no_grad(), warnings.catch_warnings():
-        table = model.style_vector(torch.arange(K))
+        # the styles alone: the runtime adds the head term of the template it drives
+        table = model.style_vector(torch.arange(K)) - model.head_term(None)
         mean = model.style_vector(None, torch.full((1, K), 1.0 / K))
         dim = model.audio_map.in_features
         example = (torch.zeros(1, dim), torch.zeros(1, dtype=torch.long), mean)
@@ -114,6 +115,17 @@ def export_onnx(model: nn.Module, path: str | Path, opset: int = OPSET) -> list[
                 "style_vectors": json.dumps(table.tolist()),
                 "state": json.dumps({n: list(shapes[n]) for n in names}),
             }
+            if model.head_map is not None:  # the style's head term, computed by the runtime
+                s2 = model.cfg.stage2
+                meta["head"] = json.dumps(
+                    {
+                        "pairs": list(s2.head_pairs),
+                        "mean": list(s2.head_mean),
+                        "std": list(s2.head_std),
+                        "weight": model.head_map.weight.float().tolist(),
+                        "bias": model.head_map.bias.float().tolist(),
+                    }
+                )
             for key, value in meta.items():
                 proto.metadata_props.add(key=key, value=value)
             onnx.save(proto, str(tmp_step))
@@ -169,6 +181,7 @@ class OnnxModel:
         self.style_vectors = np.array(json.loads(meta["style_vectors"]), np.float32)
         self.state = {n: tuple(s) for n, s in json.loads(meta["state"]).items()}
         self.n_mels = int(meta["n_mels"])
+        self.head = json.loads(meta["head"]) if "head" in meta else None
 
     def default_frames(self, samples: int) -> int:
         return frames_for_audio(samples, self.motion_fps)
@@ -189,11 +202,24 @@ class OnnxModel:
         ]
         return interpolate_rows(np.concatenate(parts)[: -(-n // ENCODER_HOP)], num_frames)
 
-    def style(self, style_weights: np.ndarray | None) -> np.ndarray:
-        """(K,) or (1, K) weights over the styles (None: all alike) -> (1, d) style vector."""
+    def style(
+        self, style_weights: np.ndarray | None, template: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(K,) or (1, K) weights over the styles (None: all alike) -> (1, d) style vector,
+        with the head term of ``template`` (V, 3) where the model has one (CodeTalker.head_term)."""
         K = len(self.styles)
         w = np.full(K, 1.0 / K) if style_weights is None else np.asarray(style_weights)
-        return (w.reshape(1, K).astype(np.float32) @ self.style_vectors).astype(np.float32)
+        style = w.reshape(1, K).astype(np.float32) @ self.style_vectors
+        if self.head is not None:
+            h = self.head
+            style = style + np.asarray(h["bias"], np.float32)
+            if template is not None:
+                pairs = np.asarray(h["pairs"], np.int64).reshape(-1, 2)
+                t = np.asarray(template, np.float32).reshape(-1, 3)
+                dist = np.linalg.norm(t[pairs[:, 0]] - t[pairs[:, 1]], axis=-1)
+                z = (dist - np.asarray(h["mean"])) / np.asarray(h["std"])
+                style = style + (np.asarray(h["weight"], np.float32) @ z.astype(np.float32))
+        return style.astype(np.float32)
 
     def start(self, style: np.ndarray) -> dict[str, np.ndarray]:
         """The state of B streams before their first frame; ``style`` (B, d)."""
@@ -222,7 +248,7 @@ class OnnxModel:
         wave = np.asarray(wave, np.float32)
         num_frames = num_frames or self.default_frames(len(wave))
         feats = self.features(wave, num_frames)
-        style = self.style(style_weights)
+        style = self.style(style_weights, template)
         state = self.start(style)
         base = np.asarray(template, np.float32).reshape(1, -1)
         out = []

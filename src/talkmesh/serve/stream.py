@@ -345,14 +345,14 @@ class ModelStreamer(Streamer):
         blinks: bool = True,
     ) -> None:
         net = _load_streaming_model(path)
-        try:
-            self.stream = net.open_frame_stream(style_weights, lookahead_ms)
-        except TalkmeshError as e:
-            raise TalkmeshError(f"{path}: {e}") from None
         if net.num_vertices != head.num_vertices:
             raise TalkmeshError(
                 f"{path} animates {net.num_vertices}-vertex meshes but the face has {head.num_vertices}"
             )
+        try:
+            self.stream = net.open_frame_stream(style_weights, lookahead_ms, head.template)
+        except TalkmeshError as e:
+            raise TalkmeshError(f"{path}: {e}") from None
         super().__init__(self.stream.fps, self.stream.lookahead_ms, head, offsets)
         if head.rigged:
             self.fitter = _weight_fitter(head)

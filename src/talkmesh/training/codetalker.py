@@ -14,6 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from talkmesh.config import from_dict, merge, to_dict
@@ -79,21 +80,37 @@ def _build_stage2(model: dict[str, Any], info: DatasetInfo, init: Path | None) -
     if init is None:
         raise TalkmeshError("task codetalker-stage2 needs init: the stage-1 release (.safetensors)")
     stage1 = load_model(init)
+    model = dict(model)
+    head_pairs = _head_pairs(model.pop("head_pairs", 0))
     cfg = build_config(model, info)
     if to_dict(cfg.vq) != to_dict(stage1.cfg.vq):
         raise TalkmeshError(f"{init}: its VQ-VAE config differs from this recipe's model.vq")
     net = CodeTalker(cfg)
     net.vqvae.load_state_dict(stage1.vqvae.state_dict(), strict=True)
+    if head_pairs:
+        net = with_head(net, info, head_pairs)
     net.vqvae.requires_grad_(False)
     return net
+
+
+def _head_pairs(value: Any) -> int:
+    """A recipe's ``model.head_pairs``: how many lip pairs the style's head term reads."""
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise TalkmeshError(
+            f"model.head_pairs must be a count of lip pairs (0: none), got {value!r}"
+        )
+    return value
 
 
 def _build_finetune(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
     if init is None:
         raise TalkmeshError("task codetalker-finetune needs init: a CodeTalker release to continue")
+    model = dict(model)
+    head_pairs = _head_pairs(model.pop("head_pairs", 0))
     if model:
         raise TalkmeshError(
-            "task codetalker-finetune takes its model from init: leave the model section empty"
+            "task codetalker-finetune takes its model from init: its model section may only "
+            "say head_pairs: N (a count, to give the style the head's lips)"
         )
     net = load_model(init, family="codetalker")
     if not set(net.cfg.stage2.styles) <= set(info.train_subjects):
@@ -107,8 +124,40 @@ def _build_finetune(model: dict[str, Any], info: DatasetInfo, init: Path | None)
             f"{init}: a {net.cfg.vq.num_vertices}-vertex model, the data has {info.num_vertices}"
         )
     net = with_styles(net, tuple(info.train_subjects))
+    if head_pairs and not net.cfg.stage2.head_pairs:
+        net = with_head(net, info, head_pairs)
     net.vqvae.requires_grad_(False)
     return net.train()
+
+
+def with_head(net: CodeTalker, info: DatasetInfo, count: int) -> CodeTalker:
+    """``net`` with a head term in its style (``stage2.head_pairs``, zero at first: the same
+    model) on the ``count`` lip pairs of the training data that part the most, standardised by
+    the training speakers' templates."""
+    from talkmesh.training.lip_gap import lip_width, widest_lip_pairs
+
+    dataset, lips = info.dataset, getattr(info.regions, "lve", None)
+    if dataset is None:
+        raise TalkmeshError("model.head_pairs needs the training data")
+    pairs = widest_lip_pairs(dataset, lips, count)
+    templates = np.stack([dataset.templates[s] for s in info.train_subjects])
+    dist = np.linalg.norm(templates[:, pairs[:, 0]] - templates[:, pairs[:, 1]], axis=-1)
+    floor = 0.01 * lip_width(templates[0], np.asarray(lips, np.int64))
+    s2 = replace(
+        net.cfg.stage2,
+        head_pairs=tuple(int(v) for v in pairs.reshape(-1)),
+        head_mean=tuple(float(v) for v in dist.mean(0)),
+        head_std=tuple(float(max(v, floor)) for v in dist.std(0)),
+    )
+    grown = CodeTalker(replace(net.cfg, stage2=s2))
+    result = grown.load_state_dict(net.state_dict(), strict=False)
+    if (
+        sorted(result.missing_keys) != ["head_map.bias", "head_map.weight"]
+        or result.unexpected_keys
+    ):
+        raise TalkmeshError(f"cannot give this model the head term: {result}")
+    print(f"head term on {len(pairs)} lip pairs (stage2.head_pairs)")
+    return grown
 
 
 def with_styles(net: CodeTalker, styles: tuple[str, ...]) -> CodeTalker:

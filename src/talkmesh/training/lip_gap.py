@@ -43,6 +43,20 @@ def lip_width(template: np.ndarray, lips: np.ndarray) -> float:
 def lip_gap_pairs(dataset, lips: np.ndarray | None) -> np.ndarray:
     """(P, 2) vertex pairs across the lip gap, from the template and the training motion of
     ``dataset`` (a ``MotionDataset``); ``lips``: the lip region's vertex ids."""
+    pairs, spread = _pair_spreads(dataset, lips)
+    return pairs[spread >= SHARE * spread.max()]
+
+
+def widest_lip_pairs(dataset, lips: np.ndarray | None, count: int) -> np.ndarray:
+    """(count, 2) the pairs across the lip gap whose distance changes the most over the
+    training motion of ``dataset``: the lips at the middle of the mouth, which part the most."""
+    pairs, spread = _pair_spreads(dataset, lips)
+    return pairs[np.argsort(-spread, kind="stable")[:count]]
+
+
+def _pair_spreads(dataset, lips: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 2) candidate pairs of lip vertices close together on the template and (P,) the
+    standard deviation of their distance over the training motion."""
     if lips is None or len(lips) < 2:
         raise TalkmeshError(
             "train.lip_gap_weight needs the data's lip region (regions/lve.txt): add it or set "
@@ -61,9 +75,7 @@ def lip_gap_pairs(dataset, lips: np.ndarray | None) -> np.ndarray:
     gaps = np.concatenate(
         [np.linalg.norm(c.vertices[:, i] - c.vertices[:, j], axis=-1) for c in clips]
     )
-    spread = gaps.std(axis=0)
-    keep = spread >= SHARE * spread.max()
-    return np.stack([i[keep], j[keep]], axis=1)
+    return np.stack([i, j], axis=1), gaps.std(axis=0)
 
 
 def lip_gap_loss(

@@ -226,6 +226,7 @@ class DatasetInfo:
     train_subjects: tuple[str, ...]
     faces: np.ndarray | None = None
     regions: Any = None  # talkmesh.datasets.reader.DatasetRegions of the training data
+    dataset: Any = None  # the training split itself, for a task that measures its motion
 
 
 @dataclass(frozen=True)
@@ -371,6 +372,7 @@ def dataset_info(dataset) -> DatasetInfo:
         train_subjects=tuple(dataset.spec.train_subjects),
         faces=getattr(dataset, "faces", None),
         regions=getattr(dataset, "regions", None),
+        dataset=dataset,
     )
 
 
@@ -617,8 +619,7 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
     L = _lightning()
     import warnings
 
-    # Lightning's own deprecation and sizing chatter is not the user's business
-    warnings.filterwarnings("ignore", module=r"lightning(\.|$)")
+    warnings.filterwarnings("ignore", module=r"lightning(\.|$)")  # not the user's business
     warnings.filterwarnings(
         "ignore", message=".*(treespec|logging interval|does not have many workers).*"
     )

@@ -89,8 +89,18 @@ class Stage2Config:
     postnorm: bool = False  # the official nn.TransformerDecoder layers (post-norm, ReLU,
     # dropout 0.1, attention over the frame's k aligned audio tokens, no final norm)
     interleaved_ppe: bool = False  # the official PPE channel order (sin/cos interleaved)
+    # the head's own lips (not the paper's): vertex pairs across the lip gap, flat (a0, b0, a1,
+    # b1, ...), whose distances on the template, standardised by the training templates'
+    # head_mean/head_std, add a learned term to the style, so that the model knows how far a
+    # head's lips stand apart at rest (a closure moves them that far); () off
+    head_pairs: tuple[int, ...] = ()
+    head_mean: tuple[float, ...] = ()
+    head_std: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
+        pairs = len(self.head_pairs) // 2
+        if len(self.head_pairs) % 2 or len(self.head_mean) != pairs or len(self.head_std) != pairs:
+            raise ValueError("stage2.head_pairs needs vertex pairs and one mean and std each")
         if self.d_model % self.heads:
             raise ValueError("stage2.d_model must be divisible by stage2.heads")
         if not self.styles:
@@ -193,6 +203,10 @@ class CodeTalker(MotionModel):
             self.cfg = replace(cfg, stage2=replace(s2, speech=speech_cfg))
         self.audio_map = nn.Linear(self.speech.dim, s2.d_model)
         self.style = nn.Embedding(len(s2.styles), s2.d_model)
+        self.head_map = nn.Linear(len(s2.head_mean), s2.d_model) if s2.head_pairs else None
+        if self.head_map is not None:  # a model given it starts where it was
+            nn.init.zeros_(self.head_map.weight)
+            nn.init.zeros_(self.head_map.bias)
         self.motion_map = nn.Linear(vq.num_vertices * 3, s2.d_model)  # vertice_map
         if s2.postnorm:  # the official nn.TransformerDecoder layers (models/postnorm.py)
             self.blocks = nn.ModuleList(
@@ -278,10 +292,14 @@ class CodeTalker(MotionModel):
         return self.vqvae((vertices - template[:, None]).flatten(2)).codes
 
     def open_frame_stream(
-        self, style_weights: np.ndarray | None, lookahead_ms: float | None
+        self,
+        style_weights: np.ndarray | None,
+        lookahead_ms: float | None,
+        template: np.ndarray | None = None,
     ) -> FrameStream:
         """A streaming release (``configs/codetalker_stream.yaml``: causal VQ decoder, mel speech
-        encoder with a runtime look-ahead) one frame per step (:class:`CodeTalkerStream`)."""
+        encoder with a runtime look-ahead) one frame per step (:class:`CodeTalkerStream`);
+        ``template`` (V, 3): the head it drives (for a model with ``stage2.head_pairs``)."""
         if not self.cfg.vq.causal or not isinstance(self.speech, MelEncoder):
             raise TalkmeshError(
                 "this codetalker model cannot stream: it needs a causal VQ decoder and the mel "
@@ -291,7 +309,11 @@ class CodeTalker(MotionModel):
         K = len(self.styles)
         weights = np.full(K, 1.0 / K, np.float32) if style_weights is None else style_weights
         with torch.inference_mode():
-            style = self.style_vector(None, torch.from_numpy(np.asarray(weights, np.float32))[None])
+            head = (
+                None if template is None else torch.as_tensor(template, dtype=torch.float32)[None]
+            )
+            weights = torch.from_numpy(np.asarray(weights, np.float32))[None]
+            style = self.style_vector(None, weights, head)
         return CodeTalkerStream(self, style, features)
 
     def onnx_graphs(self) -> tuple[nn.Module, nn.Module]:
@@ -308,13 +330,32 @@ class CodeTalker(MotionModel):
 
     # -- pieces ---------------------------------------------------------------------------------
 
-    def style_vector(self, styles: Tensor | None, weights: Tensor | None = None) -> Tensor:
-        """(B,) style ids, or (B, S) weights over the training styles (Eq. 4) -> (B, d)."""
+    def style_vector(
+        self, styles: Tensor | None, weights: Tensor | None = None, template: Tensor | None = None
+    ) -> Tensor:
+        """(B,) style ids, or (B, S) weights over the training styles (Eq. 4) -> (B, d); plus
+        the head term of ``template`` (B, V, 3) where the model has one."""
         if weights is not None:
-            return weights.to(self.style.weight.dtype) @ self.style.weight
-        if styles is None or (styles < 0).any():
+            style = weights.to(self.style.weight.dtype) @ self.style.weight
+        elif styles is None or (styles < 0).any():
             raise TalkmeshError("an unseen speaker needs style weights (e.g. --style A:0.5,B:0.5)")
-        return self.style(styles)
+        else:
+            style = self.style(styles)
+        return style + self.head_term(template, style.dtype)
+
+    def head_term(self, template: Tensor | None, dtype: torch.dtype = torch.float32) -> Tensor:
+        """(B, d) the style's term for the head ``template`` (B, V, 3) (``stage2.head_pairs``);
+        0 for a model without one. No template: the training templates' average head."""
+        s2 = self.cfg.stage2
+        if self.head_map is None:
+            return torch.zeros((), dtype=dtype)
+        if template is None:
+            return self.head_map.bias[None].to(dtype)
+        pairs = torch.tensor(s2.head_pairs, device=template.device).view(-1, 2)
+        dist = (template[:, pairs[:, 0]] - template[:, pairs[:, 1]]).float().norm(dim=-1)
+        mean = torch.tensor(s2.head_mean, device=template.device)
+        z = (dist - mean) / torch.tensor(s2.head_std, device=template.device)
+        return self.head_map(z.to(self.head_map.weight.dtype)).to(dtype)
 
     def audio_tokens(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
         """(B, S) -> (B, T, d) one token per motion frame (the alignment mask: frame t sees token t;
@@ -389,6 +430,7 @@ class CodeTalker(MotionModel):
         style = torch.where(
             (styles >= 0)[:, None], self.style(seen), self.style.weight.mean(0)[None]
         )
+        style = style + self.head_term(templates, style.dtype)
         s2 = self.cfg.stage2
         cross = self.cross_terms(self.audio_tokens(audio, audio_lengths, T))
         bias = temporal_bias(s2.heads, T, T, s2.period, motion.device)[None]
@@ -479,7 +521,7 @@ class CodeTalker(MotionModel):
         if num_frames is None:
             num_frames = self.default_frames(audio.shape[1])
         s2, vq = self.cfg.stage2, self.cfg.vq
-        style = self.style_vector(styles, style_weights)
+        style = self.style_vector(styles, style_weights, template)
         tokens = self.audio_tokens(audio, audio_lengths, num_frames)
         with step_threads():  # small tensors, one step after another (models/threads.py)
             all_codes, motion = self._step_loop(mode, style, tokens, num_frames, block)
@@ -559,7 +601,7 @@ class CodeTalker(MotionModel):
         # the speech windows and the steps alike on the step threads (bench/threads.py: the
         # fastest for the whole loop on a shared machine)
         with torch.inference_mode(), step_threads():
-            style = self.style_vector(None, style_weights)
+            style = self.style_vector(None, style_weights, template)
             features = FrameFeatures(self.speech, audio, num_frames * k)
             terms = AheadWindow(
                 lambda a, b: self.cross_terms(self._tokens(features(a * k, b * k), b - a)),
