@@ -122,6 +122,7 @@ def main() -> None:
         methods = [*dict.fromkeys([r["method"] for r in old] + methods)]
         rows = old + rows
     print(report(rows, methods, conditions))
+    print(by_head(rows, methods, _identities(args.data)))
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "multilingual.json").write_text(json.dumps(rows, indent=1))
@@ -172,6 +173,37 @@ def report(rows, methods, conditions) -> str:
                 )
         lines.append("")
     return "\n".join(lines)
+
+
+def _identities(root: Path) -> dict[str, str]:
+    """Subject -> the face it speaks with, from the corpus manifest."""
+    manifest = json.loads((root / "manifest.json").read_text())
+    return {s: info["identity"] for s, info in manifest["subjects"].items()}
+
+
+def by_head(rows, methods, identities: dict[str, str]) -> str:
+    """/p b m/ closure (clean) per face, by how far its lips stand apart at rest: a closure
+    moves them that far, so a model that does not know the face closes some faces and not others."""
+    heads: dict[str, list] = {}
+    for r in rows:
+        if r["condition"] == "clean":
+            subject = r["clip"].rsplit("_", 1)[0]
+            heads.setdefault(identities.get(subject, "?"), []).append(r)
+    rest = {h: float(lip_opening(load_head(h).template[None], load_head(h).regions)[0]) * 1000
+            for h in heads if h != "?"}  # fmt: skip
+    lines = [
+        "### /p b m/ closed, clean, per face (by its lips' opening at rest)",
+        "",
+        "| face | rest opening (mm) | " + " | ".join(methods) + " |",
+        "|---|---|" + "---|" * len(methods),
+    ]
+    for h in sorted(rest, key=rest.get):
+        vals = []
+        for m in methods:
+            sel = [r for r in heads[h] if r["method"] == m]
+            vals.append(_fmt(_median(sel, "bilabial")) if sel else "-")
+        lines.append(f"| {h} | {rest[h]:.2f} | " + " | ".join(vals) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def plot(rows, methods, conditions, path: Path) -> None:
