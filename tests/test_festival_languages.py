@@ -22,7 +22,12 @@ from talkmesh.audio.festival_voices import (
 from talkmesh.audio.languages import check_festival_not_reserved, get_language
 from talkmesh.audio.phonemes import ARPABET_PHONES, SILENCE
 from talkmesh.audio.voices import Voice, festival_voice, synthesize_festival
-from talkmesh.datasets.multilingual import make_multilingual_corpus, plan_subjects, read_phones
+from talkmesh.datasets.multilingual import (
+    installed_plan,
+    make_multilingual_corpus,
+    plan_subjects,
+    read_phones,
+)
 from talkmesh.errors import TalkmeshError
 
 LABELS = set(ARPABET_PHONES) | {"UY", "OE", SILENCE}
@@ -116,6 +121,34 @@ def test_the_plans_festival_voices_follow_the_others_and_keep_held_out_speakers_
     assert get_language("fi").trained and not get_language("mr").trained
     # the split rule of the other voices: a language's third training voice goes to val
     assert ("val", "es", "fest-el") in fest and ("train", "it", "fest-lp") in fest
+
+
+def test_engines_pick_voices_and_the_corpus_before_festival_is_a_prefix(tmp_path):
+    old = installed_plan(engines=["mbrola", "espeak-lib"])
+    assert old and not any(db.startswith("fest-") for _, _, db in old)
+    assert installed_plan()[: len(old)] == old  # the earlier corpus, subject for subject
+    fest = installed_plan(engines=["festival"])
+    assert all(db.startswith("fest-") for _, _, db in fest)
+    assert len(fest) == len(INSTALLED)
+    with pytest.raises(TalkmeshError, match="unknown engine"):
+        make_multilingual_corpus(tmp_path / "x", engines=["pico"])
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize(
+    "argv,fragment",
+    [
+        (["--multilingual", "--engines", "pico"], "unknown engine(s) pico"),
+        (["--engines", "festival"], "need --multilingual"),
+    ],
+)
+def test_bad_engines_on_the_command_line_are_one_line(tmp_path, capsys, argv, fragment):
+    from talkmesh.cli import main
+
+    assert main(["synth", "--out", str(tmp_path / "x"), "-q", *argv]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("talkmesh: error:") and fragment in err and "\n" not in err
+    assert not (tmp_path / "x").exists()
 
 
 def test_text_the_voice_cannot_read_is_one_line(tmp_path):

@@ -108,13 +108,15 @@ _CATALAN = {  # upc ona (central Catalan); ax: the reduced /ə/, E O open mid, J
     "f": "F", "t": "T", "d": "D", "s": "S", "z": "Z", "n": "N", "l": "L", "r": "D", "rr": "D",
     "S": "SH", "Z": "ZH", "J": "N", "L": "L", "k": "K", "g": "G",
 }
-_INDIC = {  # the NSK voices (Hindi, Marathi, Telugu share the set; IIIT's lexicons):
-    # a: the inherent vowel /ə/; eh ए, ee ऍ, ay ऐ, oh ओ, oo ऑ, aw औ; th dh: dental stops त द
-    # (not /θ ð/), tth ddh: their aspirates, T D N L: retroflex, R: the flap ड़, j: ज /dʒ/,
-    # y: य; ksh क्ष and sri श्री: clusters, by their first sound; @ and x: in the set, but no
-    # lexicon produces them (@: a long open vowel; x: no features at all: weak, neighbour-led)
+_INDIC = {  # the NSK voices (Hindi, Marathi, Telugu share the set and IIIT's lexicons):
+    # a: the inherent vowel /ə/; eh ए, ay ऐ, oh ओ, aw औ; ee oo: ऍ ऑ in Hindi and Marathi (rare),
+    # Telugu's long ఏ ఓ (common): EH, OW. th dh: the dental stops त द (not /θ ð/), tth ddh:
+    # their aspirates; T D N L: retroflex; R: the flap ड़; j: ज /dʒ/; y: य; ksh क्ष, sri श्री:
+    # clusters, by their first sound; @ and x are in the set but no lexicon produces them
+    # (@: a long open vowel; x: no features at all, so weak and neighbour-led). The lexicons
+    # speak the anusvara as m: the audio says m there, and the truth closes the lips with it.
     "pau": SILENCE, "a": "AH", "aa": "AA", "@": "AA", "ih": "IH", "iy": "IY", "uh": "UH",
-    "uw": "UW", "eh": "EH", "ee": "EH", "ay": "EH", "oh": "OW", "oo": "AO", "aw": "AO",
+    "uw": "UW", "eh": "EH", "ee": "EH", "ay": "EH", "oh": "OW", "oo": "OW", "aw": "AO",
     "w": "W", "p": "P", "b": "B", "bh": "B", "m": "M", "f": "F", "v": "V", "th": "T",
     "tth": "T", "dh": "D", "ddh": "D", "T": "T", "td": "T", "D": "D", "n": "N", "N": "N",
     "s": "S", "l": "L", "L": "L", "r": "D", "R": "D", "sh": "SH", "sri": "SH", "zh": "ZH",

@@ -30,6 +30,7 @@ from talkmesh.datasets.synth import CorpusInfo, _atomic_write, _check_request
 from talkmesh.errors import TalkmeshError
 
 FORMAT_VERSION = 2  # the teacher's truth and saved phone timings
+ENGINES = ("mbrola", "espeak-lib", "festival")
 
 
 def utterances(sentences: tuple[str, ...], count: int, rng: np.random.Generator) -> list[str]:
@@ -81,6 +82,29 @@ def _festival_subjects(chosen: list) -> list[tuple[str, str, str]]:
     return out
 
 
+def installed_plan(
+    languages: list[str] | None = None, engines: list[str] | None = None
+) -> list[tuple[str, str, str]]:
+    """The rows of :func:`plan_subjects` whose voices speak here, of ``engines`` only if given."""
+    unknown = set(engines or ()) - set(ENGINES)
+    if unknown:
+        raise TalkmeshError(
+            f"unknown engine(s) {', '.join(sorted(unknown))}: use {', '.join(ENGINES)}"
+        )
+    return [
+        row
+        for row in plan_subjects(languages)
+        if (engines is None or engine_of(row[2], row[1]) in engines) and installed(row[2], row[1])
+    ]
+
+
+def engine_of(db: str, code: str) -> str:
+    """The engine of the planned voice ``db`` of language ``code``."""
+    from talkmesh.audio.languages import get_language
+
+    return "festival" if db.startswith("fest-") else get_language(code).engine
+
+
 def installed(db: str, code: str = "") -> bool:
     """Whether the voice ``db`` of language ``code`` can speak here: its MBROLA database,
     espeak-ng's library and the voice it names, or Festival and its voice (``fest-SPEAKER``)."""
@@ -106,15 +130,18 @@ def make_multilingual_corpus(
     *,
     utterances_per_voice: int = 10,
     languages: list[str] | None = None,
+    engines: list[str] | None = None,
     seed: int = 0,
     workers: int | None = None,
     progress: bool = True,
     overwrite: bool = False,
 ) -> CorpusInfo:
-    """Write the multilingual corpus to ``out``; returns a summary."""
+    """Write the multilingual corpus to ``out``; returns a summary. ``engines`` keeps the voices
+    of some engines only (:data:`ENGINES`; ``["mbrola", "espeak-lib"]``: the corpus as it was
+    before Festival's voices came, subject for subject)."""
     root = Path(out)
+    plan = installed_plan(languages, engines)
     _check_request(root, 1, utterances_per_voice, overwrite)
-    plan = [row for row in plan_subjects(languages) if installed(row[2], row[1])]
     if not plan:
         raise TalkmeshError(
             "no voice of the chosen languages is installed: `sudo apt-get install mbrola-de2 "
