@@ -43,6 +43,8 @@ def _festival(script: str, encoding: str = "utf-8") -> str:
 @pytest.fixture(scope="module")
 def phone_sets() -> dict[tuple[str, str], list[str]]:
     """Each installed voice's phone set, as Festival lists it once the voice is loaded."""
+    if not INSTALLED:
+        return {}
     script = "".join(
         f'({v.function}) (format t "SET {v.language} {v.speaker} %l\\n" '
         "(mapcar car (car (cdr (assoc 'phones (PhoneSet.description))))))"

@@ -9,6 +9,9 @@ Three Debian synthesisers give the times of the phones they actually render:
 * espeak-ng's own voices (engine ``espeak-lib``, :func:`espeak_voice`; the multilingual corpus):
   the library reports each phone's first output sample (:mod:`talkmesh.audio.espeak_lib`).
 
+Festival's voices of other languages (:func:`festival_voice`; the multilingual corpus) take the
+same Festival path, their phone sets mapped by :mod:`talkmesh.audio.festival_voices`.
+
 Twelve voices: the four MBROLA voices at two prosody settings (pitch and rate change the
 rendered durations, which the .pho carries) and four Festival voices. They make the default
 corpus (its subjects take the voices in this order).
@@ -53,7 +56,8 @@ class Voice:
     pitch: int = 50  # espeak-ng -p (0-99), MBROLA and espeak-ng voices
     speed: int = 160  # espeak-ng -s (words per minute), MBROLA and espeak-ng voices
     description: str = ""
-    phoneset: str = "radio"  # Festival voices: "radio" (US) or "mrpa" (British rab)
+    phoneset: str = "radio"  # Festival voices: "radio" (US), "mrpa" (British rab), or a key of
+    # talkmesh.audio.festival_voices.PHONE_TABLES for the other languages
     language: str = "en"  # espeak-ng language; MBROLA voices of other languages map their SAMPA
     # dialect through talkmesh.audio.languages.sampa_label
 
