@@ -6,6 +6,9 @@
 #   mbrola-af1 ... mbrola-tl1  the multilingual corpus's voices (talkmesh.audio.languages;
 #                         never the voices reserved for outside checks)
 #   festival festvox-*    four more synthetic voices with exact segment times (festvox-don: a fifth)
+#   festvox-ellpc11k ... festvox-te-nsk  Festival voices of other languages for the multilingual
+#                         corpus (talkmesh.audio.festival_voices; optional: skipped where the
+#                         registry lacks them; never a Czech voice, reserved for outside checks)
 #   flite libttspico-utils  more voices for corpora beyond 12 subjects (phones by forced alignment)
 #   pocketsphinx-testdata real recorded speech (LibriVox clips) used by tests and docs
 #   alsa-utils            more real speech (/usr/share/sounds/alsa/*.wav)
@@ -22,10 +25,13 @@ pkgs=(espeak-ng pocketsphinx-testdata alsa-utils
       festival festvox-kallpc16k festvox-kdlpc16k festvox-rablpc16k festvox-us-slt-hts festvox-don
       flite libttspico-utils
       chromium)
+optional=(festvox-ellpc11k festvox-italp16k festvox-itapc16k festvox-ru festvox-suopuhe-lj
+          festvox-suopuhe-mv festvox-ca-ona-hts festvox-hi-nsk festival-hi festvox-mr-nsk
+          festival-mr festvox-te-nsk festival-te)
 command -v node >/dev/null 2>&1 || pkgs+=(nodejs)
 command -v npm >/dev/null 2>&1 || pkgs+=(npm)
 missing=()
-for p in "${pkgs[@]}"; do
+for p in "${pkgs[@]}" "${optional[@]}"; do
   dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")
 done
 if [ ${#missing[@]} -gt 0 ]; then
@@ -38,7 +44,17 @@ if [ ${#missing[@]} -gt 0 ]; then
   elif [ -f /etc/apt/sources.list ] && grep -qE '^deb .* main$' /etc/apt/sources.list; then
     $sudo sed -i -E 's/^(deb .* main)$/\1 contrib non-free/' /etc/apt/sources.list
   fi
-  echo "installing Debian packages: ${missing[*]}"
   $sudo apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+  wanted=()
+  for p in "${missing[@]}"; do  # an optional package this registry lacks is skipped, not fatal
+    if [[ " ${optional[*]} " == *" $p "* ]] && ! apt-cache show "$p" >/dev/null 2>&1; then
+      echo "skipping $p: not in this machine's package registry"
+    else
+      wanted+=("$p")
+    fi
+  done
+  if [ ${#wanted[@]} -gt 0 ]; then
+    echo "installing Debian packages: ${wanted[*]}"
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${wanted[@]}" >/dev/null
+  fi
 fi

@@ -549,8 +549,8 @@ COMMANDS = {
     "export": (["anim"], "--camera --fps --output --overwrite --quiet --size"),
     "synth": (
         [],
-        "--languages --multilingual --out --overwrite --quiet --seed --sentences --subjects "
-        "--workers",
+        "--engines --languages --multilingual --out --overwrite --quiet --seed --sentences "
+        "--subjects --workers",
     ),
     "evaluate": ([], "--data --dataset --json --overwrite --pred --protocol --regions --split"),
     "baseline": ([], "--data --dataset --method --out --quiet --split"),

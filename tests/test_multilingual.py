@@ -60,7 +60,9 @@ def test_the_plan_uses_no_reserved_voice_and_keeps_languages_out():
     assert len({lang.family for lang in LANGUAGES}) >= 8
     # the MBROLA test split is the one the published tables were measured on
     mbrola_test = {
-        db for s, code, db in plan if s == "test" and get_language(code).engine == "mbrola"
+        db
+        for s, code, db in plan
+        if s == "test" and get_language(code).engine == "mbrola" and not db.startswith("fest-")
     }
     assert mbrola_test == {"us3", "de3", "nl3", "fr6", "es3", "it4", "br4", "jp3", "in2", "ar2"} | {
         "hb1",

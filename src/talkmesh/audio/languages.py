@@ -1,4 +1,4 @@
-"""Many languages, many voices: MBROLA voices and espeak-ng's own voices, with exact phone times.
+"""Many languages, many voices: MBROLA, espeak-ng's own and Festival voices, with exact phone times.
 
 Each :class:`Language` names its espeak-ng code, its family, the voices the multilingual corpus
 trains on (``train``), the voices kept out for its test split (``test``), and a few sentences rich
@@ -20,9 +20,16 @@ Two engines give the synthesiser's exact phone timings:
   (:mod:`talkmesh.audio.espeak_lib`); :func:`espeak_label` maps espeak-ng's phoneme mnemonics.
   Tones are not visemes: a tone is no phone of its own there.
 
+Festival's voices of other languages (``festival``, ``festival_test``: speakers of
+:data:`talkmesh.audio.festival_voices.FESTIVAL_VOICES`) are more voices of a language, with a
+third engine; the times come from the utterance's ``Segment`` relation. Finnish, Catalan and
+Marathi have only them. They follow every other voice in the corpus (its earlier subjects and
+splits stay as they were); a Festival speaker held out in one language is held out in all.
+
 Some voices and languages are reserved for checks made outside the project and are never used
 here, for training, tuning or evaluation (:data:`RESERVED_VOICES`, :data:`RESERVED_LANGUAGES`):
-:func:`check_not_reserved` refuses them.
+:func:`check_not_reserved`, :func:`check_espeak_not_reserved` and
+:func:`check_festival_not_reserved` refuse them.
 """
 
 from __future__ import annotations
@@ -52,6 +59,14 @@ class Language:
     sentences: tuple[str, ...]
     engine: str = "mbrola"  # or "espeak-lib": espeak-ng's own voice, times from its library
     voice: str = ""  # espeak-lib: the espeak-ng voice the variants attach to
+    # Festival's voices of the language (speakers of talkmesh.audio.festival_voices), after all
+    # the others in the corpus: trained on, and held out
+    festival: tuple[str, ...] = ()
+    festival_test: tuple[str, ...] = ()
+
+    @property
+    def trained(self) -> bool:
+        return bool(self.train or self.festival)
 
     def voice_name(self, variant: str) -> str:
         """The synthesiser's voice for one of ``train`` / ``test``: ``mb-de2``, ``yue+m3``."""
@@ -117,7 +132,7 @@ LANGUAGES: tuple[Language, ...] = (
         "Buenos días, me gusta mucho tu sombrero.",
         "Vamos a la playa con mi primo Manuel.",
         "El perro pequeño duerme bajo la mesa.",
-    )),
+    ), festival=("el",)),
     Language("it", "Italian", "Romance", ("it1",), ("it4",), (
         "Mio padre mangia pane e burro ogni mattina.",
         "La bambina porta un bel mazzo di fiori.",
@@ -125,7 +140,7 @@ LANGUAGES: tuple[Language, ...] = (
         "Per piacere, passami il piatto di pasta.",
         "Il ponte vecchio è molto bello di sera.",
         "Paolo ama la musica e balla sempre.",
-    )),
+    ), festival=("lp", "pc")),
     Language("pt", "Portuguese", "Romance", ("br3", "pt1"), ("br4",), (
         "Meu pai bebe um bom café pela manhã.",
         "O barco branco parte para o mar.",
@@ -157,7 +172,7 @@ LANGUAGES: tuple[Language, ...] = (
         "हम बस से मुंबई जाएंगे।",
         "पापा ने मुझे एक किताब दी।",
         "बारिश में मोर नाचता है।",
-    )),
+    ), festival_test=("nsk",)),  # NSK speaks Telugu and Marathi too: held out in all three
     Language("ar", "Arabic", "Semitic", ("ar1",), ("ar2",), (
         "ذهب الولد إلى المدرسة في الصباح",
         "أمي تحب الموز والبرتقال",
@@ -222,7 +237,7 @@ LANGUAGES: tuple[Language, ...] = (
         "పాప బొమ్మతో ఆడుకుంటుంది",
         "ఈ పుస్తకం చాలా బాగుంది",
         "వర్షం పడుతోంది",
-    )),
+    ), festival_test=("nsk",)),
     # espeak-ng's own voices (times from its library's phoneme events); variants are the voices:
     # training ones from m1-m3, f1-f3, held-out ones from m6, m7, f4, f5 (no language trains on them)
     Language("cmn", "Mandarin", "Sinitic", ("m3", "f2", "m1"), ("f4",), (
@@ -264,7 +279,7 @@ LANGUAGES: tuple[Language, ...] = (
         "Мы видели большой белый пароход.",
         "Мой брат любит играть в футбол.",
         "Повар приготовил вкусный борщ.",
-    ), "espeak-lib"),
+    ), "espeak-lib", festival=("msu",)),
     # never trained on
     Language("yue", "Cantonese", "Sinitic", (), ("f4", "m7"), (
         "爸爸買咗一個大麵包。",
@@ -282,6 +297,31 @@ LANGUAGES: tuple[Language, ...] = (
         "Мій брат любить футбол.",
         "Пташка співає у парку.",
     ), "espeak-lib"),
+    # Festival's voices only
+    Language("fi", "Finnish", "Uralic", (), (), (
+        "Minun äitini leipoo pullaa aamulla.",
+        "Pieni poika pelaa palloa puistossa.",
+        "Mummo ostaa maitoa ja banaaneja kaupasta.",
+        "Meri on tänään tyyni ja sininen.",
+        "Isä maalaa vanhan veneen punaiseksi.",
+        "Huomenna menemme bussilla mökille.",
+    ), festival=("lj",), festival_test=("mv",)),
+    Language("ca", "Catalan", "Romance", (), (), (
+        "El meu pare beu una mica d'aigua ben freda.",
+        "La mare compra pa i pomes al mercat.",
+        "Vam passejar per la platja amb el gos.",
+        "El vaixell blau surt del port al matí.",
+        "La Maria menja un bon plat de sopa.",
+        "Plou molt a la muntanya al novembre.",
+    ), festival=("ona",)),
+    Language("mr", "Marathi", "Indic", (), (), (  # never trained on
+        "माझी आई भाजी बनवते.",
+        "बाबा बाजारातून आंबे आणतात.",
+        "मुले बागेत खेळत आहेत.",
+        "आम्ही बसने मुंबईला जाऊ.",
+        "पाऊस पडला की मोर नाचतो.",
+        "मला थंड पाणी प्यायचे आहे.",
+    ), festival_test=("nsk",)),
 )
 # fmt: on
 BY_CODE = {lang.code: lang for lang in LANGUAGES}
@@ -316,12 +356,28 @@ def check_espeak_not_reserved(voice: str, language: str = "", name: str = "") ->
         raise TalkmeshError(f"espeak-ng voice '{voice}' is reserved for outside checks")
 
 
+def check_festival_not_reserved(voice: str, language: str = "") -> None:
+    """Refuses Festival voices of reserved languages (by language code, or by name: Debian's
+    Czech voices are ``voice_czech_dita`` ...) and Festival's voices over reserved MBROLA
+    databases (``voice_en1_mbrola``). A voice's short name is no language code: Spanish
+    ``voice_el_diphone`` is not Greek."""
+    import re
+
+    name = voice.strip().lower()
+    if language.lower().split("-")[0] in RESERVED_ESPEAK_LANGUAGES:
+        raise TalkmeshError(f"Festival voice '{voice}' ({language}) is reserved for outside checks")
+    if any(n in name for n in RESERVED_ESPEAK_NAMES):
+        raise TalkmeshError(f"Festival voice '{voice}' is reserved for outside checks")
+    for db in re.findall(r"([a-z]+\d+)_mbrola", name):
+        check_not_reserved(db)
+
+
 def trained_languages() -> list[Language]:
-    return [lang for lang in LANGUAGES if lang.train]
+    return [lang for lang in LANGUAGES if lang.trained]
 
 
 def never_trained_languages() -> list[Language]:
-    return [lang for lang in LANGUAGES if not lang.train]
+    return [lang for lang in LANGUAGES if not lang.trained]
 
 
 # --- SAMPA (any MBROLA voice's dialect) -> the procedural animator's phone labels -------------

@@ -9,6 +9,9 @@ Three Debian synthesisers give the times of the phones they actually render:
 * espeak-ng's own voices (engine ``espeak-lib``, :func:`espeak_voice`; the multilingual corpus):
   the library reports each phone's first output sample (:mod:`talkmesh.audio.espeak_lib`).
 
+Festival's voices of other languages (:func:`festival_voice`; the multilingual corpus) take the
+same Festival path, their phone sets mapped by :mod:`talkmesh.audio.festival_voices`.
+
 Twelve voices: the four MBROLA voices at two prosody settings (pitch and rate change the
 rendered durations, which the .pho carries) and four Festival voices. They make the default
 corpus (its subjects take the voices in this order).
@@ -53,7 +56,8 @@ class Voice:
     pitch: int = 50  # espeak-ng -p (0-99), MBROLA and espeak-ng voices
     speed: int = 160  # espeak-ng -s (words per minute), MBROLA and espeak-ng voices
     description: str = ""
-    phoneset: str = "radio"  # Festival voices: "radio" (US) or "mrpa" (British rab)
+    phoneset: str = "radio"  # Festival voices: "radio" (US), "mrpa" (British rab), or a key of
+    # talkmesh.audio.festival_voices.PHONE_TABLES for the other languages
     language: str = "en"  # espeak-ng language; MBROLA voices of other languages map their SAMPA
     # dialect through talkmesh.audio.languages.sampa_label
 
@@ -238,6 +242,24 @@ def espeak_voice(voice: str, language: str, pitch: int = 50, speed: int = 160) -
     )
 
 
+def festival_voice(language: str, speaker: str, speed: int = 160) -> Voice:
+    """Festival's voice ``speaker`` of ``language`` (:mod:`talkmesh.audio.festival_voices`),
+    refused when it is reserved for outside checks. ``speed`` stretches every duration by
+    160 / speed (Festival's ``Duration_Stretch``) where the voice honours it (not the unit
+    selection and HTS voices); the Segment times are what it rendered."""
+    from talkmesh.audio.festival_voices import get_festival_voice
+    from talkmesh.audio.languages import check_festival_not_reserved
+
+    v = get_festival_voice(language, speaker)
+    check_festival_not_reserved(v.function, language)
+    speed = speed if v.stretches else 160
+    name = f"fest-{language}-{speaker}" + ("" if speed == 160 else f"-s{speed}")
+    return Voice(
+        name, "festival", v.function, speed=speed, description=v.description,
+        phoneset=v.phoneset, language=language,
+    )  # fmt: skip
+
+
 def espeak_phones(events: list[tuple[str, int]], num_samples: int, sr: int, language: str):
     """The library's phoneme events -> contiguous timed phones: each phone from its event's
     sample to the next event's (the last to the end of the audio), silences merged."""
@@ -329,36 +351,72 @@ def _scheme_string(text: str) -> str:
     return '"' + text.replace("\\", " ").replace('"', " ") + '"'
 
 
+def _festival_script(voice: Voice, items: list[tuple[str, Path]], tmp: Path) -> Path:
+    """The Scheme script that speaks each item, in the character set the voice reads."""
+    from talkmesh.audio.festival_voices import ENCODINGS
+
+    lines = [f"({voice.voice})"]
+    if voice.speed != 160:
+        stretch = 160 / voice.speed  # times the voice's own (the NSK voices set 1.4)
+        lines.append("(set! d (Parameter.get 'Duration_Stretch)) (if (not d) (set! d 1.0))")
+        lines.append(f"(Parameter.set 'Duration_Stretch (* d {stretch}))")
+    for k, (text, wav) in enumerate(items):
+        lines.append(f"(set! utt (SynthText {_scheme_string(text)}))")
+        lines.append(f'(utt.save.wave utt "{wav}" \'riff)')
+        lines.append(f'(utt.save.segs utt "{tmp / f"{k}.segs"}")')
+    encoding = ENCODINGS.get(voice.phoneset, "utf-8")
+    try:
+        data = ("\n".join(lines) + "\n").encode(encoding)
+    except UnicodeEncodeError as e:
+        bad = e.object[e.start : e.end]
+        raise TalkmeshError(
+            f"{voice.name} reads {encoding} text and cannot read {bad!r}: give it text in its "
+            "language, in a folder whose path it can write"
+        ) from None
+    script = tmp / "run.scm"
+    script.write_bytes(data)
+    return script
+
+
+def _festival_phones(segs: Path, voice: Voice) -> list[Phone]:
+    """An ``utt.save.segs`` file -> phones, each ending where the Segment relation ends it."""
+    from talkmesh.audio.festival_voices import PHONE_TABLES, festival_label
+
+    if not segs.is_file():
+        raise TalkmeshError(
+            f"Festival did not speak with {voice.voice}: is its voice installed? (make setup)"
+        )
+    phones, t = [], 0.0
+    for line in segs.read_text(encoding="latin-1").splitlines():
+        parts = line.split()
+        if len(parts) != 3 or line.startswith("#"):
+            continue
+        end, sym = float(parts[0]), parts[2]
+        if voice.phoneset in PHONE_TABLES:
+            label = festival_label(sym, voice.phoneset)
+        elif sym in PHONESETS[voice.phoneset]:
+            label = PHONESETS[voice.phoneset][sym]
+        else:
+            raise TalkmeshError(f"Festival phone '{sym}' has no ARPABET mapping")
+        phones.append(Phone(label, t, end))
+        t = end
+    return phones
+
+
 def synthesize_festival(
     voice: Voice, items: list[tuple[str, Path]]
 ) -> list[tuple[list[Phone], int]]:
     """Render several (text, wav) pairs with one Festival process; returns phones per item."""
     import soundfile as sf
 
+    from talkmesh.audio.languages import check_festival_not_reserved
+
+    check_festival_not_reserved(voice.voice, voice.language)
     with tempfile.TemporaryDirectory() as tmp:
-        lines = [f"({voice.voice})"]
-        for k, (text, wav) in enumerate(items):
-            segs = Path(tmp) / f"{k}.segs"
-            lines.append(f"(set! utt (SynthText {_scheme_string(text)}))")
-            lines.append(f'(utt.save.wave utt "{wav}" \'riff)')
-            lines.append(f'(utt.save.segs utt "{segs}")')
-        script = Path(tmp) / "run.scm"
-        script.write_text("\n".join(lines) + "\n")
-        _run(["festival", "-b", str(script)])
+        _run(["festival", "-b", str(_festival_script(voice, items, Path(tmp)))])
         out = []
-        table = PHONESETS[voice.phoneset]
         for k, (_, wav) in enumerate(items):
-            segs = (Path(tmp) / f"{k}.segs").read_text().splitlines()
-            phones, t = [], 0.0
-            for line in segs:
-                parts = line.split()
-                if len(parts) != 3 or line.startswith("#"):
-                    continue
-                end, sym = float(parts[0]), parts[2]
-                if sym not in table:
-                    raise TalkmeshError(f"Festival phone '{sym}' has no ARPABET mapping")
-                phones.append(Phone(table[sym], t, end))
-                t = end
+            phones = _festival_phones(Path(tmp) / f"{k}.segs", voice)
             info = sf.info(str(wav))
             out.append((_merge(phones, info.frames / info.samplerate), info.samplerate))
     return out

@@ -26,13 +26,19 @@ def add_synth(sub: Subparsers) -> None:
     sy.add_argument(
         "--multilingual",
         action="store_true",
-        help="the multilingual corpus: every voice of talkmesh.audio.languages (MBROLA and "
-        "espeak-ng's own voices, 27 languages; held-out voices and never-trained languages make "
-        "the test split), motion "
+        help="the multilingual corpus: every voice of talkmesh.audio.languages (MBROLA, "
+        "espeak-ng's own and Festival voices, 30 languages; held-out voices and never-trained "
+        "languages make the test split), motion "
         "truth from the teacher (lips met through /p b m/, rest in pauses)",
     )
     sy.add_argument(
         "--languages", default="", help="with --multilingual: comma-separated codes (default all)"
+    )
+    sy.add_argument(
+        "--engines",
+        default="",
+        help="with --multilingual: comma-separated engines among mbrola, espeak-lib, festival "
+        "(default all; mbrola,espeak-lib: the corpus before Festival's voices came)",
     )
     add_quiet(sy)
     sy.set_defaults(func=cmd_synth)
@@ -49,6 +55,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
             Path(args.out),
             utterances_per_voice=args.sentences or 12,
             languages=languages,
+            engines=[e for e in args.engines.split(",") if e] or None,
             seed=args.seed,
             workers=args.workers,
             progress=not args.quiet,
@@ -57,8 +64,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"wrote {info}")
         return 0
-    if args.languages:
-        raise TalkmeshError("--languages needs --multilingual")
+    if args.languages or args.engines:
+        raise TalkmeshError("--languages and --engines need --multilingual")
     info = make_corpus(
         Path(args.out),
         subjects=args.subjects,

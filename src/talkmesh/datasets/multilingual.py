@@ -4,8 +4,9 @@ Every voice of :data:`talkmesh.audio.languages.LANGUAGES` is a subject: its ``tr
 the train split (one per language goes to val where a language has three or more), its ``test``
 voices (held-out voices of trained languages, and every voice of the never-trained languages) the
 test split. Each utterance is two of the language's sentences with the pause between them, read by
-an MBROLA voice or one of espeak-ng's own voices (a variant of the language's voice, phone times
-from the library's phoneme events) at the pitch and rate given to its subject; the motion truth is the procedural
+an MBROLA voice, one of espeak-ng's own voices (a variant of the language's voice, phone times
+from the library's phoneme events) or a Festival voice (phone times from its utterance's
+Segment relation; after every other voice) at the pitch and rate given to its subject; the motion truth is the procedural
 animator with the teacher's rules (:mod:`talkmesh.face.teacher`) on the synthesiser's exact phone
 timings, which are also saved (``phones/NAME.json``: ``[[label, start, end], ...]``) for the
 multilingual benchmark.
@@ -29,6 +30,7 @@ from talkmesh.datasets.synth import CorpusInfo, _atomic_write, _check_request
 from talkmesh.errors import TalkmeshError
 
 FORMAT_VERSION = 2  # the teacher's truth and saved phone timings
+ENGINES = ("mbrola", "espeak-lib", "festival")
 
 
 def utterances(sentences: tuple[str, ...], count: int, rng: np.random.Generator) -> list[str]:
@@ -40,7 +42,9 @@ def utterances(sentences: tuple[str, ...], count: int, rng: np.random.Generator)
 
 def plan_subjects(languages: list[str] | None = None) -> list[tuple[str, str, str]]:
     """(split, language code, voice) of every subject, in corpus order; the voice is an MBROLA
-    database or, for a language of the ``espeak-lib`` engine, a variant of its espeak-ng voice."""
+    database or, for a language of the ``espeak-lib`` engine, a variant of its espeak-ng voice.
+    Festival's voices (``fest-SPEAKER``) follow all of them, so the corpus's earlier subjects keep
+    their order (and their identities, prosody and sentences, drawn in that order)."""
     from talkmesh.audio.languages import LANGUAGES, check_espeak_not_reserved, check_not_reserved
 
     chosen = [lang for lang in LANGUAGES if languages is None or lang.code in languages]
@@ -57,14 +61,58 @@ def plan_subjects(languages: list[str] | None = None) -> list[tuple[str, str, st
             else:
                 check_not_reserved(db, lang.code)
             out.append((split, lang.code, db))
+    return out + _festival_subjects(chosen)
+
+
+def _festival_subjects(chosen: list) -> list[tuple[str, str, str]]:
+    """The Festival voices' rows: split as the language's other voices (its third training voice
+    goes to val; a never-trained language's voices to test)."""
+    from talkmesh.audio.festival_voices import get_festival_voice
+    from talkmesh.audio.languages import check_festival_not_reserved
+
+    out = []
+    for lang in chosen:
+        rows = [
+            ("val" if k == 2 else "train", speaker)
+            for k, speaker in enumerate(lang.festival, start=len(lang.train))
+        ] + [("test", speaker) for speaker in lang.festival_test]
+        for split, speaker in rows:
+            check_festival_not_reserved(get_festival_voice(lang.code, speaker).function, lang.code)
+            out.append((split, lang.code, f"fest-{speaker}"))
     return out
 
 
-def installed(db: str, code: str = "") -> bool:
-    """Whether the voice ``db`` of language ``code`` can speak here: its MBROLA database, or
-    espeak-ng's library and the voice it names."""
+def installed_plan(
+    languages: list[str] | None = None, engines: list[str] | None = None
+) -> list[tuple[str, str, str]]:
+    """The rows of :func:`plan_subjects` whose voices speak here, of ``engines`` only if given."""
+    unknown = set(engines or ()) - set(ENGINES)
+    if unknown:
+        raise TalkmeshError(
+            f"unknown engine(s) {', '.join(sorted(unknown))}: use {', '.join(ENGINES)}"
+        )
+    return [
+        row
+        for row in plan_subjects(languages)
+        if (engines is None or engine_of(row[2], row[1]) in engines) and installed(row[2], row[1])
+    ]
+
+
+def engine_of(db: str, code: str) -> str:
+    """The engine of the planned voice ``db`` of language ``code``."""
     from talkmesh.audio.languages import get_language
 
+    return "festival" if db.startswith("fest-") else get_language(code).engine
+
+
+def installed(db: str, code: str = "") -> bool:
+    """Whether the voice ``db`` of language ``code`` can speak here: its MBROLA database,
+    espeak-ng's library and the voice it names, or Festival and its voice (``fest-SPEAKER``)."""
+    from talkmesh.audio.festival_voices import festival_installed, get_festival_voice
+    from talkmesh.audio.languages import get_language
+
+    if db.startswith("fest-"):
+        return festival_installed(get_festival_voice(code, db.removeprefix("fest-")))
     lang = get_language(code) if code else None
     if lang is None or lang.engine == "mbrola":
         return (Path("/usr/share/mbrola") / db / db).is_file()
@@ -82,19 +130,23 @@ def make_multilingual_corpus(
     *,
     utterances_per_voice: int = 10,
     languages: list[str] | None = None,
+    engines: list[str] | None = None,
     seed: int = 0,
     workers: int | None = None,
     progress: bool = True,
     overwrite: bool = False,
 ) -> CorpusInfo:
-    """Write the multilingual corpus to ``out``; returns a summary."""
+    """Write the multilingual corpus to ``out``; returns a summary. ``engines`` keeps the voices
+    of some engines only (:data:`ENGINES`; ``["mbrola", "espeak-lib"]``: the corpus as it was
+    before Festival's voices came, subject for subject)."""
     root = Path(out)
+    plan = installed_plan(languages, engines)
     _check_request(root, 1, utterances_per_voice, overwrite)
-    plan = [row for row in plan_subjects(languages) if installed(row[2], row[1])]
     if not plan:
         raise TalkmeshError(
             "no voice of the chosen languages is installed: `sudo apt-get install mbrola-de2 "
-            "mbrola-fr2 ...` or libespeak-ng1 (see docs/results/multilingual.md)"
+            "mbrola-fr2 ...`, festvox-ellpc11k ... or libespeak-ng1 (`make setup`; see "
+            "docs/results/multilingual.md)"
         )
     jobs, subjects, texts, splits = _jobs(root, plan, utterances_per_voice, seed)
     for sub in ("wav", "vertices_npy", "arkit", "regions", "phones"):
@@ -125,7 +177,7 @@ def make_multilingual_corpus(
 def _jobs(root: Path, plan: list, count: int, seed: int) -> tuple[list, dict, dict, dict]:
     """One synthesis job per planned voice; the manifest's subjects, texts and splits."""
     from talkmesh.audio.languages import get_language
-    from talkmesh.audio.voices import espeak_voice, mbrola_voice
+    from talkmesh.audio.voices import espeak_voice, festival_voice, mbrola_voice
     from talkmesh.face.assets import list_identities
     from talkmesh.face.lipsync import SpeakingStyle
 
@@ -138,7 +190,9 @@ def _jobs(root: Path, plan: list, count: int, seed: int) -> tuple[list, dict, di
         identity = identities[s % len(identities)]
         subject = f"ML_{code.replace('-', '')}_{db}_{identity}"
         pitch, speed = int(rng.integers(35, 66)), int(rng.integers(135, 186))
-        if lang.engine == "espeak-lib":
+        if db.startswith("fest-"):  # Festival: the rate as a duration stretch, its own pitch
+            voice = festival_voice(code, db.removeprefix("fest-"), speed)
+        elif lang.engine == "espeak-lib":
             voice = espeak_voice(lang.voice_name(db), code, pitch, speed)
         else:
             voice = mbrola_voice(db, code, pitch, speed)
