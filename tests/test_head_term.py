@@ -13,7 +13,7 @@ from conftest import build_tiny_codetalker
 from fixtures import TINY_WHISPER
 
 from talkmesh.errors import TalkmeshError
-from talkmesh.models.codetalker.model import CodeTalker, Stage2Config
+from talkmesh.models.codetalker.model import HEAD_SCALE, CodeTalker, Stage2Config
 from talkmesh.models.speech import SpeechEncoderConfig
 
 PAIRS = (0, 1, 2, 3)  # two vertex pairs of the tiny mesh
@@ -57,7 +57,8 @@ def test_the_head_term_starts_at_zero_and_reads_the_lips_of_the_template():
     assert not torch.allclose(style_near, style_far)
     # the term is linear in the standardised distances: (0.3 - 0.05) / 0.05 along pair 0's column
     step = (style_far - style_near)[0]
-    assert torch.allclose(step, learned.head_map.weight[:, 0] * (0.25 / 0.05), atol=1e-5)
+    want = learned.head_map.weight[:, 0] * (0.25 / 0.05) * HEAD_SCALE
+    assert torch.allclose(step, want, atol=1e-4)
     # no template: the training templates' average head (standardised distances 0)
     no_head = learned.style_vector(None, weights)
     assert torch.allclose(no_head, plain + learned.head_map.bias, atol=1e-6)

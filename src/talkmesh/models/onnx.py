@@ -116,12 +116,15 @@ def export_onnx(model: nn.Module, path: str | Path, opset: int = OPSET) -> list[
                 "state": json.dumps({n: list(shapes[n]) for n in names}),
             }
             if model.head_map is not None:  # the style's head term, computed by the runtime
+                from talkmesh.models.codetalker.model import HEAD_SCALE
+
                 s2 = model.cfg.stage2
                 meta["head"] = json.dumps(
                     {
                         "pairs": list(s2.head_pairs),
                         "mean": list(s2.head_mean),
                         "std": list(s2.head_std),
+                        "scale": HEAD_SCALE,
                         "weight": model.head_map.weight.float().tolist(),
                         "bias": model.head_map.bias.float().tolist(),
                     }
@@ -217,7 +220,7 @@ class OnnxModel:
                 pairs = np.asarray(h["pairs"], np.int64).reshape(-1, 2)
                 t = np.asarray(template, np.float32).reshape(-1, 3)
                 dist = np.linalg.norm(t[pairs[:, 0]] - t[pairs[:, 1]], axis=-1)
-                z = (dist - np.asarray(h["mean"])) / np.asarray(h["std"])
+                z = (dist - np.asarray(h["mean"])) / np.asarray(h["std"]) * h["scale"]
                 style = style + (np.asarray(h["weight"], np.float32) @ z.astype(np.float32))
         return style.astype(np.float32)
 

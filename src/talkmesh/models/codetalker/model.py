@@ -60,6 +60,10 @@ from talkmesh.models.speech_chunks import FrameFeatures
 from talkmesh.models.threads import step_threads
 
 GENERATION_MODES = ("fast", "naive", "exact")  # CodeTalker.generate(mode=...)
+# the head term's input, in tenths of the training faces' spread: Adam moves each weight of its
+# zero-initialised map about lr a step, and at 1 unit per spread 1300 fine-tuning steps left the
+# term at a tenth of what the widest resting lips need (docs/results/multilingual.md)
+HEAD_SCALE = 10.0
 
 # ---------------------------------------------------------------------------------------------
 # Configuration
@@ -354,7 +358,7 @@ class CodeTalker(MotionModel):
         pairs = torch.tensor(s2.head_pairs, device=template.device).view(-1, 2)
         dist = (template[:, pairs[:, 0]] - template[:, pairs[:, 1]]).float().norm(dim=-1)
         mean = torch.tensor(s2.head_mean, device=template.device)
-        z = (dist - mean) / torch.tensor(s2.head_std, device=template.device)
+        z = (dist - mean) / torch.tensor(s2.head_std, device=template.device) * HEAD_SCALE
         return self.head_map(z.to(self.head_map.weight.dtype)).to(dtype)
 
     def audio_tokens(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
