@@ -165,3 +165,17 @@ def test_stage2_from_a_motion_stage_can_start_with_the_head_term(corpus, tmp_pat
     assert torch.equal(net.vqvae.quantizer.codebook, stage1.vqvae.quantizer.codebook)
     with pytest.raises(TalkmeshError, match="head_pairs must be a count"):
         _build_stage2({**small, "head_pairs": 1.5}, info, tmp_path / "stage1.safetensors")
+
+
+def test_the_head_recipe_continues_the_bundled_model_with_eight_pairs():
+    pytest.importorskip("yaml")
+    from pathlib import Path
+
+    from talkmesh.training.trainer import _init_path, load_recipe
+
+    recipe = load_recipe(
+        Path(__file__).parents[1] / "configs" / "codetalker_multilingual_head.yaml"
+    )
+    assert recipe.task == "codetalker-finetune" and recipe.model == {"head_pairs": 8}
+    assert recipe.train.lip_gap_weight > 0 and recipe.data.augment.enabled
+    assert _init_path(recipe.init).name == "codetalker-synth.safetensors"
