@@ -116,15 +116,13 @@ def export_onnx(model: nn.Module, path: str | Path, opset: int = OPSET) -> list[
                 "state": json.dumps({n: list(shapes[n]) for n in names}),
             }
             if model.head_map is not None:  # the style's head term, computed by the runtime
-                from talkmesh.models.codetalker.model import HEAD_SCALE
-
                 s2 = model.cfg.stage2
                 meta["head"] = json.dumps(
                     {
                         "pairs": list(s2.head_pairs),
                         "mean": list(s2.head_mean),
                         "std": list(s2.head_std),
-                        "scale": HEAD_SCALE,
+                        "scale": float(model.head_scale),
                         "weight": model.head_map.weight.float().tolist(),
                         "bias": model.head_map.bias.float().tolist(),
                     }

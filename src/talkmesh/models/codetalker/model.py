@@ -194,6 +194,7 @@ class CodeTalker(MotionModel):
     config_class = CodeTalkerConfig
     generation_modes = GENERATION_MODES
     generate_block = 128  # most frames per pass of fast generation (see FrameGenerator.block)
+    head_scale = HEAD_SCALE  # the head term's input unit (export: talkmesh.models.onnx)
 
     def __init__(self, cfg: CodeTalkerConfig) -> None:
         super().__init__()
