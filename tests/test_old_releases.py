@@ -94,7 +94,8 @@ def test_an_old_imported_release_loads_and_generates_what_it_did(outputs):
 
 
 def test_the_bundled_model_generates_what_it_did(outputs):
-    """Its expected output was made again when the model was retrained (2026-11-27, 2026-11-28)."""
+    """Its expected output was made again when the model was retrained (2026-11-27, 2026-11-28,
+    and again on 2026-11-28 with the head term)."""
     assert (MODELS_DIR / "codetalker-synth.safetensors").is_file()
     model = load_model("codetalker-synth")
     out = generate(model, outputs["audio"], outputs["bundled_template"])
