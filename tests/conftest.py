@@ -1,9 +1,11 @@
 """Fixtures shared by several test files: the tiny CodeTalker that the model, streaming, batching,
-serving and long-audio tests build (one configuration, so that they test the same model)."""
+serving and long-audio tests build (one configuration, so that they test the same model), and a
+tiny synthetic corpus the fine-tuning tests read."""
 
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 
@@ -97,3 +99,15 @@ def _own_cache(tmp_path_factory):
     """Registrations saved by `talkmesh rig` and `animate --head` (talkmesh.face.rig_cache) go to
     a folder of this test run, never the user's cache."""
     os.environ["TALKMESH_CACHE"] = str(tmp_path_factory.mktemp("cache"))
+
+
+@pytest.fixture(scope="session")
+def tiny_corpus(tmp_path_factory) -> Path:
+    """A 3-speaker, 2-sentence synthetic corpus (MBROLA voices), built once; tests only read it."""
+    if not shutil.which("mbrola"):
+        pytest.skip("mbrola not installed")
+    from talkmesh.datasets.synth import make_corpus
+
+    root = tmp_path_factory.mktemp("tiny_corpus") / "c"
+    make_corpus(root, subjects=3, sentences=2, seed=3, workers=1, progress=False)
+    return root

@@ -158,20 +158,7 @@ def test_config_checks_its_values():
         from_dict(AugmentConfig, {"noize_p": 0.5}, "data.augment")
 
 
-@pytest.fixture(scope="module")
-def corpus(tmp_path_factory):
-    import shutil
-
-    if not shutil.which("mbrola"):
-        pytest.skip("mbrola not installed")
-    from talkmesh.datasets.synth import make_corpus
-
-    root = tmp_path_factory.mktemp("aug") / "c"
-    make_corpus(root, subjects=3, sentences=2, seed=3, workers=1, progress=False)
-    return root
-
-
-def test_finetune_continues_a_release_on_augmented_audio(corpus, tmp_path):
+def test_finetune_continues_a_release_on_augmented_audio(tiny_corpus, tmp_path):
     """``task: codetalker-finetune``: the release's VQ-VAE and speech statistics stay, the rest
     learns from augmented crops, and a release of the same shape comes out."""
     pytest.importorskip("lightning")
@@ -182,7 +169,7 @@ def test_finetune_continues_a_release_on_augmented_audio(corpus, tmp_path):
     from talkmesh.models.release import load_model, save_model
     from talkmesh.training.trainer import load_recipe, train
 
-    spec = open_dataset("synth", corpus, "train").spec
+    spec = open_dataset("synth", tiny_corpus, "train").spec
     torch.manual_seed(0)
     base = CodeTalker(CodeTalker.tiny_config(spec.num_vertices, tuple(spec.train_subjects)))
     save_model(base, tmp_path / "base.safetensors")
@@ -190,7 +177,7 @@ def test_finetune_continues_a_release_on_augmented_audio(corpus, tmp_path):
     recipe_file.write_text(
         "task: codetalker-finetune\n"
         f"init: {tmp_path / 'base.safetensors'}\n"
-        f"data: {{kind: synth, root: {corpus}, batch_size: 1, max_seconds: 1.0, val_split: ''}}\n"
+        f"data: {{kind: synth, root: {tiny_corpus}, batch_size: 1, max_seconds: 1.0, val_split: ''}}\n"
         "train: {lr: 1.0e-3, epochs: 1, max_steps: 2, accelerator: cpu, out_dir: "
         f"{tmp_path / 'run'}}}\n"
     )
@@ -216,7 +203,7 @@ def test_finetune_continues_a_release_on_augmented_audio(corpus, tmp_path):
         )
 
 
-def test_finetune_adds_the_corpus_new_speakers_at_the_mean_style(corpus, tmp_path):
+def test_finetune_adds_the_corpus_new_speakers_at_the_mean_style(tiny_corpus, tmp_path):
     """A release continued on a corpus with more training speakers keeps the styles it learned
     and starts each new speaker at their mean (the style an unseen speaker gets)."""
     pytest.importorskip("lightning")
@@ -228,7 +215,7 @@ def test_finetune_adds_the_corpus_new_speakers_at_the_mean_style(corpus, tmp_pat
     from talkmesh.training.codetalker import with_styles
     from talkmesh.training.trainer import load_recipe, train
 
-    subjects = tuple(open_dataset("synth", corpus, "train").spec.train_subjects)
+    subjects = tuple(open_dataset("synth", tiny_corpus, "train").spec.train_subjects)
     assert len(subjects) >= 2
     torch.manual_seed(1)
     base = CodeTalker(CodeTalker.tiny_config(8, subjects[:1] + ("gone",)))
@@ -243,7 +230,7 @@ def test_finetune_adds_the_corpus_new_speakers_at_the_mean_style(corpus, tmp_pat
     same = {k: v for k, v in grown.state_dict().items() if k != "style.weight"}
     assert all(torch.equal(v, base.state_dict()[k]) for k, v in same.items())
 
-    spec = open_dataset("synth", corpus, "train").spec
+    spec = open_dataset("synth", tiny_corpus, "train").spec
     torch.manual_seed(0)
     first = CodeTalker(CodeTalker.tiny_config(spec.num_vertices, subjects[:1]))
     save_model(first, tmp_path / "first.safetensors")
@@ -251,7 +238,7 @@ def test_finetune_adds_the_corpus_new_speakers_at_the_mean_style(corpus, tmp_pat
     recipe_file.write_text(
         "task: codetalker-finetune\n"
         f"init: {tmp_path / 'first.safetensors'}\n"
-        f"data: {{kind: synth, root: {corpus}, batch_size: 1, max_seconds: 1.0, val_split: ''}}\n"
+        f"data: {{kind: synth, root: {tiny_corpus}, batch_size: 1, max_seconds: 1.0, val_split: ''}}\n"
         f"train: {{lr: 1.0e-3, epochs: 1, max_steps: 1, accelerator: cpu, out_dir: {tmp_path}}}\n"
     )
     tuned = load_model(train(load_recipe(recipe_file), progress=False))

@@ -3,7 +3,6 @@ apart at rest, in PyTorch, in ONNX Runtime and when a release is fine-tuned to l
 
 from __future__ import annotations
 
-import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -98,24 +97,13 @@ def test_onnx_runtime_adds_the_head_term_as_pytorch_does(tmp_path):
     assert (onnx_gen - gen).abs().max() <= 1e-4 * scale
 
 
-@pytest.fixture(scope="module")
-def corpus(tmp_path_factory):
-    if not shutil.which("mbrola"):
-        pytest.skip("mbrola not installed")
-    from talkmesh.datasets.synth import make_corpus
-
-    root = tmp_path_factory.mktemp("head") / "c"
-    make_corpus(root, subjects=3, sentences=2, seed=3, workers=1, progress=False)
-    return root
-
-
-def test_finetune_gives_a_release_the_head_term_of_its_training_heads(corpus, tmp_path):
+def test_finetune_gives_a_release_the_head_term_of_its_training_heads(tiny_corpus, tmp_path):
     pytest.importorskip("lightning")
     from talkmesh.datasets.reader import open_dataset
     from talkmesh.models.release import load_model, save_model
     from talkmesh.training.trainer import load_recipe, train
 
-    data = open_dataset("synth", corpus, "train")
+    data = open_dataset("synth", tiny_corpus, "train")
     subjects = tuple(data.spec.train_subjects)
     torch.manual_seed(0)
     base = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, subjects))
@@ -125,7 +113,7 @@ def test_finetune_gives_a_release_the_head_term_of_its_training_heads(corpus, tm
         "task: codetalker-finetune\n"
         f"init: {tmp_path / 'base.safetensors'}\n"
         "model: {head_pairs: 3}\n"
-        f"data: {{kind: synth, root: {corpus}, batch_size: 1, max_seconds: 1.0, val_split: ''}}\n"
+        f"data: {{kind: synth, root: {tiny_corpus}, batch_size: 1, max_seconds: 1.0, val_split: ''}}\n"
         f"train: {{lr: 1.0e-3, epochs: 1, max_steps: 2, accelerator: cpu, out_dir: {tmp_path}/r}}\n"
     )
     tuned = load_model(train(load_recipe(recipe_file), progress=False))
@@ -145,13 +133,13 @@ def test_finetune_gives_a_release_the_head_term_of_its_training_heads(corpus, tm
         train(load_recipe(recipe_file, ["model.preset=small", f"train.out_dir={tmp_path}/c"]))
 
 
-def test_stage2_from_a_motion_stage_can_start_with_the_head_term(corpus, tmp_path):
+def test_stage2_from_a_motion_stage_can_start_with_the_head_term(tiny_corpus, tmp_path):
     from talkmesh.datasets.reader import open_dataset
     from talkmesh.models.release import save_model
     from talkmesh.training.codetalker import _build_stage2
     from talkmesh.training.trainer import dataset_info
 
-    data = open_dataset("synth", corpus, "train")
+    data = open_dataset("synth", tiny_corpus, "train")
     info = dataset_info(data)
     stage1 = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, info.train_subjects))
     save_model(stage1, tmp_path / "stage1.safetensors")
