@@ -683,3 +683,21 @@ def test_the_folded_feedback_map_is_kept_until_its_weights_change(tiny_codetalke
         fast, model.generate(audio, templ, styles=style, mode="naive"), atol=1e-5, rtol=1e-4
     )
     assert "_folded" not in "".join(model.state_dict())
+
+
+def test_the_multilingual_streaming_recipe_trains_on_the_bundled_models_motion_stage():
+    pytest.importorskip("yaml")
+    from talkmesh.config import to_dict
+    from talkmesh.models.release import load_model
+    from talkmesh.training.codetalker import build_config
+    from talkmesh.training.trainer import DatasetInfo, _init_path, load_recipe
+
+    recipe = load_recipe(CONFIGS / "codetalker_stream_multilingual.yaml")
+    assert recipe.task == "codetalker-stage2" and recipe.model["head_pairs"] == 8
+    bundled = load_model(_init_path(recipe.init))
+    info = DatasetInfo(num_vertices=bundled.num_vertices, motion_fps=30.0, train_subjects=("a",))
+    model = {k: v for k, v in recipe.model.items() if k != "head_pairs"}
+    cfg = build_config(model, info)
+    assert to_dict(cfg.vq) == to_dict(bundled.cfg.vq)  # _build_stage2 takes its VQ-VAE
+    assert cfg.vq.causal and cfg.stage2.speech.kind == "mel"
+    assert recipe.train.lip_gap_weight > 0 and recipe.data.augment.enabled

@@ -4,7 +4,9 @@
 trains the speech-driven code query (Eq. 6) with stage 1 frozen, starting from ``init`` (the stage-1
 release); ``task: codetalker-finetune`` continues stage 2 of a finished release (``init``: a file or
 a bundled name), e.g. on augmented audio, with its model, speech statistics and VQ-VAE as they
-are. The model section is ``{preset: small|vocaset|biwi, vq: {...}, stage2: {...}}``; the
+are; ``task: codetalker-decoder`` refits the VQ decoder of a finished release on the data (the
+encoder, codebook and stage 2 as they are, so the release's code queries stay valid), e.g. with the
+lip-gap loss so that the codes of a closure close every face's lips. The model section is ``{preset: small|vocaset|biwi, vq: {...}, stage2: {...}}``; the
 vertex count and the training speakers come from the data.
 """
 
@@ -73,6 +75,34 @@ def _step_stage1(net: CodeTalker, batch: TorchBatch) -> StepOutput:
             "perplexity": q.perplexity(),
             "codes_used": float(q.used_codes()),
         },
+        out.motion,
+    )
+
+
+def _build_decoder(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
+    if init is None:
+        raise TalkmeshError("task codetalker-decoder needs init: a CodeTalker release to refit")
+    if model:
+        raise TalkmeshError(
+            "task codetalker-decoder takes its model from init: leave its model section out"
+        )
+    net = load_model(init, family="codetalker")
+    if net.cfg.vq.num_vertices != info.num_vertices:
+        raise TalkmeshError(
+            f"{init}: a {net.cfg.vq.num_vertices}-vertex model, the data has {info.num_vertices}"
+        )
+    net.requires_grad_(False)
+    net.vqvae.decoder.requires_grad_(True)
+    return net
+
+
+def _step_decoder(net: CodeTalker, batch: TorchBatch) -> StepOutput:
+    net.eval()  # the encoder and codebook are frozen: no codebook usage updates
+    net.vqvae.decoder.train()
+    motion = (batch.vertices - batch.templates[:, None]).flatten(2)
+    out = net.vqvae(motion, batch.motion_mask)
+    return StepOutput(
+        out.reconstruction, {"reconstruction": float(out.reconstruction.detach())}, out.motion
     )
 
 
@@ -234,6 +264,14 @@ STAGE2 = Task(
     parameters=lambda net: (p for n, p in net.named_parameters() if not n.startswith("vqvae.")),
     save=save_model,
     prepare=prepare_speech_statistics,
+)
+DECODER = Task(
+    name="codetalker-decoder",
+    build=_build_decoder,
+    step=_step_decoder,
+    parameters=lambda net: net.vqvae.decoder.parameters(),
+    save=save_model,
+    prepare=None,
 )
 FINETUNE = Task(
     name="codetalker-finetune",

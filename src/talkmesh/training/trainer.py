@@ -248,12 +248,12 @@ class Task:
     prepare: Callable[..., None] | None = None
 
 
-# Task name -> "module:attribute" of a Task, imported on first use so that `talkmesh info` and the
-# CLI do not import every model.
+# Task name -> "module:attribute" of a Task, imported on first use (the CLI imports no model).
 TASKS: dict[str, str] = {
     "codetalker-stage1": "talkmesh.training.codetalker:STAGE1",
     "codetalker-stage2": "talkmesh.training.codetalker:STAGE2",
     "codetalker-finetune": "talkmesh.training.codetalker:FINETUNE",
+    "codetalker-decoder": "talkmesh.training.codetalker:DECODER",
     "meshtalk": "talkmesh.training.meshtalk:EXPRESSION",
     "meshtalk-prior": "talkmesh.training.meshtalk:PRIOR",
     "faceformer": "talkmesh.training.faceformer:FACEFORMER",

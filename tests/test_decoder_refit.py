@@ -1,0 +1,100 @@
+"""``task: codetalker-decoder``: a release's VQ decoder refitted on data (with the lip-gap loss),
+everything else as it was, so the release's code queries stay valid; and stage 1 takes the
+lip-gap loss too."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from talkmesh.errors import TalkmeshError
+from talkmesh.models.codetalker.model import CodeTalker
+
+
+def _recipe(path, init, root, out, extra: str = "") -> None:
+    path.write_text(
+        "task: codetalker-decoder\n"
+        f"init: {init}\n{extra}"
+        f"data: {{kind: synth, root: {root}, batch_size: 2, max_seconds: 1.0, val_split: ''}}\n"
+        "train: {lr: 1.0e-2, epochs: 1, max_steps: 3, accelerator: cpu, lip_gap_weight: 0.5, "
+        f"out_dir: {out}}}\n"
+    )
+
+
+def test_refit_changes_the_vq_decoder_alone(tiny_corpus, tmp_path):
+    pytest.importorskip("lightning")
+    from talkmesh.datasets.reader import open_dataset
+    from talkmesh.models.release import load_model, save_model
+    from talkmesh.training.trainer import load_recipe, train
+
+    data = open_dataset("synth", tiny_corpus, "train")
+    torch.manual_seed(0)
+    base = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, data.spec.train_subjects))
+    save_model(base, tmp_path / "base.safetensors")
+    _recipe(tmp_path / "r.yaml", tmp_path / "base.safetensors", tiny_corpus, tmp_path / "run")
+    refit = load_model(train(load_recipe(tmp_path / "r.yaml"), progress=False))
+    before, after = base.state_dict(), refit.state_dict()
+    assert before.keys() == after.keys()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    assert changed and all(k.startswith("vqvae.decoder.") for k in changed), changed
+    assert "vqvae.decoder.out.weight" in changed  # the lip-gap loss reaches the output map
+    assert torch.equal(refit.vqvae.quantizer.codebook, base.vqvae.quantizer.codebook)
+    assert refit.cfg == base.cfg
+
+
+def test_refit_refuses_a_model_section_no_init_and_other_vertex_counts(tiny_corpus, tmp_path):
+    pytest.importorskip("lightning")
+    from talkmesh.datasets.reader import open_dataset
+    from talkmesh.models.release import save_model
+    from talkmesh.training.trainer import load_recipe, train
+
+    data = open_dataset("synth", tiny_corpus, "train")
+    base = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, data.spec.train_subjects))
+    save_model(base, tmp_path / "base.safetensors")
+    other = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices + 3, ("a",)))
+    save_model(other, tmp_path / "other.safetensors")
+    recipe = tmp_path / "r.yaml"
+    _recipe(recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "a", "model: {x: 1}\n")
+    with pytest.raises(TalkmeshError, match="takes its model from init"):
+        train(load_recipe(recipe), progress=False)
+    _recipe(recipe, tmp_path / "other.safetensors", tiny_corpus, tmp_path / "b")
+    with pytest.raises(TalkmeshError, match="vertex model, the data has"):
+        train(load_recipe(recipe), progress=False)
+    _recipe(recipe, "null", tiny_corpus, tmp_path / "c")
+    with pytest.raises(TalkmeshError, match="needs init"):
+        train(load_recipe(recipe), progress=False)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_stage1_takes_the_lip_gap_loss(tiny_corpus, tmp_path):
+    pytest.importorskip("lightning")
+    import csv
+
+    from talkmesh.training.trainer import load_recipe, train
+
+    recipe = tmp_path / "s1.yaml"
+    recipe.write_text(
+        "task: codetalker-stage1\n"
+        "model: {preset: small, vq: {hidden: 32, layers: 1, heads: 2, ff: 64, components: 2, "
+        "code_dim: 8, codebook_size: 16}}\n"
+        f"data: {{kind: synth, root: {tiny_corpus}, batch_size: 2, max_seconds: 1.0, val_split: ''}}\n"
+        "train: {lr: 1.0e-3, epochs: 1, max_steps: 2, log_every: 1, accelerator: cpu, "
+        f"lip_gap_weight: 0.5, out_dir: {tmp_path}/s1}}\n"
+    )
+    train(load_recipe(recipe), progress=False)
+    rows = list(csv.DictReader((tmp_path / "s1" / "logs" / "metrics.csv").open()))
+    gaps = [float(r["train/lip_gap"]) for r in rows if r.get("train/lip_gap")]
+    assert gaps and all(g > 0 for g in gaps)
+
+
+def test_the_refit_recipe_refits_the_bundled_models_decoder_with_the_lip_gap_loss():
+    pytest.importorskip("yaml")
+    from pathlib import Path
+
+    from talkmesh.training.trainer import _init_path, load_recipe, task_spec
+
+    recipe = load_recipe(Path(__file__).parents[1] / "configs" / "codetalker_decoder_refit.yaml")
+    assert recipe.task == "codetalker-decoder" and recipe.model == {}
+    assert recipe.train.lip_gap_weight > 0 and recipe.train.code_ce_weight == 0
+    assert _init_path(recipe.init).name == "codetalker-synth.safetensors"
+    assert task_spec(recipe.task).name == "codetalker-decoder"
