@@ -98,3 +98,27 @@ def test_the_refit_recipe_refits_the_bundled_models_decoder_with_the_lip_gap_los
     assert recipe.train.lip_gap_weight > 0 and recipe.train.code_ce_weight == 0
     assert _init_path(recipe.init).name == "codetalker-synth.safetensors"
     assert task_spec(recipe.task).name == "codetalker-decoder"
+
+
+def test_stage1_starts_from_the_motion_stage_of_any_release_with_its_vq(tmp_path):
+    from dataclasses import replace
+
+    from talkmesh.models.release import save_model
+    from talkmesh.training.codetalker import _build_stage1
+    from talkmesh.training.trainer import DatasetInfo
+
+    torch.manual_seed(0)
+    other = CodeTalker(CodeTalker.tiny_config(12, ("x",)))  # other speakers than the data's
+    save_model(other, tmp_path / "other.safetensors")
+    info = DatasetInfo(num_vertices=12, motion_fps=30.0, train_subjects=("a", "b"))
+    model = {"vq": dict(other.cfg.vq.__dict__), "stage2": {"d_model": 32, "heads": 2, "ff": 64}}
+    net = _build_stage1(model, info, tmp_path / "other.safetensors")
+    assert net.cfg.stage2.styles == ("a", "b")
+    for key, value in other.vqvae.state_dict().items():
+        assert torch.equal(net.vqvae.state_dict()[key], value), key
+    bigger = {
+        **model,
+        "vq": dict(replace(other.cfg.vq, code_dim=other.cfg.vq.code_dim * 2).__dict__),
+    }
+    with pytest.raises(TalkmeshError, match="VQ-VAE config differs"):
+        _build_stage1(bigger, info, tmp_path / "other.safetensors")

@@ -58,9 +58,15 @@ def build_config(model: dict[str, Any], info: DatasetInfo) -> CodeTalkerConfig:
 
 def _build_stage1(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
     net = CodeTalker(build_config(model, info))
-    if init is not None:
-        net.load_state_dict(load_model(init).state_dict(), strict=True)
+    if init is not None:  # the motion stage of any release whose VQ-VAE is this recipe's
+        _copy_vqvae(net, load_model(init), init)
     return net
+
+
+def _copy_vqvae(net: CodeTalker, source: CodeTalker, path: Path) -> None:
+    if to_dict(net.cfg.vq) != to_dict(source.cfg.vq):
+        raise TalkmeshError(f"{path}: its VQ-VAE config differs from this recipe's model.vq")
+    net.vqvae.load_state_dict(source.vqvae.state_dict(), strict=True)
 
 
 def _step_stage1(net: CodeTalker, batch: TorchBatch) -> StepOutput:
@@ -109,14 +115,10 @@ def _step_decoder(net: CodeTalker, batch: TorchBatch) -> StepOutput:
 def _build_stage2(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
     if init is None:
         raise TalkmeshError("task codetalker-stage2 needs init: the stage-1 release (.safetensors)")
-    stage1 = load_model(init)
     model = dict(model)
     head_pairs = _head_pairs(model.pop("head_pairs", 0))
-    cfg = build_config(model, info)
-    if to_dict(cfg.vq) != to_dict(stage1.cfg.vq):
-        raise TalkmeshError(f"{init}: its VQ-VAE config differs from this recipe's model.vq")
-    net = CodeTalker(cfg)
-    net.vqvae.load_state_dict(stage1.vqvae.state_dict(), strict=True)
+    net = CodeTalker(build_config(model, info))
+    _copy_vqvae(net, load_model(init), init)
     if head_pairs:
         net = with_head(net, info, head_pairs)
     net.vqvae.requires_grad_(False)
