@@ -15,7 +15,6 @@ each model's reconstruction, and the median smallest opening.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -27,16 +26,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from multilingual import FPS, _sequences  # noqa: E402
 
 from talkmesh.datasets.multilingual import read_phones  # noqa: E402
-from talkmesh.evaluation.real_speech import BILABIALS, CLOSED_MM  # noqa: E402
+from talkmesh.evaluation.real_speech import BILABIALS, CLOSED_MM, phone_window  # noqa: E402
 from talkmesh.face.assets import lip_opening, load_head  # noqa: E402
 from talkmesh.models.release import load_model  # noqa: E402
 
 
 def smallest_openings(opening_mm: np.ndarray, phones) -> list[float]:
     """The smallest lip opening (mm) within each /p b m/ of ``phones`` (one frame either side)."""
-    n, out = len(opening_mm), []
+    out = []
     for p in phones:
-        lo, hi = max(0, int(p.start * FPS) - 1), min(n, int(math.ceil(p.end * FPS)) + 1)
+        lo, hi = phone_window(p, FPS, len(opening_mm))
         if p.label in BILABIALS and hi > lo:
             out.append(float(opening_mm[lo:hi].min()))
     return out

@@ -214,6 +214,11 @@ class ClipScores:
     bilabials: int
 
 
+def phone_window(phone: Phone, fps: float, frames: int) -> tuple[int, int]:
+    """The frames [lo, hi) that a phone's metrics read: its own, and one either side."""
+    return max(0, int(phone.start * fps) - 1), min(frames, int(math.ceil(phone.end * fps)) + 1)
+
+
 def score_opening(
     opening_mm: np.ndarray, rest_mm: float, phones: list[Phone], wave: np.ndarray, fps: float
 ) -> dict[str, float]:
@@ -230,7 +235,7 @@ def score_opening(
     speech_speed = float(speed[speech].mean()) if speech.any() else math.nan
     closed, peaks = [], []
     for p in phones:
-        lo, hi = max(0, int(p.start * fps) - 1), min(n, int(math.ceil(p.end * fps)) + 1)
+        lo, hi = phone_window(p, fps, n)
         if hi <= lo:
             continue
         if p.label in BILABIALS:

@@ -6,8 +6,9 @@ release); ``task: codetalker-finetune`` continues stage 2 of a finished release 
 a bundled name), e.g. on augmented audio, with its model, speech statistics and VQ-VAE as they
 are; ``task: codetalker-decoder`` refits the VQ decoder of a finished release on the data (the
 encoder, codebook and stage 2 as they are, so the release's code queries stay valid), e.g. with the
-lip-gap loss so that the codes of a closure close every face's lips. The model section is ``{preset: small|vocaset|biwi, vq: {...}, stage2: {...}}``; the
-vertex count and the training speakers come from the data.
+lip-gap loss so that the codes of a closure close the lips. The model section is
+``{preset: small|vocaset|biwi, vq: {...}, stage2: {...}}``; the vertex count and the training
+speakers come from the data.
 """
 
 from __future__ import annotations
@@ -92,19 +93,25 @@ def _build_decoder(model: dict[str, Any], info: DatasetInfo, init: Path | None) 
         raise TalkmeshError(
             "task codetalker-decoder takes its model from init: leave its model section out"
         )
-    net = load_model(init, family="codetalker")
-    if net.cfg.vq.num_vertices != info.num_vertices:
-        raise TalkmeshError(
-            f"{init}: a {net.cfg.vq.num_vertices}-vertex model, the data has {info.num_vertices}"
-        )
+    net = _release_for(init, info)
     net.requires_grad_(False)
     net.vqvae.decoder.requires_grad_(True)
     return net
 
 
+def _release_for(init: Path, info: DatasetInfo) -> CodeTalker:
+    """The CodeTalker release at ``init``, checked against the data's vertex count."""
+    net = load_model(init, family="codetalker")
+    if net.cfg.vq.num_vertices != info.num_vertices:
+        raise TalkmeshError(
+            f"{init}: a {net.cfg.vq.num_vertices}-vertex model, the data has {info.num_vertices}"
+        )
+    return net
+
+
 def _step_decoder(net: CodeTalker, batch: TorchBatch) -> StepOutput:
-    net.eval()  # the encoder and codebook are frozen: no codebook usage updates
-    net.vqvae.decoder.train()
+    net.vqvae.encoder.eval()  # frozen: no codebook usage updates
+    net.vqvae.quantizer.eval()
     motion = (batch.vertices - batch.templates[:, None]).flatten(2)
     out = net.vqvae(motion, batch.motion_mask)
     return StepOutput(
@@ -144,16 +151,12 @@ def _build_finetune(model: dict[str, Any], info: DatasetInfo, init: Path | None)
             "task codetalker-finetune takes its model from init: its model section may only "
             "say head_pairs: N (a count, to give the style the head's lips)"
         )
-    net = load_model(init, family="codetalker")
+    net = _release_for(init, info)
     if not set(net.cfg.stage2.styles) <= set(info.train_subjects):
         missing = sorted(set(net.cfg.stage2.styles) - set(info.train_subjects))
         raise TalkmeshError(
             f"{init}: trained on the speakers {', '.join(net.cfg.stage2.styles)}; this dataset's "
             f"training speakers lack {', '.join(missing)}: continue it on data that keeps them"
-        )
-    if net.cfg.vq.num_vertices != info.num_vertices:
-        raise TalkmeshError(
-            f"{init}: a {net.cfg.vq.num_vertices}-vertex model, the data has {info.num_vertices}"
         )
     net = with_styles(net, tuple(info.train_subjects))
     if head_pairs and not net.cfg.stage2.head_pairs:
