@@ -15,6 +15,8 @@ from talkmesh.training.lip_gap import (
     code_cross_entropy,
     lip_gap_loss,
     lip_gap_pairs,
+    optional_terms,
+    shut_frames,
 )
 from talkmesh.training.trainer import StepOutput, TrainConfig
 
@@ -77,6 +79,40 @@ def test_the_term_adds_to_the_task_loss_and_needs_predicted_motion():
     assert logs["lip_gap"] == pytest.approx(6.25**2 / 2) and logs["motion"] == 1.0
     with pytest.raises(TalkmeshError, match="no lip-gap loss"):
         term.add(torch.tensor(1.0), {}, StepOutput(torch.tensor(1.0), {}), batch, "meshtalk-prior")
+
+
+def test_the_truths_shut_frames_weigh_more():
+    template = torch.from_numpy(_mouth(0.0))[None]  # the lips rest 0.5 apart
+    # the lower lip up to the upper (shut), then dropped 0.5
+    truth = torch.from_numpy(np.stack([_mouth(-0.5), _mouth(0.5)]))[None]
+    pairs = torch.tensor([[7, 12], [5, 10]])
+    assert shut_frames(truth, pairs, 8.0).tolist() == [[True, False]]
+    assert shut_frames(template[:, None], pairs, 8.0).tolist() == [[False]]  # at rest: open
+    rest = torch.zeros(1, 2, 45)  # the lips left at rest: 0.5 off in both frames (6.25 %)
+    plain = float(lip_gap_loss(rest, truth, template, pairs, 8.0))
+    assert plain == pytest.approx(6.25**2)
+    weighted = float(lip_gap_loss(rest, truth, template, pairs, 8.0, close_weight=3.0))
+    assert weighted == pytest.approx((4 * 6.25**2 + 6.25**2) / 2)
+    # only the pairs that part the most decide what is shut: here none of them closes
+    far = torch.tensor([[2, 7]])  # outer over inner upper lip: 0.5 apart in every frame
+    kept = lip_gap_loss(rest, truth, template, pairs, 8.0, close_weight=3.0, shut_pairs=far)
+    assert float(kept) == pytest.approx(plain)
+
+
+def test_a_recipe_term_finds_its_shut_pairs_in_the_data(capsys):
+    data = _dataset([[0.0, -0.5, 0.3], [0.5, 0.0, 0.2]])
+    regions = SimpleNamespace(lve=np.arange(15))
+    term = LipGap.from_data(data, regions, 0.1, close_weight=2.0)
+    assert term.close_weight == 2.0 and len(term.shut_pairs) == 5
+    assert "shut frames (16.7% of them) weigh 3" in capsys.readouterr().out
+
+
+def test_the_close_weight_needs_the_lip_gap_loss():
+    train = TrainConfig(lip_close_weight=2.0)
+    with pytest.raises(TalkmeshError, match="lip_close_weight.*lip_gap_weight"):
+        optional_terms(train, [], SimpleNamespace(regions=None))
+    with pytest.raises(ValueError, match="lip_close_weight"):
+        TrainConfig(lip_gap_weight=0.1, lip_close_weight=-1.0)
 
 
 def test_a_negative_weight_is_refused():

@@ -42,8 +42,7 @@ except ImportError:  # pragma: no cover - torch is a hard requirement of trainin
     nn = None
 
 
-# ---------------------------------------------------------------------------------------------
-# Recipe
+# -- Recipe ------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -89,6 +88,7 @@ class TrainConfig:
     num_nodes: int = 1
     grad_clip: float = 0.0
     lip_gap_weight: float = 0.0  # the lip-gap loss (talkmesh.training.lip_gap); 0: the paper's
+    lip_close_weight: float = 0.0  # the lip-gap loss counts the truth's closed frames 1 + this
     code_ce_weight: float = 0.0  # cross-entropy on the codes (training.lip_gap.CodeChoice); 0: off
     log_every: int = 10  # steps between log rows
     val_every: int = 1  # epochs between validation runs
@@ -102,8 +102,8 @@ class TrainConfig:
             raise ValueError("train.epochs must be at least 1")
         if self.devices < 1 or self.num_nodes < 1:
             raise ValueError("train.devices and train.num_nodes must be at least 1")
-        if not (self.lip_gap_weight >= 0 and self.code_ce_weight >= 0):
-            raise ValueError("train.lip_gap_weight and train.code_ce_weight must be >= 0")
+        if min(self.lip_gap_weight, self.lip_close_weight, self.code_ce_weight) < 0:
+            raise ValueError("train.lip_gap_weight, lip_close_weight, code_ce_weight must be >= 0")
         if self.lr_step_size < 0 or not 0 < self.lr_gamma <= 1:
             raise ValueError("train.lr_step_size must be >= 0 and train.lr_gamma in (0, 1]")
 
@@ -183,8 +183,7 @@ def load_recipes(path: str | Path, overrides: list[str] = ()) -> list[tuple[str,
     return out
 
 
-# ---------------------------------------------------------------------------------------------
-# Tasks: how each model/stage is built, stepped and released
+# -- Tasks: how each model/stage is built, stepped and released --------------------------------
 
 
 class StepOutput(NamedTuple):
@@ -270,8 +269,7 @@ def task_spec(name: str) -> Task:
     return getattr(importlib.import_module(module), attr)
 
 
-# ---------------------------------------------------------------------------------------------
-# Data
+# -- Data --------------------------------------------------------------------------------------
 
 
 def _require_torch() -> None:
@@ -376,8 +374,7 @@ def dataset_info(dataset) -> DatasetInfo:
     )
 
 
-# ---------------------------------------------------------------------------------------------
-# The Lightning system
+# -- The Lightning system ----------------------------------------------------------------------
 
 
 def _lightning():
@@ -621,7 +618,7 @@ def train(recipe: Recipe, *, resume: bool = False, progress: bool = True) -> Pat
 
     warnings.filterwarnings("ignore", module=r"lightning(\.|$)")  # not the user's business
     warnings.filterwarnings(
-        "ignore", message=".*(treespec|logging interval|does not have many workers).*"
+        "ignore", message=".*(treespec|logging interval|not have many workers).*"
     )
     from talkmesh.datasets.reader import open_dataset, report_skipped
 
