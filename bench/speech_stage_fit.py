@@ -68,7 +68,7 @@ def main() -> None:
         style = torch.tensor([styles.index(s.subject) if s.subject in styles else -1])
         motion = (v - tpl[:, None]).flatten(2)
         with torch.no_grad():
-            recon = net.vqvae(motion, None).motion
+            recon = net.vqvae(motion, None, face=net.decoder_face(tpl)).motion
             forced = net(audio, None, v, tpl, style).motion
             made = net.generate(audio, tpl, styles=style.clamp(min=0), num_frames=T)
         made = (made - tpl[:, None]).flatten(2)

@@ -7,7 +7,8 @@
 node_modules: `npm ci` first), onnxruntime-web's WebAssembly files (the plain build, and the
 asyncify build that its WebGPU bundle loads where WebGPU can run), the model's ONNX graphs
 (``ct.onnx``, ``ct.speech.onnx``: ``talkmesh export-onnx``), the bundled head (``head.glb``) and
-``model.json`` (frame rate, mel bins, feature width, the mean style vector, the state's shapes).
+``model.json`` (frame rate, mel bins, feature width, the mean style vector, the state's shapes,
+and for a model whose VQ decoder hears the head the average head's ``face`` term).
 """
 
 from __future__ import annotations
@@ -53,6 +54,9 @@ def build(out: Path, model: str = "codetalker-synth") -> Path:
         "style": runtime.style(None)[0].tolist(),
         "state": {n: list(s) for n, s in runtime.state.items()},
     }
+    face = runtime.face(None)  # the step graph's input "face", for such a model only
+    if face is not None:
+        info["face"] = face[0].tolist()
     (out / "model.json").write_text(json.dumps(info))
     (out / "head.glb").write_bytes(neutral_head_glb())
     return out

@@ -58,7 +58,8 @@ export async function openSessions(prefer = "webgpu") {
 }
 
 export class Model {
-  // info: model.json (fps, n_mels, speech_dim, style, state shapes)
+  // info: model.json (fps, n_mels, speech_dim, style, state shapes; face: the VQ decoder's head
+  // term, for a model whose step graph takes one)
   constructor(info, { speech, step, backend, note }) {
     Object.assign(this, { speechSession: speech, stepSession: step, backend, note, info });
     this.D = info.speech_dim;
@@ -108,6 +109,8 @@ export class Model {
   // The state before the first frame.
   start() {
     this.style = new ort.Tensor("float32", Float32Array.from(this.info.style), [1, this.info.style.length]);
+    const { face } = this.info;
+    this.face = face ? new ort.Tensor("float32", Float32Array.from(face), [1, face.length]) : null;
     const state = {};
     for (const [name, shape] of Object.entries(this.info.state)) {
       const data = new Float32Array(shape.reduce((a, b) => a * b, 1));
@@ -123,6 +126,7 @@ export class Model {
       feature: new ort.Tensor("float32", feature, [1, this.D]),
       t: new ort.Tensor("int64", BigInt64Array.from([BigInt(t)]), [1]),
       style: this.style,
+      ...(this.face ? { face: this.face } : {}),
       ...state,
     });
     const next = Object.fromEntries(Object.keys(state).map((n) => [n, out[`next_${n}`]]));

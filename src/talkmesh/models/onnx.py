@@ -13,7 +13,10 @@ the bundled CodeTalker's are in :mod:`talkmesh.models.codetalker.export`):
 
 ``model.onnx`` carries in its metadata what a runtime needs: ``talkmesh_format``, the family,
 ``fps``, ``num_vertices``, the speech graph's file name, the style names and their vectors (the
-mean is a speaker the model has not heard), the state's names and shapes. Opset 17.
+mean is a speaker the model has not heard), the state's names and shapes, and for a model with a
+head term (``stage2.head_pairs``) its lip pairs and maps (``head``). A model whose VQ decoder
+hears the head too (``stage2.head_decoder``) has one more step input, ``face`` (B, hidden), that
+the runtime computes from the template once per stream (:meth:`OnnxModel.face`). Opset 17.
 
 :class:`OnnxModel` has the surface :func:`talkmesh.pipeline.animate` uses of a model, so a
 ``.onnx`` file is a ``--model`` like a release (:func:`talkmesh.models.release.load_model`
@@ -46,7 +49,6 @@ if TYPE_CHECKING:
 
 FORMAT = "1"
 OPSET = 17
-FIXED = ("feature", "t", "style")  # the step's inputs before the state
 MAX_WINDOW = 1500  # encoder frames per window (30 s at 50 Hz): Whisper's positions
 ENCODER_HOP = 2 * HOP_LENGTH  # one speech feature per 20 ms (50 Hz)
 
@@ -81,9 +83,11 @@ def export_onnx(model: nn.Module, path: str | Path, opset: int = OPSET) -> list[
         mean = model.style_vector(None, torch.full((1, K), 1.0 / K))
         dim = model.audio_map.in_features
         example = (torch.zeros(1, dim), torch.zeros(1, dtype=torch.long), mean)
+        face = model.decoder_face(None)
+        example += () if face is None else (face,)
         example += tuple(torch.zeros(1, *shapes[n]) for n in names)
         outputs = ["motion", *(f"next_{n}" for n in names)]
-        inputs = [*FIXED, *names]
+        inputs = [*step.input_names(), *names]
         tmp_step, tmp_speech = path.with_suffix(".tmp"), speech_path(path).with_suffix(".tmp")
         # the tracer's notes on shape checks and unpacking: the shapes it fixes are checked by
         # the equality tests (tests/test_onnx.py), at other lengths than the example's
@@ -115,18 +119,8 @@ def export_onnx(model: nn.Module, path: str | Path, opset: int = OPSET) -> list[
                 "style_vectors": json.dumps(table.tolist()),
                 "state": json.dumps({n: list(shapes[n]) for n in names}),
             }
-            if model.head_map is not None:  # the style's head term, computed by the runtime
-                s2 = model.cfg.stage2
-                meta["head"] = json.dumps(
-                    {
-                        "pairs": list(s2.head_pairs),
-                        "mean": list(s2.head_mean),
-                        "std": list(s2.head_std),
-                        "scale": float(model.head_scale),
-                        "weight": model.head_map.weight.float().tolist(),
-                        "bias": model.head_map.bias.float().tolist(),
-                    }
-                )
+            if model.head_map is not None:  # the head terms, computed by the runtime
+                meta["head"] = json.dumps(_head_meta(model))
             for key, value in meta.items():
                 proto.metadata_props.add(key=key, value=value)
             onnx.save(proto, str(tmp_step))
@@ -136,6 +130,25 @@ def export_onnx(model: nn.Module, path: str | Path, opset: int = OPSET) -> list[
             for tmp in (tmp_step, tmp_speech):
                 tmp.unlink(missing_ok=True)
     return [path, speech_path(path)]
+
+
+def _head_meta(model: nn.Module) -> dict:
+    """The ``head`` metadata: the lip pairs, their standardisation and the style's map
+    (``weight``, ``bias``), with the VQ decoder's (``decoder_weight``, ``decoder_bias``) where the
+    model has one."""
+    s2 = model.cfg.stage2
+    head = {
+        "pairs": list(s2.head_pairs),
+        "mean": list(s2.head_mean),
+        "std": list(s2.head_std),
+        "scale": float(model.head_scale),
+        "weight": model.head_map.weight.float().tolist(),
+        "bias": model.head_map.bias.float().tolist(),
+    }
+    if model.decoder_head is not None:
+        head["decoder_weight"] = model.decoder_head.weight.float().tolist()
+        head["decoder_bias"] = model.decoder_head.bias.float().tolist()
+    return head
 
 
 class OnnxModel:
@@ -183,6 +196,8 @@ class OnnxModel:
         self.state = {n: tuple(s) for n, s in json.loads(meta["state"]).items()}
         self.n_mels = int(meta["n_mels"])
         self.head = json.loads(meta["head"]) if "head" in meta else None
+        # the VQ decoder's head term: an input of the step graph
+        self.has_face = self.head is not None and "decoder_weight" in self.head
 
     def default_frames(self, samples: int) -> int:
         return frames_for_audio(samples, self.motion_fps)
@@ -212,15 +227,29 @@ class OnnxModel:
         w = np.full(K, 1.0 / K) if style_weights is None else np.asarray(style_weights)
         style = w.reshape(1, K).astype(np.float32) @ self.style_vectors
         if self.head is not None:
-            h = self.head
-            style = style + np.asarray(h["bias"], np.float32)
-            if template is not None:
-                pairs = np.asarray(h["pairs"], np.int64).reshape(-1, 2)
-                t = np.asarray(template, np.float32).reshape(-1, 3)
-                dist = np.linalg.norm(t[pairs[:, 0]] - t[pairs[:, 1]], axis=-1)
-                z = (dist - np.asarray(h["mean"])) / np.asarray(h["std"]) * h["scale"]
-                style = style + (np.asarray(h["weight"], np.float32) @ z.astype(np.float32))
+            style = style + self._head_map("weight", "bias", template)
         return style.astype(np.float32)
+
+    def face(self, template: np.ndarray | None = None) -> np.ndarray | None:
+        """(1, hidden) the VQ decoder's head term of ``template`` (V, 3) (None: the training
+        templates' average head), the step graph's ``face`` input (CodeTalker.decoder_face);
+        None for a model without one."""
+        if not self.has_face:
+            return None
+        return self._head_map("decoder_weight", "decoder_bias", template).astype(np.float32)
+
+    def _head_map(self, weight: str, bias: str, template: np.ndarray | None) -> np.ndarray:
+        """(1, out) the head map ``weight``/``bias`` of the metadata on the standardised lip
+        distances of ``template`` (V, 3) (CodeTalker.head_input); its bias alone for None."""
+        h = self.head
+        out = np.asarray(h[bias], np.float32)[None]
+        if template is not None:
+            pairs = np.asarray(h["pairs"], np.int64).reshape(-1, 2)
+            t = np.asarray(template, np.float32).reshape(-1, 3)
+            dist = np.linalg.norm(t[pairs[:, 0]] - t[pairs[:, 1]], axis=-1)
+            z = (dist - np.asarray(h["mean"])) / np.asarray(h["std"]) * h["scale"]
+            out = out + (np.asarray(h[weight], np.float32) @ z.astype(np.float32))
+        return out
 
     def start(self, style: np.ndarray) -> dict[str, np.ndarray]:
         """The state of B streams before their first frame; ``style`` (B, d)."""
@@ -229,10 +258,19 @@ class OnnxModel:
         return state
 
     def step_frames(
-        self, feature: np.ndarray, t: np.ndarray, style: np.ndarray, state: dict[str, np.ndarray]
+        self,
+        feature: np.ndarray,
+        t: np.ndarray,
+        style: np.ndarray,
+        state: dict[str, np.ndarray],
+        face: np.ndarray | None = None,
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """One frame of B streams: feature (B, D), t (B,) int64 -> motion (B, V * 3), next state."""
+        """One frame of B streams: feature (B, D), t (B,) int64 -> motion (B, V * 3), next state.
+        ``face`` (B, hidden): their VQ decoder's head term (:meth:`face`), for a model with one
+        (None: the average head's)."""
         feed = {"feature": feature, "t": t, "style": style, **state}
+        if self.has_face:
+            feed["face"] = np.repeat(self.face(), len(feature), 0) if face is None else face
         out = self.step.run(None, feed)
         return out[0], dict(zip(self.state, out[1:]))
 
@@ -250,11 +288,12 @@ class OnnxModel:
         num_frames = num_frames or self.default_frames(len(wave))
         feats = self.features(wave, num_frames)
         style = self.style(style_weights, template)
+        face = self.face(template)
         state = self.start(style)
         base = np.asarray(template, np.float32).reshape(1, -1)
         out = []
         for t in range(num_frames):
-            motion, state = self.step_frames(feats[t : t + 1], np.array([t]), style, state)
+            motion, state = self.step_frames(feats[t : t + 1], np.array([t]), style, state, face)
             out.append(motion[0] + base[0])
             if len(out) == chunk or t == num_frames - 1:
                 yield np.stack(out).reshape(len(out), -1, 3)

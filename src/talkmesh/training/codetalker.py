@@ -6,13 +6,17 @@ release); ``task: codetalker-finetune`` continues stage 2 of a finished release 
 a bundled name), e.g. on augmented audio, with its model, speech statistics and VQ-VAE as they
 are; ``task: codetalker-decoder`` refits the VQ decoder of a finished release on the data (the
 encoder, codebook and stage 2 as they are, so the release's code queries stay valid), e.g. with the
-lip-gap loss so that the codes of a closure close the lips. The model section is
+lip-gap loss so that the codes of a closure close the lips; its model section may say
+``head_decoder: true`` to let the decoder hear the head's lips too (``stage2.head_decoder``, for a
+release with the style's head term). The model section of the other tasks is
 ``{preset: small|vocaset|biwi, vq: {...}, stage2: {...}}``; the vertex count and the training
 speakers come from the data.
 """
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -72,7 +76,7 @@ def _copy_vqvae(net: CodeTalker, source: CodeTalker, path: Path) -> None:
 
 def _step_stage1(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     motion = (batch.vertices - batch.templates[:, None]).flatten(2)
-    out = net.vqvae(motion, batch.motion_mask)
+    out = net.vqvae(motion, batch.motion_mask, face=net.decoder_face(batch.templates))
     q = net.vqvae.quantizer
     return StepOutput(
         out.loss,
@@ -89,14 +93,47 @@ def _step_stage1(net: CodeTalker, batch: TorchBatch) -> StepOutput:
 def _build_decoder(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
     if init is None:
         raise TalkmeshError("task codetalker-decoder needs init: a CodeTalker release to refit")
-    if model:
+    model = dict(model)
+    head_decoder = model.pop("head_decoder", False)
+    if model or not isinstance(head_decoder, bool):
         raise TalkmeshError(
-            "task codetalker-decoder takes its model from init: leave its model section out"
+            "task codetalker-decoder takes its model from init: its model section may only say "
+            "head_decoder: true (to let the VQ decoder hear the head's lips)"
         )
     net = _release_for(init, info)
+    if head_decoder and net.decoder_head is None:
+        net = with_decoder_head(net, init)
     net.requires_grad_(False)
     net.vqvae.decoder.requires_grad_(True)
+    if net.decoder_head is not None:  # the decoder's input: it learns with the decoder
+        net.decoder_head.requires_grad_(True)
     return net
+
+
+def _decoder_head_parameters(net: CodeTalker) -> Iterator[torch.nn.Parameter]:
+    """The parameters of the VQ decoder's head term (``stage2.head_decoder``), if it has one:
+    they learn with the VQ decoder."""
+    if net.decoder_head is not None:
+        yield from net.decoder_head.parameters()
+
+
+def with_decoder_head(net: CodeTalker, init: Path) -> CodeTalker:
+    """``net`` whose VQ decoder hears the head's lips (``stage2.head_decoder``, zero at first: the
+    same model), on the lip pairs of its style's head term."""
+    if not net.cfg.stage2.head_pairs:
+        raise TalkmeshError(
+            f"{init}: model.head_decoder reads the lip pairs of the style's head term, which this "
+            "release lacks: fine-tune it with model: {head_pairs: 8} first "
+            "(configs/codetalker_multilingual_head.yaml)"
+        )
+    grown = CodeTalker(replace(net.cfg, stage2=replace(net.cfg.stage2, head_decoder=True)))
+    result = grown.load_state_dict(net.state_dict(), strict=False)
+    if (
+        sorted(result.missing_keys) != ["decoder_head.bias", "decoder_head.weight"]
+        or result.unexpected_keys
+    ):
+        raise TalkmeshError(f"cannot give this model the decoder's head term: {result}")
+    return grown.train(net.training)
 
 
 def _release_for(init: Path, info: DatasetInfo) -> CodeTalker:
@@ -113,7 +150,7 @@ def _step_decoder(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     net.vqvae.encoder.eval()  # frozen: no codebook usage updates
     net.vqvae.quantizer.eval()
     motion = (batch.vertices - batch.templates[:, None]).flatten(2)
-    out = net.vqvae(motion, batch.motion_mask)
+    out = net.vqvae(motion, batch.motion_mask, face=net.decoder_face(batch.templates))
     return StepOutput(
         out.reconstruction, {"reconstruction": float(out.reconstruction.detach())}, out.motion
     )
@@ -128,8 +165,15 @@ def _build_stage2(model: dict[str, Any], info: DatasetInfo, init: Path | None) -
     _copy_vqvae(net, load_model(init), init)
     if head_pairs:
         net = with_head(net, info, head_pairs)
-    net.vqvae.requires_grad_(False)
+    _freeze_motion_stage(net)
     return net
+
+
+def _freeze_motion_stage(net: CodeTalker) -> None:
+    """Stage 2 learns with the motion stage fixed: the VQ-VAE and the decoder's head term."""
+    net.vqvae.requires_grad_(False)
+    if net.decoder_head is not None:
+        net.decoder_head.requires_grad_(False)
 
 
 def _head_pairs(value: Any) -> int:
@@ -161,7 +205,7 @@ def _build_finetune(model: dict[str, Any], info: DatasetInfo, init: Path | None)
     net = with_styles(net, tuple(info.train_subjects))
     if head_pairs and not net.cfg.stage2.head_pairs:
         net = with_head(net, info, head_pairs)
-    net.vqvae.requires_grad_(False)
+    _freeze_motion_stage(net)
     return net.train()
 
 
@@ -258,7 +302,7 @@ STAGE1 = Task(
     name="codetalker-stage1",
     build=_build_stage1,
     step=_step_stage1,
-    parameters=lambda net: net.vqvae.parameters(),
+    parameters=lambda net: itertools.chain(net.vqvae.parameters(), _decoder_head_parameters(net)),
     save=save_model,
     prepare=_prepare_stage1,
 )
@@ -266,7 +310,9 @@ STAGE2 = Task(
     name="codetalker-stage2",
     build=_build_stage2,
     step=_step_stage2,
-    parameters=lambda net: (p for n, p in net.named_parameters() if not n.startswith("vqvae.")),
+    parameters=lambda net: (
+        p for n, p in net.named_parameters() if not n.startswith(("vqvae.", "decoder_head."))
+    ),
     save=save_model,
     prepare=prepare_speech_statistics,
 )
@@ -274,7 +320,9 @@ DECODER = Task(
     name="codetalker-decoder",
     build=_build_decoder,
     step=_step_decoder,
-    parameters=lambda net: net.vqvae.decoder.parameters(),
+    parameters=lambda net: itertools.chain(
+        net.vqvae.decoder.parameters(), _decoder_head_parameters(net)
+    ),
     save=save_model,
     prepare=None,
 )

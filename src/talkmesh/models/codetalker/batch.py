@@ -1,7 +1,8 @@
 """Streaming CodeTalker frames for many streams at once: one model step computes the next frame
 of every stream that has one ready, whatever frame each stream is at.
 
-Every stream of a model owns a slot of :class:`FrameBatch`: its style vector, its next input,
+Every stream of a model owns a slot of :class:`FrameBatch`: its style vector (and, for a model
+with ``stage2.head_decoder``, its VQ decoder's head term), its next input,
 the last inputs of the VQ decoder's convolution and, per attention layer, a ring of the keys and
 values of its last ``window`` frames (frame ``t`` in row ``t % window``). A step gathers the
 slots of the streams in it, so streams at frame 3 and at frame 3000 share one matrix product per
@@ -82,6 +83,8 @@ class FrameBatch:
             "x_in": (1, s2.d_model),
             "conv": (4, vq.hidden),  # the VQ decoder's conv: the 4 inputs before the frame
         }
+        if getattr(model, "decoder_head", None) is not None:
+            self.shapes["face"] = (vq.hidden,)  # the VQ decoder's head term, per stream
         for n in range(len(model.blocks)):
             ring = (s2.heads, s2.attention_window, s2.d_model // s2.heads)
             self.shapes[f"s2_k{n}"] = self.shapes[f"s2_v{n}"] = ring
@@ -94,8 +97,9 @@ class FrameBatch:
         self.free: list[int] = []
 
     # -- slots
-    def open(self, stream: object, style: Tensor) -> int:
-        """A slot for ``stream`` (style (d,)); freed when the stream is garbage-collected."""
+    def open(self, stream: object, style: Tensor, face: Tensor | None = None) -> int:
+        """A slot for ``stream`` (style (d,), face (hidden,) its VQ decoder's head term where the
+        model has one; None: the average head's); freed when the stream is garbage-collected."""
         with self.lock, torch.inference_mode():
             if not self.free:
                 N = len(self.t)
@@ -108,6 +112,10 @@ class FrameBatch:
             self.t[slot] = 0
             self.state["style"][slot] = style
             self.state["x_in"][slot] = style  # frame 0's input: the style alone
+            if "face" in self.state:
+                self.state["face"][slot] = (
+                    self.model.decoder_face(None)[0] if face is None else face
+                )
         weakref.finalize(stream, self._close, slot)
         return slot
 
@@ -158,6 +166,8 @@ class FrameBatch:
             # the causal VQ decoder's step (vq.DecoderStep), its conv padded on the
             # left with the stream's first frame
             x = dec.inp(model.vqvae.quantizer.lookup(codes).flatten(2))  # (B, 1, hidden)
+            if "face" in S:
+                x = x + S["face"][slots][:, None]
             past = torch.where((t == 0)[:, None, None], x, S["conv"][slots])
             seq = torch.cat([past, x], dim=1)  # (B, 5, hidden)
             S["conv"][slots] = seq[:, 1:]

@@ -46,9 +46,11 @@ class _Ring:
 
 class StepGraph(nn.Module):
     """One frame of generation: the frame's speech feature and the state -> its motion and the
-    next state. Inputs: ``feature`` (B, D), ``t`` (B,) int64 the frame's index, ``style`` (B, d),
-    ``x_in`` (B, 1, d) the frame's input (the style at frame 0), ``conv`` (B, 4, hidden) the VQ
-    decoder's last conv inputs, then the rings (B, heads, W, d / heads) of :meth:`ring_names`.
+    next state. Inputs (:meth:`input_names`): ``feature`` (B, D), ``t`` (B,) int64 the frame's
+    index, ``style`` (B, d), for a model with ``stage2.head_decoder`` only ``face`` (B, hidden) the
+    VQ decoder's head term (``CodeTalker.decoder_face``), ``x_in`` (B, 1, d) the frame's input (the
+    style at frame 0), ``conv`` (B, 4, hidden) the VQ decoder's last conv inputs, then the rings
+    (B, heads, W, d / heads) of :meth:`ring_names`.
     Outputs: ``motion`` (B, V * 3) offsets from the template, then ``x_in``, ``conv`` and the
     rings for the next frame."""
 
@@ -69,6 +71,12 @@ class StepGraph(nn.Module):
         vq_bias = window_bias(vq.heads, 1, vq.causal_window, vq.causal_window, 1)
         self.register_buffer("vq_bias", vq_bias[:, 0].flip(-1))
         self.s2_layers, self.vq_layers = len(model.blocks), len(dec.blocks)
+        # models without the decoder's head term keep the inputs they always had
+        self.face = getattr(model, "decoder_head", None) is not None
+
+    def input_names(self) -> list[str]:
+        """The inputs before the state: ``feature``, ``t``, ``style`` (and ``face``)."""
+        return ["feature", "t", "style", *(["face"] if self.face else [])]
 
     def ring_names(self) -> list[str]:
         s2 = [f"s2_{kv}{n}" for n in range(self.s2_layers) for kv in "kv"]
@@ -86,8 +94,10 @@ class StepGraph(nn.Module):
         return shapes
 
     def forward(
-        self, feature: Tensor, t: Tensor, style: Tensor, x_in: Tensor, conv: Tensor, *rings: Tensor
+        self, feature: Tensor, t: Tensor, style: Tensor, *rest: Tensor
     ) -> tuple[Tensor, ...]:
+        """The inputs in the order of :meth:`input_names` then the state -> the outputs."""
+        face, (x_in, conv, *rings) = (rest[0], rest[1:]) if self.face else (None, rest)
         model, dec = self.model, self.model.vqvae.decoder
         B = feature.shape[0]
         cross = model.cross_terms(model.audio_map(feature)[:, None])
@@ -99,6 +109,8 @@ class StepGraph(nn.Module):
         quantizer = model.vqvae.quantizer
         codes = quantizer(out.view(B, 1, self.components, self.code_dim)).codes
         x = dec.inp(quantizer.lookup(codes).flatten(2))  # (B, 1, hidden)
+        if face is not None:
+            x = x + face[:, None]
         past = torch.where((t == 0)[:, None, None], x, conv)  # the conv pads with frame 0
         seq = torch.cat([past, x], dim=1)  # (B, 5, hidden)
         h = dec.mid(dec.conv.step(seq.transpose(1, 2)[:, None]))

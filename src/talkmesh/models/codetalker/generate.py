@@ -64,10 +64,16 @@ class PassSchedule:
 
 
 def generate_fast(
-    model: nn.Module, style: Tensor, cross: list[Tensor], num_frames: int, block: int | None = None
+    model: nn.Module,
+    style: Tensor,
+    cross: list[Tensor],
+    num_frames: int,
+    block: int | None = None,
+    face: Tensor | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """A CodeTalker's codes (B, T, H), and with a causal VQ decoder the motion (B, T, V*3) too;
-    ``style`` (B, d), ``cross`` per decoder layer the (B, T, d) audio terms.
+    ``style`` (B, d), ``cross`` per decoder layer the (B, T, d) audio terms, ``face`` (B, hidden)
+    the VQ decoder's head term (``CodeTalker.decoder_face``; None: none).
 
     Frames go through :meth:`FrameGenerator.block` up to ``block`` at a time (default
     ``model.generate_block``), each pass guessing its codes from the previous one; ``block=1`` is
@@ -78,7 +84,9 @@ def generate_fast(
     codes = torch.empty(B, num_frames, vq.components, dtype=torch.long, device=style.device)
     motion = style.new_empty(B, num_frames, vq.num_vertices * 3) if vq.causal else None
     done = moved = 0  # frames whose codes are final; frames whose motion is written
-    passes = fast_passes(model, style, lambda a, b: [c[:, a:b] for c in cross], num_frames, block)
+    passes = fast_passes(
+        model, style, lambda a, b: [c[:, a:b] for c in cross], num_frames, block, face
+    )
     for kept, frames in passes:
         codes[:, done : done + kept.shape[1]] = kept
         done += kept.shape[1]
@@ -94,13 +102,14 @@ def fast_passes(
     cross: Callable[[int, int], list[Tensor]],
     num_frames: int,
     block: int | None = None,
+    face: Tensor | None = None,
 ) -> Iterator[tuple[Tensor, Tensor | None]]:
     """:func:`generate_fast`'s passes one at a time, for generation in chunks: ``cross(t0, t1)``
     gives per decoder layer the (B, t1 - t0, d) audio terms of frames t0..t1-1 (asked for in
     increasing order: ``t0`` never goes back). Yields each pass's kept codes (B, A, H) and, with a
     causal VQ decoder, the motion (B, M, V*3) of the frames that became final (None otherwise);
-    the last frame's motion comes last, with no codes."""
-    gen = FrameGenerator(model, style)
+    the last frame's motion comes last, with no codes. ``face`` as in :func:`generate_fast`."""
+    gen = FrameGenerator(model, style, face)
     B, H = style.shape[0], model.cfg.vq.components
     schedule = PassSchedule(max(1, block or model.generate_block))
     done = 0  # frames whose codes are final
@@ -119,16 +128,23 @@ def fast_passes(
         yield guesses[:, :0], gen.flush()
 
 
-def generate_exact(model: nn.Module, style: Tensor, cross: list[Tensor], num_frames: int) -> Tensor:
+def generate_exact(
+    model: nn.Module,
+    style: Tensor,
+    cross: list[Tensor],
+    num_frames: int,
+    face: Tensor | None = None,
+) -> Tensor:
     """A CodeTalker's codes (B, T, H) of the naive loop, one frame at a time: the stage-2 decoder
     with its caches (the same computation: it is causal), the fed-back frame from the
     bidirectional VQ decoder over the prefix, re-run at every step as in the paper's loop (only
-    its hidden states: the output and motion maps are folded into one)."""
-    gen = FrameGenerator(model, style)
+    its hidden states: the output and motion maps are folded into one). ``face`` as in
+    :func:`generate_fast`."""
+    gen = FrameGenerator(model, style, face)
     vq = model.cfg.vq
     B, window = style.shape[0], max(1, model.cfg.stage2.attention_window // vq.temporal_unit)
     codes = torch.empty(B, num_frames, vq.components, dtype=torch.long, device=style.device)
-    feedback = PrefixFeedback(model.vqvae.decoder)
+    feedback = PrefixFeedback(model.vqvae.decoder, face)
     for t in range(num_frames):
         codes[:, t] = gen.codes_step([c[:, t : t + 1] for c in cross])
         if t + 1 < num_frames:
@@ -140,17 +156,17 @@ def generate_exact(model: nn.Module, style: Tensor, cross: list[Tensor], num_fra
 
 class PrefixFeedback:
     """The bidirectional VQ decoder's last frame over a prefix that grows by one frame a call,
-    ``decoder.hidden(z_q, offset=offset)[:, -1:]``, computing only what the fed-back frame needs:
+    ``decoder.hidden(z_q, offset=offset, face=face)[:, -1:]``, computing only what the fed-back frame needs:
     the input map of the new frame alone, the convolution of the last three frames alone (with
     the replicate padding, frame i reads frames i-2..i+2, so frames up to T-3 keep their
     pre-normalisation outputs as the prefix grows; the instance statistics and everything after
     them still span the prefix), and in the last block only the last row (the others' keys and
     values). Other calls (the window sliding, temporal units, int8 layers, causal decoders) take
-    the full pass."""
+    the full pass. ``face`` (B, hidden): the head term added to every frame's input."""
 
-    def __init__(self, decoder: nn.Module) -> None:
+    def __init__(self, decoder: nn.Module, face: Tensor | None = None) -> None:
         cfg = decoder.cfg
-        self.decoder = decoder
+        self.decoder, self.face = decoder, face
         self.usable = (
             cfg.temporal_unit == 1
             and not cfg.causal
@@ -169,8 +185,8 @@ class PrefixFeedback:
             self.x = self.fixed = None
             if self.usable and not offset and T >= 5:
                 self._start(z_q)
-            return dec.hidden(z_q, offset=offset)[:, -1:]
-        x = self.x = torch.cat([self.x, dec.inp(z_q[:, -1:].flatten(2))], dim=1)
+            return dec.hidden(z_q, offset=offset, face=self.face)[:, -1:]
+        x = self.x = torch.cat([self.x, self._inputs(z_q[:, -1:])], dim=1)
         tail = F.pad(x[:, -5:].transpose(1, 2), (0, 2), mode="replicate")
         new = F.leaky_relu(dec.conv.conv(tail), 0.2)  # (B, D, 3): frames T-3..T-1
         pre = torch.cat([self.fixed, new], dim=2)
@@ -185,9 +201,14 @@ class PrefixFeedback:
     def _start(self, z_q: Tensor) -> None:
         """Keep the input rows and fixed conv outputs of a prefix of T >= 5 frames."""
         dec, T = self.decoder, z_q.shape[1]
-        self.x = dec.inp(z_q.flatten(2))
+        self.x = self._inputs(z_q)
         pre = F.leaky_relu(dec.conv.conv(F.pad(self.x.transpose(1, 2), (2, 2), "replicate")), 0.2)
         self.fixed = pre[:, :, : T - 2]
+
+    def _inputs(self, z_q: Tensor) -> Tensor:
+        """z_q (B, T, H, C) -> (B, T, hidden): the input map's rows with the head term."""
+        x = self.decoder.inp(z_q.flatten(2))
+        return x if self.face is None else x + self.face[:, None]
 
 
 def _last_row(block: nn.Module, h: Tensor) -> Tensor:
@@ -241,15 +262,16 @@ class FrameGenerator:
     through the bidirectional decoder (see :meth:`CodeTalker.generate`) and no motion is returned.
     """
 
-    def __init__(self, model: nn.Module, style: Tensor) -> None:
-        """``model``: a CodeTalker; ``style`` (B, d) its style vector."""
+    def __init__(self, model: nn.Module, style: Tensor, face: Tensor | None = None) -> None:
+        """``model``: a CodeTalker; ``style`` (B, d) its style vector; ``face`` (B, hidden) its
+        VQ decoder's head term (``CodeTalker.decoder_face``; None: none)."""
         s2, vq = model.cfg.stage2, model.cfg.vq
-        self.model, self.style = model, style
+        self.model, self.style, self.face = model, style, face
         self.window = s2.attention_window
         self.caches = [KVCache(self.window) for _ in model.blocks]
         dec = model.vqvae.decoder
         self.causal = vq.causal
-        self.vq_step = DecoderStep(dec) if vq.causal else None
+        self.vq_step = DecoderStep(dec, face) if vq.causal else None
         # the bidirectional decoder's cached causal pass (unused with a causal decoder)
         self.vq_caches = [] if vq.causal else [KVCache(self.window) for _ in dec.blocks]
         self.conv_inputs: Tensor | None = None  # (B, 2 + K, hidden) its conv's recent inputs
@@ -290,6 +312,8 @@ class FrameGenerator:
             h = self.vq_step.hidden(z_q)
         else:
             x = dec.inp(z_q.flatten(2))
+            if self.face is not None:
+                x = x + self.face[:, None]
             past = x[:, :1].expand(-1, 2, -1) if self.conv_inputs is None else self.conv_inputs
             seq = self.conv_inputs = torch.cat([past[:, -2:], x], dim=1)
             # the kernel sees t-2..t+2; t+1 and t+2 are not decoded yet, so they repeat t
@@ -409,12 +433,19 @@ class CodeTalkerStream(FrameStream):
     share its :class:`talkmesh.models.codetalker.batch.FrameBatch`, where each holds a slot, and
     compute their frames together (:meth:`frames_together`)."""
 
-    def __init__(self, model: nn.Module, style: Tensor, features: MelFeatureStream) -> None:
-        """``model``: a CodeTalker; ``style`` (1, d) its style vector."""
+    def __init__(
+        self,
+        model: nn.Module,
+        style: Tensor,
+        features: MelFeatureStream,
+        face: Tensor | None = None,
+    ) -> None:
+        """``model``: a CodeTalker; ``style`` (1, d) its style vector; ``face`` (1, hidden) its VQ
+        decoder's head term (``CodeTalker.decoder_face``; None: none)."""
         self.model, self.features = model, features
         self.fps, self.lookahead_ms = model.motion_fps, features.lookahead_ms
         self.engine = frame_batch(model)
-        self.slot = self.engine.open(self, style[0])
+        self.slot = self.engine.open(self, style[0], None if face is None else face[0])
 
     def audio_needed(self, frame: int) -> float:
         return self.features.audio_needed(frame)

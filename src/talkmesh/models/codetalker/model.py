@@ -100,11 +100,17 @@ class Stage2Config:
     head_pairs: tuple[int, ...] = ()
     head_mean: tuple[float, ...] = ()
     head_std: tuple[float, ...] = ()
+    # the same standardised distances, mapped by ``CodeTalker.decoder_head`` (zero at first), added
+    # to the VQ decoder's input: the codes alone draw every head's lips with the training heads'
+    # near-closure, so a head whose lips rest apart never closed them
+    head_decoder: bool = False
 
     def __post_init__(self) -> None:
         pairs = len(self.head_pairs) // 2
         if len(self.head_pairs) % 2 or len(self.head_mean) != pairs or len(self.head_std) != pairs:
             raise ValueError("stage2.head_pairs needs vertex pairs and one mean and std each")
+        if self.head_decoder and not self.head_pairs:
+            raise ValueError("stage2.head_decoder reads the lips of stage2.head_pairs: give those")
         if self.d_model % self.heads:
             raise ValueError("stage2.d_model must be divisible by stage2.heads")
         if not self.styles:
@@ -212,6 +218,10 @@ class CodeTalker(MotionModel):
         if self.head_map is not None:  # a model given it starts where it was
             nn.init.zeros_(self.head_map.weight)
             nn.init.zeros_(self.head_map.bias)
+        self.decoder_head = nn.Linear(len(s2.head_mean), vq.hidden) if s2.head_decoder else None
+        if self.decoder_head is not None:  # likewise: the decoder draws what it drew before
+            nn.init.zeros_(self.decoder_head.weight)
+            nn.init.zeros_(self.decoder_head.bias)
         self.motion_map = nn.Linear(vq.num_vertices * 3, s2.d_model)  # vertice_map
         if s2.postnorm:  # the official nn.TransformerDecoder layers (models/postnorm.py)
             self.blocks = nn.ModuleList(
@@ -287,7 +297,8 @@ class CodeTalker(MotionModel):
     def reconstruct(self, vertices: Tensor, template: Tensor) -> Tensor:
         """Stage 1 alone: vertices (B, T, V, 3), template (B, V, 3) -> (B, T, V, 3)."""
         motion = (vertices - template[:, None]).flatten(2)
-        return self.vqvae(motion).motion.reshape(vertices.shape) + template[:, None]
+        out = self.vqvae(motion, face=self.decoder_face(template)).motion
+        return out.reshape(vertices.shape) + template[:, None]
 
     @property
     def codebook_size(self) -> int:
@@ -319,7 +330,8 @@ class CodeTalker(MotionModel):
             )
             weights = torch.from_numpy(np.asarray(weights, np.float32))[None]
             style = self.style_vector(None, weights, head)
-        return CodeTalkerStream(self, style, features)
+            face = self.decoder_face(head)
+        return CodeTalkerStream(self, style, features, face)
 
     def onnx_graphs(self) -> tuple[nn.Module, nn.Module]:
         """The Whisper speech encoder and one step of generation with its state as inputs and
@@ -351,16 +363,31 @@ class CodeTalker(MotionModel):
     def head_term(self, template: Tensor | None, dtype: torch.dtype = torch.float32) -> Tensor:
         """(B, d) the style's term for the head ``template`` (B, V, 3) (``stage2.head_pairs``);
         0 for a model without one. No template: the training templates' average head."""
-        s2 = self.cfg.stage2
         if self.head_map is None:
             return torch.zeros((), dtype=dtype)
         if template is None:
             return self.head_map.bias[None].to(dtype)
+        z = self.head_input(template)
+        return self.head_map(z.to(self.head_map.weight.dtype)).to(dtype)
+
+    def decoder_face(self, template: Tensor | None) -> Tensor | None:
+        """(B, hidden) the VQ decoder's input term for the head ``template`` (B, V, 3)
+        (``stage2.head_decoder``), (1, hidden) for no template (the training templates' average
+        head); None for a model without one."""
+        if self.decoder_head is None:
+            return None
+        if template is None:
+            return self.decoder_head.bias[None]
+        return self.decoder_head(self.head_input(template).to(self.decoder_head.weight.dtype))
+
+    def head_input(self, template: Tensor) -> Tensor:
+        """template (B, V, 3) -> (B, P) float32: the distances of its P lip pairs
+        (``stage2.head_pairs``), standardised by the training templates', in HEAD_SCALE units."""
+        s2 = self.cfg.stage2
         pairs = torch.tensor(s2.head_pairs, device=template.device).view(-1, 2)
         dist = (template[:, pairs[:, 0]] - template[:, pairs[:, 1]]).float().norm(dim=-1)
         mean = torch.tensor(s2.head_mean, device=template.device)
-        z = (dist - mean) / torch.tensor(s2.head_std, device=template.device) * HEAD_SCALE
-        return self.head_map(z.to(self.head_map.weight.dtype)).to(dtype)
+        return (dist - mean) / torch.tensor(s2.head_std, device=template.device) * HEAD_SCALE
 
     def audio_tokens(self, audio: Tensor, audio_lengths: Tensor | None, num_frames: int) -> Tensor:
         """(B, S) -> (B, T, d) one token per motion frame (the alignment mask: frame t sees token t;
@@ -436,6 +463,7 @@ class CodeTalker(MotionModel):
             (styles >= 0)[:, None], self.style(seen), self.style.weight.mean(0)[None]
         )
         style = style + self.head_term(templates, style.dtype)
+        face = self.decoder_face(templates)
         s2 = self.cfg.stage2
         cross = self.cross_terms(self.audio_tokens(audio, audio_lengths, T))
         bias = temporal_bias(s2.heads, T, T, s2.period, motion.device)[None]
@@ -453,7 +481,7 @@ class CodeTalker(MotionModel):
             feats = self.decode_features(x, cross, bias)
             feats = feats.view(B, T, self.cfg.vq.components, self.cfg.vq.code_dim)
             q = self.vqvae.quantizer(feats)
-            return feats, q, self.vqvae.decoder(q.z_q, motion_mask)
+            return feats, q, self.vqvae.decoder(q.z_q, motion_mask, face=face)
 
         fed_back = motion
         if self.training and s2.self_feedback > 0:
@@ -527,20 +555,28 @@ class CodeTalker(MotionModel):
             num_frames = self.default_frames(audio.shape[1])
         s2, vq = self.cfg.stage2, self.cfg.vq
         style = self.style_vector(styles, style_weights, template)
+        face = self.decoder_face(template)
         tokens = self.audio_tokens(audio, audio_lengths, num_frames)
         with step_threads():  # small tensors, one step after another (models/threads.py)
-            all_codes, motion = self._step_loop(mode, style, tokens, num_frames, block)
+            all_codes, motion = self._step_loop(mode, style, tokens, num_frames, block, face)
         if mode == "naive" or motion is None:  # a causal decoder's steps are already final
             window = None if mode == "naive" else max(1, s2.attention_window // vq.temporal_unit)
-            motion = self.vqvae.decode(all_codes, window)[:, :num_frames]
+            motion = self.vqvae.decode(all_codes, window, face=face)[:, :num_frames]
         motion = motion.reshape(B, num_frames, vq.num_vertices, 3)  # a view: no copy
         return motion.add_(template[:, None])  # in place: 10 minutes are about 1 GB
 
     def _step_loop(
-        self, mode: str, style: Tensor, tokens: Tensor, num_frames: int, block: int | None
+        self,
+        mode: str,
+        style: Tensor,
+        tokens: Tensor,
+        num_frames: int,
+        block: int | None,
+        face: Tensor | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         """The autoregressive loop of ``generate``'s ``mode`` -> codes (B, T, H) and the motion
-        of fast mode's causal decoder (None where the codes are decoded after)."""
+        of fast mode's causal decoder (None where the codes are decoded after); ``face``
+        (B, hidden): the VQ decoder's head term (:meth:`decoder_face`)."""
         B, s2 = style.shape[0], self.cfg.stage2
         H, C = self.cfg.vq.components, self.cfg.vq.code_dim
         if mode == "naive":
@@ -552,19 +588,19 @@ class CodeTalker(MotionModel):
                 # as the paper's decoder: its cross-attention runs over the prefix at every step
                 feats = self.decode_features(x, self.cross_terms(tokens[:, : t + 1]), bias)
                 q = self.vqvae.quantizer(feats.view(B, t + 1, H, C))
-                motion = self.vqvae.decoder(q.z_q)
+                motion = self.vqvae.decoder(q.z_q, face=face)
                 codes.append(q.codes[:, -1])
                 nxt = self.motion_map(motion[:, -1] / self.vqvae.decoder.scale) + style
                 inputs = torch.cat([inputs, nxt[:, None]], dim=1)
             all_codes = torch.stack(codes, dim=1)
         elif mode == "exact":
             all_codes, motion = (
-                generate_exact(self, style, self.cross_terms(tokens), num_frames),
+                generate_exact(self, style, self.cross_terms(tokens), num_frames, face),
                 None,
             )
         else:
             all_codes, motion = generate_fast(
-                self, style, self.cross_terms(tokens), num_frames, block
+                self, style, self.cross_terms(tokens), num_frames, block, face
             )
         return all_codes, motion
 
@@ -607,6 +643,7 @@ class CodeTalker(MotionModel):
         # fastest for the whole loop on a shared machine)
         with torch.inference_mode(), step_threads():
             style = self.style_vector(None, style_weights, template)
+            face = self.decoder_face(template)
             features = FrameFeatures(self.speech, audio, num_frames * k)
             terms = AheadWindow(
                 lambda a, b: self.cross_terms(self._tokens(features(a * k, b * k), b - a)),
@@ -615,7 +652,7 @@ class CodeTalker(MotionModel):
             )
             ready: list[Tensor] = []
             count = 0
-            for _, frames in fast_passes(self, style, terms, num_frames):
+            for _, frames in fast_passes(self, style, terms, num_frames, face=face):
                 if frames is not None and frames.shape[1]:
                     ready.append(frames)
                     count += frames.shape[1]

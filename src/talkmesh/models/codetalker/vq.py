@@ -276,14 +276,19 @@ class MotionDecoder(nn.Module):
         self.cfg = cfg
         self.register_buffer("scale", torch.ones(cfg.num_vertices * 3))
 
-    def hidden(self, z_q: Tensor, mask: Tensor | None = None, offset: int = 0) -> Tensor:
+    def hidden(
+        self, z_q: Tensor, mask: Tensor | None = None, offset: int = 0, face: Tensor | None = None
+    ) -> Tensor:
         """z_q (B, T', H, C) -> (B, T, hidden) before the output map (T = T' * P); ``offset`` is
-        the position of the first frame (for windows of a longer sequence)."""
+        the position of the first frame (for windows of a longer sequence); ``face`` (B, hidden)
+        is added to every frame's input (the head's term, ``CodeTalker.decoder_face``)."""
         if self.cfg.instance_norm and z_q.shape[1] * self.cfg.temporal_unit == 1 and mask is None:
             # instance statistics over one frame do not exist: it is decoded as two copies of
             # itself, as the official generation decodes frame 0
-            return self.hidden(z_q.expand(-1, 2, -1, -1), None, offset)[:, :1]
+            return self.hidden(z_q.expand(-1, 2, -1, -1), None, offset, face)[:, :1]
         x = self.inp(z_q.flatten(2))
+        if face is not None:
+            x = x + face[:, None]
         if self.cfg.temporal_unit > 1:
             x = x.repeat_interleave(self.cfg.temporal_unit, dim=1)
         x = self.mid(self.conv(hold_last_frame(x, mask)))
@@ -300,20 +305,24 @@ class MotionDecoder(nn.Module):
             x = block(x, bias)
         return self.norm(x)
 
-    def forward(self, z_q: Tensor, mask: Tensor | None = None, offset: int = 0) -> Tensor:
-        """z_q (B, T', H, C) -> motion (B, T, V*3)."""
-        return self.out(self.hidden(z_q, mask, offset=offset)) * self.scale
+    def forward(
+        self, z_q: Tensor, mask: Tensor | None = None, offset: int = 0, face: Tensor | None = None
+    ) -> Tensor:
+        """z_q (B, T', H, C) -> motion (B, T, V*3); ``face`` (B, hidden) as in :meth:`hidden`."""
+        return self.out(self.hidden(z_q, mask, offset=offset, face=face)) * self.scale
 
 
 class DecoderStep:
     """The causal VQ decoder a few frames at a time: the last 4 conv inputs and a key/value cache
     of ``causal_window`` frames per block, so each frame costs the same and equals the full pass.
-    The last frames can be taken back (:meth:`drop`) to decode other codes in their place."""
+    The last frames can be taken back (:meth:`drop`) to decode other codes in their place.
+    ``face`` (B, hidden): the streams' head term, added to every frame's input as in
+    :meth:`MotionDecoder.hidden`."""
 
-    def __init__(self, decoder: MotionDecoder) -> None:
+    def __init__(self, decoder: MotionDecoder, face: Tensor | None = None) -> None:
         if not decoder.cfg.causal:
             raise TalkmeshError("step-wise decoding needs a causal VQ decoder (vq.causal: true)")
-        self.decoder = decoder
+        self.decoder, self.face = decoder, face
         cfg = decoder.cfg
         self.window = cfg.causal_window
         self.caches = [KVCache(self.window) for _ in decoder.blocks]
@@ -326,6 +335,8 @@ class DecoderStep:
         """z_q (B, K, H, C) of the next K frames -> (B, K, hidden), their normalised hidden states."""
         dec, K = self.decoder, z_q.shape[1]
         x = dec.inp(z_q.flatten(2))
+        if self.face is not None:
+            x = x + self.face[:, None]
         past = x[:, :1].expand(-1, 4, -1) if self.inputs is None else self.inputs[:, -4:]
         self.inputs = torch.cat([past, x], dim=1)  # replicate padding on the left
         h = dec.mid(dec.conv.step(self.inputs.unfold(1, 5, 1)))
@@ -375,7 +386,11 @@ class MotionVQVAE(nn.Module):
         )
         self.decoder = MotionDecoder(cfg)
 
-    def forward(self, motion: Tensor, mask: Tensor | None = None) -> VQOutput:
+    def forward(
+        self, motion: Tensor, mask: Tensor | None = None, face: Tensor | None = None
+    ) -> VQOutput:
+        """motion (B, T, V*3); ``face`` (B, hidden) the decoder's head term
+        (:meth:`MotionDecoder.hidden`)."""
         P = self.cfg.temporal_unit
         T = motion.shape[1]
         if T % P:
@@ -384,7 +399,7 @@ class MotionVQVAE(nn.Module):
                 mask = F.pad(mask, (0, P - T % P))
         z = self.encoder(motion, mask)
         q = self.quantizer(z, mask[:, ::P] if mask is not None else None)
-        recon = self.decoder(q.z_q, mask)
+        recon = self.decoder(q.z_q, mask, face=face)
         err = (recon - motion) / self.decoder.scale  # in units of each coordinate's spread
         err = err.abs() if self.cfg.loss == "l1" else err.square()
         if mask is not None:
@@ -405,8 +420,15 @@ class MotionVQVAE(nn.Module):
     def encode(self, motion: Tensor, mask: Tensor | None = None) -> Quantized:
         return self.quantizer(self.encoder(motion, mask), mask)
 
-    def decode(self, codes: Tensor, window: int | None = None, context: int = 30) -> Tensor:
-        """codes (B, T', H) -> motion (B, T, V*3).
+    def decode(
+        self,
+        codes: Tensor,
+        window: int | None = None,
+        context: int = 30,
+        face: Tensor | None = None,
+    ) -> Tensor:
+        """codes (B, T', H) -> motion (B, T, V*3); ``face`` (B, hidden) the decoder's head term
+        (:meth:`MotionDecoder.hidden`).
 
         With ``window`` (in tokens), sequences longer than it are decoded in windows of that many
         tokens, each with ``context`` tokens of neighbours on both sides that are decoded and then
@@ -415,12 +437,12 @@ class MotionVQVAE(nn.Module):
         z_q = self.quantizer.lookup(codes)
         T = z_q.shape[1]
         if window is None or T <= window + 2 * context:
-            return self.decoder(z_q)
+            return self.decoder(z_q, face=face)
         P = self.cfg.temporal_unit
         result = z_q.new_empty(z_q.shape[0], T * P, self.cfg.num_vertices * 3)
         for start in range(0, T, window):
             a, b = max(0, start - context), min(T, start + window + context)
-            out = self.decoder(z_q[:, a:b], offset=a * P)
+            out = self.decoder(z_q[:, a:b], offset=a * P, face=face)
             result[:, start * P : min(start + window, T) * P] = out[
                 :, (start - a) * P : (min(start + window, T) - a) * P
             ]
