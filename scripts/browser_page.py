@@ -7,8 +7,9 @@
 node_modules: `npm ci` first), onnxruntime-web's WebAssembly files (the plain build, and the
 asyncify build that its WebGPU bundle loads where WebGPU can run), the model's ONNX graphs
 (``ct.onnx``, ``ct.speech.onnx``: ``talkmesh export-onnx``), the bundled head (``head.glb``) and
-``model.json`` (frame rate, mel bins, feature width, the mean style vector, the state's shapes,
-and for a model whose VQ decoder hears the head the average head's ``face`` term).
+``model.json`` (frame rate, mel bins, feature width, the mean style vector with the head term
+of head.glb's face, the state's shapes, and for a model whose VQ decoder hears the head that
+face's ``face`` term).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ WASM = tuple(f"ort-wasm-simd-threaded{v}.{e}" for v in ("", ".asyncify") for e i
 def build(out: Path, model: str = "codetalker-synth") -> Path:
     import torch
 
+    from talkmesh.face.assets import load_head
     from talkmesh.models.onnx import OnnxModel, export_onnx
     from talkmesh.models.release import load_model
     from talkmesh.serve.files import neutral_head_glb
@@ -47,14 +49,15 @@ def build(out: Path, model: str = "codetalker-synth") -> Path:
     with torch.no_grad():
         export_onnx(load_model(model), out / "ct.onnx")
     runtime = OnnxModel(out / "ct.onnx")
+    template = load_head().template  # the head the page animates (head.glb)
     info = {
         "fps": runtime.motion_fps,
         "n_mels": runtime.n_mels,
         "speech_dim": int(runtime.step.get_inputs()[0].shape[1]),
-        "style": runtime.style(None)[0].tolist(),
+        "style": runtime.style(None, template)[0].tolist(),  # with that head's term
         "state": {n: list(s) for n, s in runtime.state.items()},
     }
-    face = runtime.face(None)  # the step graph's input "face", for such a model only
+    face = runtime.face(template)  # the step graph's input "face", for such a model only
     if face is not None:
         info["face"] = face[0].tolist()
     (out / "model.json").write_text(json.dumps(info))
