@@ -6,6 +6,7 @@ with the release and grown by the decoder refit (task codetalker-decoder)."""
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -241,8 +242,11 @@ def test_the_release_keeps_the_decoder_term_and_old_releases_load_without_it(tmp
     near, _ = heads()
     sound = audio()
     assert torch.equal(offsets(loaded, sound, near), offsets(model, sound, near))
-    bundled = load_model("codetalker-synth")  # written before the option
-    assert not bundled.cfg.stage2.head_decoder and bundled.decoder_head is None
+    old = Path(__file__).parent / "fixtures" / "old_releases" / "codetalker.safetensors"
+    before = load_model(old)  # written before the option
+    assert not before.cfg.stage2.head_decoder and before.decoder_head is None
+    bundled = load_model("codetalker-synth")  # the bundled model hears the face
+    assert bundled.cfg.stage2.head_decoder and bundled.decoder_head is not None
 
 
 def test_onnx_runtime_feeds_the_face_as_pytorch_does(tmp_path):
@@ -372,15 +376,17 @@ def test_stage1_and_the_decoder_step_decode_each_batch_row_with_its_head():
 
 def test_the_decoder_head_recipe_grows_the_bundled_models_decoder():
     pytest.importorskip("yaml")
-    from pathlib import Path
-
     from talkmesh.training.trainer import _init_path, load_recipe, task_spec
 
     root = Path(__file__).parents[1] / "configs"
     recipe = load_recipe(root / "codetalker_decoder_head.yaml")
     refit = load_recipe(root / "codetalker_decoder_refit.yaml")
+    close = load_recipe(root / "codetalker_multilingual_close.yaml")
     assert recipe.task == "codetalker-decoder" and recipe.model == {"head_decoder": True}
-    assert (recipe.data, recipe.train.lr) == (refit.data, refit.train.lr)
-    assert _init_path(recipe.init).name == "codetalker-synth.safetensors"
+    assert recipe.data == refit.data and recipe.train.lip_close_weight > 0
+    # it refits the decoder of the speech stage trained with the closures counted more
+    assert recipe.init == f"{close.train.out_dir}/model.safetensors"
+    assert close.task == "codetalker-finetune" and close.train.lip_close_weight > 0
+    assert _init_path(close.init).name == "codetalker-synth.safetensors"
     assert task_spec(recipe.task).name == "codetalker-decoder"
     assert load_model("codetalker-synth").cfg.stage2.head_pairs  # what head_decoder reads
