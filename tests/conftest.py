@@ -111,3 +111,15 @@ def tiny_corpus(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("tiny_corpus") / "c"
     make_corpus(root, subjects=3, sentences=2, seed=3, workers=1, progress=False)
     return root
+
+
+def decoder_recipe(path: Path, init, root, out, extra: str = "") -> None:
+    """Write a 3-step ``codetalker-decoder`` recipe to ``path`` (``extra``: more YAML lines, e.g.
+    a model section) refitting ``init`` on the corpus at ``root`` into ``out``."""
+    path.write_text(
+        "task: codetalker-decoder\n"
+        f"init: {init}\n{extra}"
+        f"data: {{kind: synth, root: {root}, batch_size: 2, max_seconds: 1.0, val_split: ''}}\n"
+        "train: {lr: 1.0e-2, epochs: 1, max_steps: 3, accelerator: cpu, lip_gap_weight: 0.5, "
+        f"out_dir: {out}}}\n"
+    )

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import STREAM_SPEECH, TINY_V, build_tiny_codetalker
+from conftest import STREAM_SPEECH, TINY_V, build_tiny_codetalker, decoder_recipe
 from fixtures import TINY_WHISPER
 
 from talkmesh.errors import TalkmeshError
@@ -292,16 +292,6 @@ def test_onnx_runtime_feeds_the_face_as_pytorch_does(tmp_path):
     assert np.abs(together[-1][0] - together[-1][1]).max() > 1e-3
 
 
-def _recipe(path, init, root, out, model: str) -> None:
-    path.write_text(
-        "task: codetalker-decoder\n"
-        f"init: {init}\nmodel: {model}\n"
-        f"data: {{kind: synth, root: {root}, batch_size: 2, max_seconds: 1.0, val_split: ''}}\n"
-        "train: {lr: 1.0e-2, epochs: 1, max_steps: 3, accelerator: cpu, lip_gap_weight: 0.5, "
-        f"out_dir: {out}}}\n"
-    )
-
-
 def test_the_decoder_refit_grows_and_trains_the_decoder_term_alone(tiny_corpus, tmp_path):
     pytest.importorskip("lightning")
     from talkmesh.datasets.reader import open_dataset
@@ -318,8 +308,12 @@ def test_the_decoder_refit_grows_and_trains_the_decoder_term_alone(tiny_corpus, 
     save_model(base, tmp_path / "base.safetensors")
     save_model(plain, tmp_path / "plain.safetensors")
     recipe = tmp_path / "r.yaml"
-    _recipe(
-        recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "run", "{head_decoder: true}"
+    decoder_recipe(
+        recipe,
+        tmp_path / "base.safetensors",
+        tiny_corpus,
+        tmp_path / "run",
+        "model: {head_decoder: true}\n",
     )
     release = train(load_recipe(recipe), progress=False)
     refit = load_model(release)
@@ -330,18 +324,22 @@ def test_the_decoder_refit_grows_and_trains_the_decoder_term_alone(tiny_corpus, 
     assert changed and all(k.startswith("vqvae.decoder.") for k in changed), changed
     assert refit.decoder_head.weight.abs().max() > 0  # it learned, from zero
     # a release without the style's head term has no lip pairs to read: refused in one line
-    _recipe(
+    decoder_recipe(
         recipe,
         tmp_path / "plain.safetensors",
         tiny_corpus,
         tmp_path / "bad",
-        "{head_decoder: true}",
+        "model: {head_decoder: true}\n",
     )
     with pytest.raises(TalkmeshError, match="head_pairs") as refused:
         train(load_recipe(recipe), progress=False)
     assert "\n" not in str(refused.value)
-    _recipe(
-        recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "odd", "{head_decoder: 1}"
+    decoder_recipe(
+        recipe,
+        tmp_path / "base.safetensors",
+        tiny_corpus,
+        tmp_path / "odd",
+        "model: {head_decoder: 1}\n",
     )
     with pytest.raises(TalkmeshError, match="may only say head_decoder: true"):
         train(load_recipe(recipe), progress=False)

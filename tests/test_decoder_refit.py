@@ -6,19 +6,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import decoder_recipe
 
 from talkmesh.errors import TalkmeshError
 from talkmesh.models.codetalker.model import CodeTalker
-
-
-def _recipe(path, init, root, out, extra: str = "") -> None:
-    path.write_text(
-        "task: codetalker-decoder\n"
-        f"init: {init}\n{extra}"
-        f"data: {{kind: synth, root: {root}, batch_size: 2, max_seconds: 1.0, val_split: ''}}\n"
-        "train: {lr: 1.0e-2, epochs: 1, max_steps: 3, accelerator: cpu, lip_gap_weight: 0.5, "
-        f"out_dir: {out}}}\n"
-    )
 
 
 def test_refit_changes_the_vq_decoder_alone(tiny_corpus, tmp_path):
@@ -31,7 +22,9 @@ def test_refit_changes_the_vq_decoder_alone(tiny_corpus, tmp_path):
     torch.manual_seed(0)
     base = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, data.spec.train_subjects))
     save_model(base, tmp_path / "base.safetensors")
-    _recipe(tmp_path / "r.yaml", tmp_path / "base.safetensors", tiny_corpus, tmp_path / "run")
+    decoder_recipe(
+        tmp_path / "r.yaml", tmp_path / "base.safetensors", tiny_corpus, tmp_path / "run"
+    )
     refit = load_model(train(load_recipe(tmp_path / "r.yaml"), progress=False))
     before, after = base.state_dict(), refit.state_dict()
     assert before.keys() == after.keys()
@@ -54,13 +47,15 @@ def test_refit_refuses_a_model_section_no_init_and_other_vertex_counts(tiny_corp
     other = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices + 3, ("a",)))
     save_model(other, tmp_path / "other.safetensors")
     recipe = tmp_path / "r.yaml"
-    _recipe(recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "a", "model: {x: 1}\n")
+    decoder_recipe(
+        recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "a", "model: {x: 1}\n"
+    )
     with pytest.raises(TalkmeshError, match="takes its model from init"):
         train(load_recipe(recipe), progress=False)
-    _recipe(recipe, tmp_path / "other.safetensors", tiny_corpus, tmp_path / "b")
+    decoder_recipe(recipe, tmp_path / "other.safetensors", tiny_corpus, tmp_path / "b")
     with pytest.raises(TalkmeshError, match="vertex model, the data has"):
         train(load_recipe(recipe), progress=False)
-    _recipe(recipe, "null", tiny_corpus, tmp_path / "c")
+    decoder_recipe(recipe, "null", tiny_corpus, tmp_path / "c")
     with pytest.raises(TalkmeshError, match="needs init"):
         train(load_recipe(recipe), progress=False)
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -126,13 +126,17 @@ def with_decoder_head(net: CodeTalker, init: Path) -> CodeTalker:
             "release lacks: fine-tune it with model: {head_pairs: 8} first "
             "(configs/codetalker_multilingual_head.yaml)"
         )
-    grown = CodeTalker(replace(net.cfg, stage2=replace(net.cfg.stage2, head_decoder=True)))
+    s2 = replace(net.cfg.stage2, head_decoder=True)
+    return _grown(net, s2, "decoder_head", "the decoder's head term")
+
+
+def _grown(net: CodeTalker, s2, new: str, what: str) -> CodeTalker:
+    """A model of ``net``'s config with stage 2 ``s2``, holding ``net``'s weights and the module
+    ``new`` as it starts (the one module ``s2`` adds); ``what`` names it in the error."""
+    grown = CodeTalker(replace(net.cfg, stage2=s2))
     result = grown.load_state_dict(net.state_dict(), strict=False)
-    if (
-        sorted(result.missing_keys) != ["decoder_head.bias", "decoder_head.weight"]
-        or result.unexpected_keys
-    ):
-        raise TalkmeshError(f"cannot give this model the decoder's head term: {result}")
+    if sorted(result.missing_keys) != [f"{new}.bias", f"{new}.weight"] or result.unexpected_keys:
+        raise TalkmeshError(f"cannot give this model {what}: {result}")
     return grown.train(net.training)
 
 
@@ -228,13 +232,7 @@ def with_head(net: CodeTalker, info: DatasetInfo, count: int) -> CodeTalker:
         head_mean=tuple(float(v) for v in dist.mean(0)),
         head_std=tuple(float(max(v, floor)) for v in dist.std(0)),
     )
-    grown = CodeTalker(replace(net.cfg, stage2=s2))
-    result = grown.load_state_dict(net.state_dict(), strict=False)
-    if (
-        sorted(result.missing_keys) != ["head_map.bias", "head_map.weight"]
-        or result.unexpected_keys
-    ):
-        raise TalkmeshError(f"cannot give this model the head term: {result}")
+    grown = _grown(net, s2, "head_map", "the head term")
     print(f"head term on {len(pairs)} lip pairs (stage2.head_pairs)")
     return grown
 

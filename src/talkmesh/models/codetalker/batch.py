@@ -165,9 +165,8 @@ class FrameBatch:
             codes = model.vqvae.quantizer(out.view(B, 1, vq.components, vq.code_dim)).codes
             # the causal VQ decoder's step (vq.DecoderStep), its conv padded on the
             # left with the stream's first frame
-            x = dec.inp(model.vqvae.quantizer.lookup(codes).flatten(2))  # (B, 1, hidden)
-            if "face" in S:
-                x = x + S["face"][slots][:, None]
+            face = S["face"][slots] if "face" in S else None
+            x = dec.inputs(model.vqvae.quantizer.lookup(codes), face)  # (B, 1, hidden)
             past = torch.where((t == 0)[:, None, None], x, S["conv"][slots])
             seq = torch.cat([past, x], dim=1)  # (B, 5, hidden)
             S["conv"][slots] = seq[:, 1:]

@@ -108,9 +108,7 @@ class StepGraph(nn.Module):
         out = model.decode_features(x, cross, ring_bias(self.s2_bias, t), s2)
         quantizer = model.vqvae.quantizer
         codes = quantizer(out.view(B, 1, self.components, self.code_dim)).codes
-        x = dec.inp(quantizer.lookup(codes).flatten(2))  # (B, 1, hidden)
-        if face is not None:
-            x = x + face[:, None]
+        x = dec.inputs(quantizer.lookup(codes), face)  # (B, 1, hidden)
         past = torch.where((t == 0)[:, None, None], x, conv)  # the conv pads with frame 0
         seq = torch.cat([past, x], dim=1)  # (B, 5, hidden)
         h = dec.mid(dec.conv.step(seq.transpose(1, 2)[:, None]))

@@ -186,7 +186,7 @@ class PrefixFeedback:
             if self.usable and not offset and T >= 5:
                 self._start(z_q)
             return dec.hidden(z_q, offset=offset, face=self.face)[:, -1:]
-        x = self.x = torch.cat([self.x, self._inputs(z_q[:, -1:])], dim=1)
+        x = self.x = torch.cat([self.x, dec.inputs(z_q[:, -1:], self.face)], dim=1)
         tail = F.pad(x[:, -5:].transpose(1, 2), (0, 2), mode="replicate")
         new = F.leaky_relu(dec.conv.conv(tail), 0.2)  # (B, D, 3): frames T-3..T-1
         pre = torch.cat([self.fixed, new], dim=2)
@@ -201,14 +201,9 @@ class PrefixFeedback:
     def _start(self, z_q: Tensor) -> None:
         """Keep the input rows and fixed conv outputs of a prefix of T >= 5 frames."""
         dec, T = self.decoder, z_q.shape[1]
-        self.x = self._inputs(z_q)
+        self.x = dec.inputs(z_q, self.face)
         pre = F.leaky_relu(dec.conv.conv(F.pad(self.x.transpose(1, 2), (2, 2), "replicate")), 0.2)
         self.fixed = pre[:, :, : T - 2]
-
-    def _inputs(self, z_q: Tensor) -> Tensor:
-        """z_q (B, T, H, C) -> (B, T, hidden): the input map's rows with the head term."""
-        x = self.decoder.inp(z_q.flatten(2))
-        return x if self.face is None else x + self.face[:, None]
 
 
 def _last_row(block: nn.Module, h: Tensor) -> Tensor:
@@ -311,9 +306,7 @@ class FrameGenerator:
         if self.vq_step is not None:
             h = self.vq_step.hidden(z_q)
         else:
-            x = dec.inp(z_q.flatten(2))
-            if self.face is not None:
-                x = x + self.face[:, None]
+            x = dec.inputs(z_q, self.face)
             past = x[:, :1].expand(-1, 2, -1) if self.conv_inputs is None else self.conv_inputs
             seq = self.conv_inputs = torch.cat([past[:, -2:], x], dim=1)
             # the kernel sees t-2..t+2; t+1 and t+2 are not decoded yet, so they repeat t

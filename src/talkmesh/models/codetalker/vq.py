@@ -286,9 +286,7 @@ class MotionDecoder(nn.Module):
             # instance statistics over one frame do not exist: it is decoded as two copies of
             # itself, as the official generation decodes frame 0
             return self.hidden(z_q.expand(-1, 2, -1, -1), None, offset, face)[:, :1]
-        x = self.inp(z_q.flatten(2))
-        if face is not None:
-            x = x + face[:, None]
+        x = self.inputs(z_q, face)
         if self.cfg.temporal_unit > 1:
             x = x.repeat_interleave(self.cfg.temporal_unit, dim=1)
         x = self.mid(self.conv(hold_last_frame(x, mask)))
@@ -304,6 +302,12 @@ class MotionDecoder(nn.Module):
         for block in self.blocks:
             x = block(x, bias)
         return self.norm(x)
+
+    def inputs(self, z_q: Tensor, face: Tensor | None = None) -> Tensor:
+        """z_q (B, T', H, C) -> (B, T', hidden): the input map, plus ``face`` (B, hidden), the
+        head's term (``CodeTalker.decoder_face``), where given. Every decoding path starts here."""
+        x = self.inp(z_q.flatten(2))
+        return x if face is None else x + face[:, None]
 
     def forward(
         self, z_q: Tensor, mask: Tensor | None = None, offset: int = 0, face: Tensor | None = None
@@ -334,9 +338,7 @@ class DecoderStep:
     def hidden(self, z_q: Tensor) -> Tensor:
         """z_q (B, K, H, C) of the next K frames -> (B, K, hidden), their normalised hidden states."""
         dec, K = self.decoder, z_q.shape[1]
-        x = dec.inp(z_q.flatten(2))
-        if self.face is not None:
-            x = x + self.face[:, None]
+        x = dec.inputs(z_q, self.face)
         past = x[:, :1].expand(-1, 4, -1) if self.inputs is None else self.inputs[:, -4:]
         self.inputs = torch.cat([past, x], dim=1)  # replicate padding on the left
         h = dec.mid(dec.conv.step(self.inputs.unfold(1, 5, 1)))
