@@ -198,6 +198,7 @@ class OnnxModel:
         self.head = json.loads(meta["head"]) if "head" in meta else None
         # the VQ decoder's head term: an input of the step graph
         self.has_face = self.head is not None and "decoder_weight" in self.head
+        self.average_face = self.face()  # (1, hidden) or None: fed where a caller gives none
 
     def default_frames(self, samples: int) -> int:
         return frames_for_audio(samples, self.motion_fps)
@@ -270,7 +271,7 @@ class OnnxModel:
         (None: the average head's)."""
         feed = {"feature": feature, "t": t, "style": style, **state}
         if self.has_face:
-            feed["face"] = np.repeat(self.face(), len(feature), 0) if face is None else face
+            feed["face"] = np.repeat(self.average_face, len(feature), 0) if face is None else face
         out = self.step.run(None, feed)
         return out[0], dict(zip(self.state, out[1:]))
 
