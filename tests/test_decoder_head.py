@@ -388,3 +388,38 @@ def test_the_decoder_head_recipe_grows_the_bundled_models_decoder():
     assert _init_path(close.init).name == "codetalker-synth.safetensors"
     assert task_spec(recipe.task).name == "codetalker-decoder"
     assert load_model("codetalker-synth").cfg.stage2.head_pairs  # what head_decoder reads
+
+
+def test_a_speech_stage_on_a_motion_stage_refitted_with_the_face_keeps_its_face_term(
+    tiny_corpus, tmp_path
+):
+    """task codetalker-stage2 on such a release (the streaming model on the bundled one): the
+    VQ decoder's face term and its lip pairs come with the VQ-VAE, frozen with it."""
+    from talkmesh.config import to_dict
+    from talkmesh.datasets.reader import open_dataset
+    from talkmesh.training.codetalker import STAGE2, _build_stage2
+    from talkmesh.training.trainer import dataset_info
+
+    data = open_dataset("synth", tiny_corpus, "train")
+    subjects = tuple(data.spec.train_subjects)
+    torch.manual_seed(0)
+    plain = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, subjects))
+    save_model(plain, tmp_path / "plain.safetensors")
+    source = with_face(plain, STYLE, DECODER)
+    save_model(source, tmp_path / "face.safetensors")
+    source = load_model(tmp_path / "face.safetensors")
+    recipe = to_dict(plain.cfg)  # the release's network, as a recipe's model section says it
+    net = _build_stage2(recipe, dataset_info(data), tmp_path / "face.safetensors")
+    s2 = net.cfg.stage2
+    assert s2.head_decoder and s2.head_pairs == source.cfg.stage2.head_pairs
+    assert (s2.head_mean, s2.head_std) == (source.cfg.stage2.head_mean, source.cfg.stage2.head_std)
+    assert torch.equal(net.decoder_head.weight, source.decoder_head.weight)
+    assert not net.head_map.weight.any()  # the style's term starts at zero: learned in stage 2
+    trained = {id(p) for p in STAGE2.parameters(net)}
+    assert not trained & {id(p) for p in net.decoder_head.parameters()}
+    assert {id(p) for p in net.head_map.parameters()} <= trained
+    template = torch.from_numpy(data[0].template)[None]
+    assert torch.equal(net.decoder_face(template), source.decoder_face(template))
+    # a release without the face term gives none
+    bare = _build_stage2(recipe, dataset_info(data), tmp_path / "plain.safetensors")
+    assert bare.decoder_head is None and not bare.cfg.stage2.head_pairs

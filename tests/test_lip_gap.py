@@ -16,6 +16,7 @@ from talkmesh.training.lip_gap import (
     lip_gap_loss,
     lip_gap_pairs,
     optional_terms,
+    rest_frames,
     shut_frames,
 )
 from talkmesh.training.trainer import StepOutput, TrainConfig
@@ -107,12 +108,42 @@ def test_a_recipe_term_finds_its_shut_pairs_in_the_data(capsys):
     assert "shut frames (16.7% of them) weigh 3" in capsys.readouterr().out
 
 
-def test_the_close_weight_needs_the_lip_gap_loss():
-    train = TrainConfig(lip_close_weight=2.0)
-    with pytest.raises(TalkmeshError, match="lip_close_weight.*lip_gap_weight"):
+def test_the_truths_frames_at_rest_weigh_more():
+    template = torch.from_numpy(_mouth(0.0))[None]  # the lips rest 0.5 apart
+    # at rest, a hair off rest (0.005: 0.06 % of the 8-wide region), shut, dropped 0.5
+    openings = (0.0, 0.005, -0.5, 0.5)
+    truth = torch.from_numpy(np.stack([_mouth(o) for o in openings]))[None]
+    pairs = torch.tensor([[7, 12], [5, 10]])
+    assert rest_frames(truth, template, pairs, 8.0).tolist() == [[True, True, False, False]]
+    # 0.01 off rest (0.125 %) is speech, not rest
+    assert not rest_frames(torch.from_numpy(_mouth(0.01))[None, None], template, pairs, 8.0)
+    moved = torch.from_numpy(np.stack([_mouth(0.25)] * 4) - _mouth(0.0)).reshape(1, 4, 45)
+    # the prediction's lower lip 0.25 down in every frame: off by 0.25 at rest, 0.75 shut, ...
+    errors = [(abs(0.25 - o) * 100 / 8) ** 2 for o in openings]
+    plain = float(lip_gap_loss(moved, truth, template, pairs, 8.0))
+    assert plain == pytest.approx(np.mean(errors), rel=1e-4)
+    weighted = float(lip_gap_loss(moved, truth, template, pairs, 8.0, rest_weight=2.0))
+    assert weighted == pytest.approx(np.mean([3, 3, 1, 1] * np.array(errors)), rel=1e-4)
+    both = float(
+        lip_gap_loss(moved, truth, template, pairs, 8.0, close_weight=1.0, rest_weight=2.0)
+    )
+    assert both == pytest.approx(np.mean([3, 3, 2, 1] * np.array(errors)), rel=1e-4)
+
+
+def test_a_recipe_term_finds_the_truths_frames_at_rest(capsys):
+    data = _dataset([[0.0, -0.5, 0.3], [0.5, 0.0, 0.2]])
+    term = LipGap.from_data(data, SimpleNamespace(lve=np.arange(15)), 0.1, rest_weight=4.0)
+    assert term.rest_weight == 4.0 and term.shut_pairs is None
+    assert "frames at rest (33.3%) weigh 5" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", ["lip_close_weight", "lip_rest_weight"])
+def test_the_close_and_rest_weights_need_the_lip_gap_loss(name):
+    train = TrainConfig(**{name: 2.0})
+    with pytest.raises(TalkmeshError, match=f"{name}.*lip_gap_weight"):
         optional_terms(train, [], SimpleNamespace(regions=None))
-    with pytest.raises(ValueError, match="lip_close_weight"):
-        TrainConfig(lip_gap_weight=0.1, lip_close_weight=-1.0)
+    with pytest.raises(ValueError, match=name):
+        TrainConfig(lip_gap_weight=0.1, **{name: -1.0})
 
 
 def test_a_negative_weight_is_refused():

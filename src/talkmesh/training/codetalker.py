@@ -166,11 +166,36 @@ def _build_stage2(model: dict[str, Any], info: DatasetInfo, init: Path | None) -
     model = dict(model)
     head_pairs = _head_pairs(model.pop("head_pairs", 0))
     net = CodeTalker(build_config(model, info))
-    _copy_vqvae(net, load_model(init), init)
-    if head_pairs:
+    source = load_model(init)
+    _copy_vqvae(net, source, init)
+    if source.decoder_head is not None:  # a motion stage refitted with the face needs it
+        net = with_source_face(net, source, init)
+    elif head_pairs:
         net = with_head(net, info, head_pairs)
     _freeze_motion_stage(net)
     return net
+
+
+def with_source_face(net: CodeTalker, source: CodeTalker, init: Path) -> CodeTalker:
+    """``net`` with the face term of ``source``'s VQ decoder (``stage2.head_decoder``) on its lip
+    pairs: a decoder refitted with the face decodes its codes right only with that term. The
+    style's head term on the same pairs starts at zero (the model as it was)."""
+    s = source.cfg.stage2
+    s2 = replace(
+        net.cfg.stage2,
+        head_pairs=s.head_pairs,
+        head_mean=s.head_mean,
+        head_std=s.head_std,
+        head_decoder=True,
+    )
+    grown = CodeTalker(replace(net.cfg, stage2=s2))
+    result = grown.load_state_dict(net.state_dict(), strict=False)
+    new = {f"{m}.{t}" for m in ("head_map", "decoder_head") for t in ("weight", "bias")}
+    if not set(result.missing_keys) <= new or result.unexpected_keys:
+        raise TalkmeshError(f"{init}: cannot give this model its decoder's face term: {result}")
+    grown.decoder_head.load_state_dict(source.decoder_head.state_dict())
+    print(f"the VQ decoder's face term from {init} ({len(s.head_mean)} lip pairs)")
+    return grown.train(net.training)
 
 
 def _freeze_motion_stage(net: CodeTalker) -> None:

@@ -16,7 +16,9 @@ training motion: the lips facing each other across the mouth, which part and mee
 ``SHUT_PAIRS`` pairs that part the most within ``CLOSED`` of the lip region's width: 0.5 mm of the
 synthetic corpus's 85 mm region) 1 + that weight times: a closure of /p b m/ is a tenth of a
 second among seconds of speech, and a model that leaves it 2 mm open loses little on the average
-gap.
+gap. ``train.lip_rest_weight`` does the same for the frames where the truth's mouth is at rest
+(every pair's distance within ``AT_REST`` of the lip width of its distance on the template: the
+pauses), so that a pause is not left a millimetre open where the face's lips nearly touch.
 
 :class:`CodeChoice` (``train.code_ce_weight``) is the other term kept here: a model that queries a
 codebook (CodeTalker's stage 2) regresses its features onto the true code's (Eq. 6), so where the
@@ -40,6 +42,8 @@ SHARE = 0.5  # keep pairs whose gap varies at least this share of the most varyi
 SAMPLES = 32  # training clips read to find the pairs
 CLOSED = 0.006  # the truth's lips are shut where a pair of the middle of the mouth is within
 SHUT_PAIRS = 8  # this share of the lip region's width; that many of the pairs parting the most
+AT_REST = 0.001  # the truth's mouth is at rest where every pair is this share of the width from
+# its distance on the template (0.085 mm of the synthetic corpus's 85 mm lip region)
 
 
 def lip_width(template: np.ndarray, lips: np.ndarray) -> float:
@@ -94,11 +98,13 @@ def lip_gap_loss(
     mask: torch.Tensor | None = None,
     close_weight: float = 0.0,
     shut_pairs: torch.Tensor | None = None,
+    rest_weight: float = 0.0,
 ) -> torch.Tensor:
     """Mean squared error of the gap vectors between ``pairs`` (P, 2), in per cent of the lip
     region's ``width``: motion (B, T, V*3) predicted offsets, vertices (B, T, V, 3) the truth,
     templates (B, V, 3), mask (B, T) the real frames; the frames where the truth's lips are
-    shut (:func:`shut_frames` of ``shut_pairs``) count ``1 + close_weight`` times."""
+    shut (:func:`shut_frames` of ``shut_pairs``) count ``1 + close_weight`` times, those where
+    its mouth is at rest (:func:`rest_frames`) ``1 + rest_weight`` times."""
     B, T = vertices.shape[:2]
     pred = motion.reshape(B, T, -1, 3)
     true = vertices - templates[:, None]
@@ -108,6 +114,9 @@ def lip_gap_loss(
     if close_weight:
         shut = shut_frames(vertices, pairs if shut_pairs is None else shut_pairs, width)
         per_frame = per_frame * (1.0 + close_weight * shut.to(per_frame.dtype))
+    if rest_weight:
+        still = rest_frames(vertices, templates, pairs, width)
+        per_frame = per_frame * (1.0 + rest_weight * still.to(per_frame.dtype))
     if mask is None:
         return per_frame.mean()
     w = mask.to(per_frame.dtype)
@@ -121,6 +130,17 @@ def shut_frames(vertices: torch.Tensor, pairs: torch.Tensor, width: float) -> to
     return gap.min(dim=-1).values <= CLOSED * width
 
 
+def rest_frames(
+    vertices: torch.Tensor, templates: torch.Tensor, pairs: torch.Tensor, width: float
+) -> torch.Tensor:
+    """(B, T) bool: the frames of vertices (B, T, V, 3) where every one of ``pairs`` (P, 2) is
+    within ``AT_REST`` of the lip ``width`` of its distance on templates (B, V, 3): at rest."""
+    a, b = pairs[:, 0], pairs[:, 1]
+    gap = (vertices[:, :, a] - vertices[:, :, b]).norm(dim=-1)
+    rest = (templates[:, a] - templates[:, b]).norm(dim=-1)[:, None]
+    return (gap - rest).abs().max(dim=-1).values <= AT_REST * width
+
+
 class LipGap:
     """The term as a recipe adds it to a task's loss: ``weight`` x :func:`lip_gap_loss`."""
 
@@ -131,34 +151,44 @@ class LipGap:
         weight: float,
         close_weight: float = 0.0,
         shut_pairs: np.ndarray | None = None,
+        rest_weight: float = 0.0,
     ) -> None:
         self.pairs = torch.from_numpy(np.asarray(pairs, np.int64))
         self.width = width
         self.weight = weight
         self.close_weight = close_weight
+        self.rest_weight = rest_weight
         self.shut_pairs = None if shut_pairs is None else torch.from_numpy(shut_pairs)
 
     @classmethod
-    def from_data(cls, dataset, regions, weight: float, close_weight: float = 0.0) -> LipGap:
+    def from_data(
+        cls, dataset, regions, weight: float, close_weight: float = 0.0, rest_weight: float = 0.0
+    ) -> LipGap:
         lips = getattr(regions, "lve", None)
         candidates, spread = _pair_spreads(dataset, lips)
         order = np.argsort(-spread, kind="stable")
         pairs = candidates[order[spread[order] >= SHARE * spread.max()]]  # lip_gap_pairs
         width = lip_width(dataset[0].template, np.asarray(lips, np.int64))
         note, shut_pairs = "", None
+        step = max(1, len(dataset) // SAMPLES)
+        clips = [dataset[i] for i in range(0, len(dataset), step)]
+
+        def share(frames) -> float:  # of the sampled clips' frames
+            return float(torch.cat([frames(c) for c in clips], dim=1).float().mean())
+
         if close_weight:  # the pairs parting the most, among those that part at all
             shut_pairs = pairs[:SHUT_PAIRS]
-            step = max(1, len(dataset) // SAMPLES)
-            shut = [
-                shut_frames(
-                    torch.from_numpy(dataset[i].vertices)[None], torch.from_numpy(shut_pairs), width
+            shut = share(lambda c: shut_frames(_t(c.vertices), torch.from_numpy(shut_pairs), width))
+            note = f"; the truth's shut frames ({shut:.1%} of them) weigh {1 + close_weight:g}"
+        if rest_weight:
+            still = share(
+                lambda c: rest_frames(
+                    _t(c.vertices), _t(c.template), torch.from_numpy(pairs), width
                 )
-                for i in range(0, len(dataset), step)
-            ]
-            share = float(torch.cat(shut, dim=1).float().mean())
-            note = f"; the truth's shut frames ({share:.1%} of them) weigh {1 + close_weight:g}"
+            )
+            note += f"; its frames at rest ({still:.1%}) weigh {1 + rest_weight:g}"
         print(f"lip-gap loss on {len(pairs)} vertex pairs (weight {weight}){note}")
-        return cls(pairs, width, weight, close_weight, shut_pairs)
+        return cls(pairs, width, weight, close_weight, shut_pairs, rest_weight)
 
     def add(self, loss, logs, out, batch, task: str) -> tuple[torch.Tensor, dict[str, float]]:
         """(``loss`` plus this term, ``logs`` with it) for a task's StepOutput ``out``."""
@@ -173,8 +203,14 @@ class LipGap:
             batch.motion_mask,
             self.close_weight,
             None if self.shut_pairs is None else self.shut_pairs.to(out.motion.device),
+            self.rest_weight,
         )
         return loss + self.weight * gap, {**logs, "lip_gap": float(gap.detach())}
+
+
+def _t(array: np.ndarray) -> torch.Tensor:
+    """One clip's array as a batch of one."""
+    return torch.from_numpy(np.asarray(array))[None]
 
 
 class CodeChoice:
@@ -215,13 +251,18 @@ def code_cross_entropy(
 def optional_terms(train, dataset, info) -> list:
     """The terms a recipe's ``train`` section turns on, for its training ``dataset``."""
     terms: list = []
-    if train.lip_close_weight > 0 and not train.lip_gap_weight > 0:
-        raise TalkmeshError(
-            "train.lip_close_weight weighs the lip-gap loss: set lip_gap_weight too"
-        )
+    for name in ("lip_close_weight", "lip_rest_weight"):
+        if getattr(train, name) > 0 and not train.lip_gap_weight > 0:
+            raise TalkmeshError(f"train.{name} weighs the lip-gap loss: set lip_gap_weight too")
     if train.lip_gap_weight > 0:
         terms.append(
-            LipGap.from_data(dataset, info.regions, train.lip_gap_weight, train.lip_close_weight)
+            LipGap.from_data(
+                dataset,
+                info.regions,
+                train.lip_gap_weight,
+                train.lip_close_weight,
+                train.lip_rest_weight,
+            )
         )
     if train.code_ce_weight > 0:
         terms.append(CodeChoice(train.code_ce_weight))

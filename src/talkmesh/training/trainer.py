@@ -89,6 +89,7 @@ class TrainConfig:
     grad_clip: float = 0.0
     lip_gap_weight: float = 0.0  # the lip-gap loss (talkmesh.training.lip_gap); 0: the paper's
     lip_close_weight: float = 0.0  # the lip-gap loss counts the truth's closed frames 1 + this
+    lip_rest_weight: float = 0.0  # ... and the frames where its mouth is at rest 1 + this
     code_ce_weight: float = 0.0  # cross-entropy on the codes (training.lip_gap.CodeChoice); 0: off
     log_every: int = 10  # steps between log rows
     val_every: int = 1  # epochs between validation runs
@@ -102,8 +103,9 @@ class TrainConfig:
             raise ValueError("train.epochs must be at least 1")
         if self.devices < 1 or self.num_nodes < 1:
             raise ValueError("train.devices and train.num_nodes must be at least 1")
-        if min(self.lip_gap_weight, self.lip_close_weight, self.code_ce_weight) < 0:
-            raise ValueError("train.lip_gap_weight, lip_close_weight, code_ce_weight must be >= 0")
+        terms = ("lip_gap_weight", "lip_close_weight", "lip_rest_weight", "code_ce_weight")
+        if min(getattr(self, t) for t in terms) < 0:
+            raise ValueError(f"train.{', '.join(terms)} must be >= 0")
         if self.lr_step_size < 0 or not 0 < self.lr_gamma <= 1:
             raise ValueError("train.lr_step_size must be >= 0 and train.lr_gamma in (0, 1]")
 
