@@ -75,6 +75,7 @@ VARIANTS = {
     "-faithful": FAITHFUL,
     "-previous": PREVIOUS,
     "-closure": replace(Corrections(), lip_closure=True),
+    "-noclosure": replace(Corrections(), lip_closure=False),
     # the pause gate alone, its pauses from voice activity (any language) or the recogniser
     "-gate": Corrections(mix=0.0, gain=0.0, bilabial=False),
     "-recgate": Corrections(mix=0.0, gain=0.0, bilabial=False, pauses="recognizer"),
@@ -257,7 +258,7 @@ def main() -> None:
         help="procedural, procedural-stream(-full) (module docstring), bundled models as animate "
         "runs them (default corrections), MODEL-raw (none), MODEL-nogate / -nomix / -nogain / "
         "-nobilabial (one off), MODEL-faithful (the settings within 3% of the synthetic LVE), "
-        "MODEL-closure (with the lip closure at every near-closure), MODEL-gate / -recgate (the "
+        "MODEL-closure (with the lip closure at every near-closure), MODEL-noclosure (without), MODEL-gate / -recgate (the "
         "pause gate alone, from voice activity / from the recogniser)",
     )
     ap.add_argument("--conditions", default=",".join(CONDITIONS))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -66,6 +68,43 @@ def test_near_closures_are_minima_close_to_rest_only():
     found = near_closures(opening, rest=1.0, within=3.0)
     # 2.0 is a minimum 1 above rest, 1.0 one at rest; 6.0 is a minimum but far open
     np.testing.assert_array_equal(np.flatnonzero(found), [1, 6, 7])
+
+
+def test_only_dips_are_closures_not_lips_resting_in_a_pause():
+    opening = np.array([5.0, 2.0, 4.0, 8.0, 6.0, 7.0, 1.0, 1.0, 3.0])
+    # the flat minimum's first frame does not open the next frame; its second does
+    found = near_closures(opening, rest=1.0, within=3.0, reopen=0.5)
+    np.testing.assert_array_equal(np.flatnonzero(found), [1, 7])
+    closing_into_a_pause = np.array([6.0, 4.0, 1.2, 1.0, 1.0, 1.1, 1.0, 1.0])
+    assert not near_closures(closing_into_a_pause, 1.0, 3.0, reopen=0.5).any()
+    out_of_a_pause = np.array([1.0, 1.0, 1.1, 1.0, 1.0, 3.0, 6.0])
+    assert not near_closures(out_of_a_pause, 1.0, 3.0, reopen=0.5).any()
+    # a closure reopens within the frames before it: four frames back is too far
+    assert near_closures(np.array([6.0, 1.0, 1.0, 1.0, 4.0]), 1.0, 3.0, 0.5).tolist() == [
+        False, False, False, True, False
+    ]  # fmt: skip
+    assert not near_closures(np.array([6.0, 1.0, 1.0, 1.0, 1.0, 4.0]), 1.0, 3.0, 0.5).any()
+
+
+def test_the_lip_closure_shuts_dips_not_lips_that_rest_near_closed():
+    """Lips that come to rest near closed three frames before the pause gate closes the mouth
+    (voice activity and the speech disagree at a pause's edge), or that the model leaves at rest
+    through a /m/, stay as they are: shut wherever noise makes a minimum, they moved in a pause.
+    A dip shuts."""
+    head = load_head()
+    w = np.zeros((T, len(ARKIT_NAMES)), np.float32)
+    w[:, ARKIT_NAMES.index("jawOpen")] = 0.5
+    w[16:21, ARKIT_NAMES.index("jawOpen")] = 0.03  # an M left at rest (frames 16-20)
+    w[27:, ARKIT_NAMES.index("jawOpen")] = 0.03  # at rest from frame 27; the pause from 30
+    w[27:, ARKIT_NAMES.index("jawOpen")] += 0.002 * (np.arange(T - 27) % 2)  # noise
+    w[52:55, ARKIT_NAMES.index("jawOpen")] = [0.2, 0.04, 0.2]  # a dip in the last word
+    verts = head.vertices_from_weights(w)
+    for gate in (False, True):
+        closure = replace(RECOGNISED, pause_gate=gate, lip_closure=True, met_lips=True)
+        bare = _mm(head, verts)
+        fixed = _mm(head, correct_mouth(verts.copy(), head, PHONES, _wave(), FPS, closure))
+        np.testing.assert_allclose(fixed[15:30], bare[15:30], rtol=1e-6)  # still: as it was
+        assert fixed[53] <= 0.5 < bare[53]  # the dip: shut
 
 
 def test_no_corrections_leave_the_model_alone_and_mix_is_checked():

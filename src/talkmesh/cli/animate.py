@@ -176,8 +176,8 @@ def _add_corrections(a) -> None:
         "--lip-closure",
         action=argparse.BooleanOptionalAction,
         default=LIP_CLOSURE,
-        help="learned models: shut the lips (met) where the model nearly closes them in speech "
-        "(default on; any language)",
+        help="learned models: shut the lips (met) where the model's lips dip nearly closed in "
+        "speech (default on; any language)",
     )
     a.add_argument(
         "--procedural-mix",

@@ -16,12 +16,12 @@ phones, supply what the model lacks. Five corrections, each with its own switch
   closed mouth scaled by ``1 + gain x`` the loudness, :func:`loudness_curve`), except at its lip
   closures and where the pause gate closes the mouth: models trained to the mean open less on
   vowels than the procedural animator;
-* ``bilabial``: the model's near-closures (lip opening minima within
-  ``NEAR_CLOSED_MM`` of rest) shut fully within ``BILABIAL_PAD`` frames of a /p b m/ the
-  recogniser finds;
-* ``lip_closure`` (off by default): every near-closure shuts fully. Real /p b m/ then close, but
-  so does every near-closure the synthetic truth leaves a little open: it costs synthetic LVE
-  (docs/results/real-speech.md).
+* ``bilabial``: the model's near-closures (dips of the lip opening to within
+  ``NEAR_CLOSED_MM`` of rest: :func:`near_closures` with ``REOPEN_MM``) shut fully within
+  ``BILABIAL_PAD`` frames of a /p b m/ the recogniser finds;
+* ``lip_closure`` (on by default since the multilingual model): every near-closure in speech
+  shuts fully. Real /p b m/ then close, but so does every near-closure the synthetic truth
+  leaves a little open: it costs synthetic LVE (docs/results/real-speech.md).
 
 Closing the lips on the /p b m/ the recogniser finds, wherever the model's lips are, does not
 work: it misses most of them in noise, and places some that are not there; ``bilabial`` only
@@ -57,6 +57,12 @@ from talkmesh.face.pauses import (
 # 2026-11-26) stay one set of flags away.
 MIX = 0.0  # share of the procedural animator's mouth in the default output
 NEAR_CLOSED_MM = 3.0  # an opening minimum this close to rest is the model closing the lips
+# a near-closure must be a dip: the lips this much further apart the next frame and in one of
+# DIP_FRAMES frames before it. Lips that rest near closed (in a pause the gate misses, or a /m/
+# the model left at rest) are still: shut at whichever of their frames noise made a minimum,
+# they moved in the pause (real clips' smallest speech/pause lip speed 1.5; 5-10 with dips only)
+REOPEN_MM = 0.5
+DIP_FRAMES = 3
 BILABIAL_PAD = 2  # frames either side of a recognised /p b m/ where a near-closure shuts
 BILABIALS = frozenset({"P", "B", "M"})
 BILABIAL = False  # the recognised /p b m/ (English): off, the near-closures in speech shut instead
@@ -158,12 +164,26 @@ def find_pauses(wave: np.ndarray, corrections: Corrections, phones: list[Phone])
     return phones
 
 
-def near_closures(opening: np.ndarray, rest: float, within: float = NEAR_CLOSED_MM) -> np.ndarray:
+def near_closures(
+    opening: np.ndarray,
+    rest: float,
+    within: float = NEAR_CLOSED_MM,
+    reopen: float = 0.0,
+    before: int = DIP_FRAMES,
+) -> np.ndarray:
     """(T,) bool: frames where the (T,) lip ``opening`` has a local minimum less than ``within``
-    above ``rest`` (same unit)."""
+    above ``rest`` (same unit). With ``reopen`` > 0 only dips count: the opening is at least that
+    much larger the next frame and in one of the ``before`` frames before (lips that rest in a
+    pause, or close into one, are still; a frame at either end of ``opening`` is no dip)."""
     prev = np.concatenate([[np.inf], opening[:-1]])
     nxt = np.concatenate([opening[1:], [np.inf]])
-    return (opening <= prev) & (opening <= nxt) & (opening < rest + within)
+    found = (opening <= prev) & (opening <= nxt) & (opening < rest + within)
+    if reopen > 0:
+        lower = np.concatenate([np.full(before, -np.inf), opening])
+        earlier = np.lib.stride_tricks.sliding_window_view(lower[:-1], before).max(axis=1)
+        after = np.concatenate([opening[1:], [-np.inf]])
+        found &= (earlier >= opening + reopen) & (after >= opening + reopen)
+    return found
 
 
 def bilabial_frames(
@@ -294,7 +314,13 @@ def correct_mouth_chunks(
     assert known == num_frames, (known, num_frames)
     for chunk in pending:
         _correct(
-            chunk, done, opening, rest, (loud, weights, shut_at, gate, closed), head, corrections
+            chunk,
+            done,
+            opening,
+            rest,
+            (loud, weights, shut_at, gate, closed),
+            head,
+            corrections,
         )
         done += len(chunk)
         yield chunk
@@ -317,10 +343,10 @@ def _correct(
     mouth = head.regions.mouth_weight
     end = start + len(chunk)
     if opening is not None:  # closures from a frame before to a frame after the chunk
-        lo, hi = max(0, start - 2), min(len(opening), end + 2)
-        # the window's first and last frames lack a neighbour (unless at the clip's ends): they
+        lo, hi = max(0, start - 2 - DIP_FRAMES), min(len(opening), end + 2)
+        # the window's first and last frames lack neighbours (unless at the clip's ends): they
         # only decide kept frames outside the chunk
-        near = near_closures(opening[lo:hi], rest, NEAR_CLOSED_MM / 1000.0)
+        near = near_closures(opening[lo:hi], rest, NEAR_CLOSED_MM / 1000.0, REOPEN_MM / 1000.0)
         closures = near[start - lo : end - lo]
         kept = near.copy()  # the model's closures (and a frame either side) keep their lips
         kept[1:] |= near[:-1]
