@@ -701,3 +701,5 @@ def test_the_multilingual_streaming_recipe_trains_on_the_bundled_models_motion_s
     assert to_dict(cfg.vq) == to_dict(bundled.cfg.vq)  # _build_stage2 takes its VQ-VAE
     assert cfg.vq.causal and cfg.stage2.speech.kind == "mel"
     assert recipe.train.lip_gap_weight > 0 and recipe.data.augment.enabled
+    assert recipe.train.lip_close_weight > 0 and recipe.warm_start == recipe.init
+    assert bundled.decoder_head is not None  # its face term comes with it (with_source_face)
