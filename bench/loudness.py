@@ -7,7 +7,9 @@
 ``real``: on the real recordings (clean), the ``loudness_r`` of
 :mod:`talkmesh.evaluation.real_speech` with the opening shifted by -3..+3 frames (+1: the
 opening one frame after the sound; the shift with the highest r says how late a method's lips
-are), and with the /p b m/ windows left out (a voiced /m b/ is loud with the lips shut).
+are: a frame's opening is the face at its start and its loudness the mean over it, so lips in
+time with the sound peak between 0 and +1), and with the /p b m/ windows left out (a voiced
+/m b/ is loud with the lips shut).
 
 ``synthetic``: the same shifts on a multilingual corpus's test split (clean), for the truth
 and each method against the loudness, and for each method against the truth's opening.
