@@ -1,6 +1,6 @@
 """Why the lip opening follows the loudness less than the procedural animator's: two checks.
 
-    python bench/loudness.py real [--methods procedural,codetalker-synth-raw]
+    python bench/loudness.py real [--methods procedural,codetalker-synth-raw] [--conditions clean]
     python bench/loudness.py synthetic --data corpus/multilingual [--per-voice 1]
     python bench/loudness.py teacher --data corpus/multilingual [--per-voice 3]
 
@@ -9,7 +9,8 @@
 opening one frame after the sound; the shift with the highest r says how late a method's lips
 are: a frame's opening is the face at its start and its loudness the mean over it, so lips in
 time with the sound peak between 0 and +1), and with the /p b m/ windows left out (a voiced
-/m b/ is loud with the lips shut).
+/m b/ is loud with the lips shut). Then every metric of each method with its whole animation
+moved 0, 1 and 2 frames earlier: what its timing costs on each target.
 
 ``synthetic``: the same shifts on a multilingual corpus's test split (clean), for the truth
 and each method against the loudness, and for each method against the truth's opening.
@@ -34,9 +35,13 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_speech import _animate_condition  # noqa: E402
 
+from talkmesh.audio.loading import load_audio  # noqa: E402
 from talkmesh.evaluation.real_speech import (  # noqa: E402
     BILABIALS,
+    METRICS,
+    NOISE_FILE,
     builtin_clips,
+    degrade,
     log_loudness,
     phone_window,
     read_clip,
@@ -47,6 +52,7 @@ from talkmesh.face.assets import lip_opening, load_head  # noqa: E402
 
 FPS = 30.0
 SHIFTS = range(-3, 4)
+EARLIER = (0, 1, 2)
 
 
 def correlation(opening: np.ndarray, loudness: np.ndarray, shift: int = 0) -> float:
@@ -57,31 +63,56 @@ def correlation(opening: np.ndarray, loudness: np.ndarray, shift: int = 0) -> fl
     return float(np.corrcoef(a, b)[0, 1])
 
 
-def real(methods: list[str]) -> None:
+def real(methods: list[str], conditions: list[str]) -> None:
     head = load_head()
+    rest = float(lip_opening(head.template[None], head.regions)[0]) * 1000
+    noise = load_audio(NOISE_FILE) if NOISE_FILE.is_file() else None
     shifted = {m: {s: [] for s in SHIFTS} for m in methods}
     outside = {m: [] for m in methods}
+    earlier = {(c, m, k): [] for c in conditions for m in methods for k in EARLIER}
     for clip in tqdm(builtin_clips(), desc="real clips", unit="clip"):
         wave = read_clip(clip)
         phones = truth_phones(clip, wave)
-        for method, vertices in _animate_condition(wave, methods, head).items():
-            opening = lip_opening(vertices, head.regions) * 1000
-            n = len(opening)
-            loud = log_loudness(wave, FPS, n)
-            for s in SHIFTS:
-                shifted[method][s].append(correlation(opening, loud, s))
-            keep = np.ones(n, bool)
-            for p in phones:
-                if p.label in BILABIALS:
-                    lo, hi = phone_window(p, FPS, n)
-                    keep[lo:hi] = False
-            outside[method].append(correlation(opening[keep], loud[keep]))
-    print("loudness_r (median over clips) with the opening shifted by k frames (+: later)\n")
-    print("| method | " + " | ".join(f"{s:+d}" for s in SHIFTS) + " | outside /p b m/ |")
-    print("|---|" + "---|" * (len(SHIFTS) + 1))
-    for m in methods:
-        cells = [f"{statistics.median(shifted[m][s]):.3f}" for s in SHIFTS]
-        print(f"| {m} | " + " | ".join(cells) + f" | {statistics.median(outside[m]):.3f} |")
+        for condition in conditions:
+            heard = degrade(wave, condition, noise, seed=0)
+            for method, vertices in _animate_condition(heard, methods, head).items():
+                opening = lip_opening(vertices, head.regions) * 1000
+                for k in EARLIER:  # the animation k frames earlier, its last frame held
+                    moved = np.concatenate([opening[k:], np.repeat(opening[-1:], k)])
+                    scores = score_opening(moved, rest, phones, heard, FPS)
+                    earlier[condition, method, k].append(scores)
+                if condition != "clean":
+                    continue
+                n = len(opening)
+                loud = log_loudness(wave, FPS, n)
+                for s in SHIFTS:
+                    shifted[method][s].append(correlation(opening, loud, s))
+                keep = np.ones(n, bool)
+                for p in phones:
+                    if p.label in BILABIALS:
+                        lo, hi = phone_window(p, FPS, n)
+                        keep[lo:hi] = False
+                outside[method].append(correlation(opening[keep], loud[keep]))
+    if "clean" in conditions:
+        print(
+            "loudness_r (median over clean clips) with the opening shifted by k frames (+: later)\n"
+        )
+        print("| method | " + " | ".join(f"{s:+d}" for s in SHIFTS) + " | outside /p b m/ |")
+        print("|---|" + "---|" * (len(SHIFTS) + 1))
+        for m in methods:
+            cells = [f"{statistics.median(shifted[m][s]):.3f}" for s in SHIFTS]
+            print(f"| {m} | " + " | ".join(cells) + f" | {statistics.median(outside[m]):.3f} |")
+    print("\nMedians over clips with the animation moved k frames earlier\n")
+    print("| condition | method | earlier | " + " | ".join(METRICS) + " |")
+    print("|---|---|---|" + "---|" * len(METRICS))
+    for (condition, method, k), rows in earlier.items():
+        cells = [_median([r[key] for r in rows]) for key in METRICS]
+        print(f"| {condition} | {method} | {k} | " + " | ".join(cells) + " |")
+
+
+def _median(values: list[float]) -> str:
+    kept = [v for v in values if not np.isnan(v)]
+    return f"{statistics.median(kept):.3f}" if kept else "-"
 
 
 def _table(title: str, rows: dict[str, dict[int, list[float]]]) -> None:
@@ -97,8 +128,6 @@ def _table(title: str, rows: dict[str, dict[int, list[float]]]) -> None:
 
 
 def synthetic(data: Path, per_voice: int, methods: list[str]) -> None:
-    from talkmesh.audio.loading import load_audio
-
     manifest = json.loads((data / "manifest.json").read_text())
     todo = [(s, i) for s, ids in manifest["splits"]["test"].items() for i in ids[:per_voice]]
     loudness = {m: {s: [] for s in SHIFTS} for m in ["truth", *methods]}
@@ -125,7 +154,6 @@ def synthetic(data: Path, per_voice: int, methods: list[str]) -> None:
 
 def teacher(data: Path, per_voice: int) -> None:
     import talkmesh.face.teacher as rules
-    from talkmesh.audio.loading import load_audio
     from talkmesh.datasets.multilingual import read_phones
     from talkmesh.face.lipsync import SpeakingStyle, phones_to_weights
 
@@ -172,12 +200,13 @@ def main() -> None:
     )
     ap.add_argument("check", choices=("real", "synthetic", "teacher"))
     ap.add_argument("--methods", default="procedural,codetalker-synth-raw")
+    ap.add_argument("--conditions", default="clean", help="real: e.g. clean,snr10,reverb")
     ap.add_argument("--data", type=Path, help="a multilingual corpus (synthetic, teacher)")
     ap.add_argument("--per-voice", type=int, default=3, help="test clips a voice (corpus checks)")
     args = ap.parse_args()
     methods = [m for m in args.methods.split(",") if m]
     if args.check == "real":
-        real(methods)
+        real(methods, [c for c in args.conditions.split(",") if c])
     elif args.data is None or not (args.data / "manifest.json").is_file():
         raise SystemExit(
             f"{args.check} needs --data: a multilingual corpus (talkmesh synth --multilingual)"
