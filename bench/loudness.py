@@ -38,6 +38,7 @@ from real_speech import _animate_condition  # noqa: E402
 from talkmesh.audio.loading import load_audio  # noqa: E402
 from talkmesh.evaluation.real_speech import (  # noqa: E402
     BILABIALS,
+    CONDITIONS,
     METRICS,
     NOISE_FILE,
     builtin_clips,
@@ -205,8 +206,22 @@ def main() -> None:
     ap.add_argument("--per-voice", type=int, default=3, help="test clips a voice (corpus checks)")
     args = ap.parse_args()
     methods = [m for m in args.methods.split(",") if m]
+    if args.per_voice < 1 or (args.check != "teacher" and not methods):
+        raise SystemExit("--per-voice must be at least 1 and --methods name at least one method")
     if args.check == "real":
-        real(methods, [c for c in args.conditions.split(",") if c])
+        conditions = [c for c in args.conditions.split(",") if c]
+        unknown = sorted(set(conditions) - set(CONDITIONS))
+        if unknown or not conditions:
+            raise SystemExit(f"--conditions: use some of {', '.join(CONDITIONS)} (got {unknown})")
+        if any(c.startswith("snr") for c in conditions) and not NOISE_FILE.is_file():
+            raise SystemExit(
+                f"{NOISE_FILE} is missing: install alsa-utils for the noise conditions"
+            )
+        if not builtin_clips():
+            raise SystemExit(
+                "no real recordings found: install pocketsphinx-testdata and alsa-utils"
+            )
+        real(methods, conditions)
     elif args.data is None or not (args.data / "manifest.json").is_file():
         raise SystemExit(
             f"{args.check} needs --data: a multilingual corpus (talkmesh synth --multilingual)"

@@ -287,6 +287,7 @@ def correct_mouth_chunks(
         if pauses is None:
             pauses = find_pauses(wave, corrections, phones)
         gate = speech_gate(tail_pauses(pauses, wave), num_frames, fps)
+    curves = (loud, weights, shut_at, gate, closed)
     opening: np.ndarray | None = None
     pending: list[np.ndarray] = []
     done = known = 0  # frames yielded, frames whose opening is known
@@ -300,28 +301,12 @@ def correct_mouth_chunks(
         pending.append(chunk)
         while pending and done + len(pending[0]) + look <= known:
             chunk = pending.pop(0)
-            _correct(
-                chunk,
-                done,
-                opening,
-                rest,
-                (loud, weights, shut_at, gate, closed),
-                head,
-                corrections,
-            )
+            _correct(chunk, done, opening, rest, curves, head, corrections)
             done += len(chunk)
             yield chunk
     assert known == num_frames, (known, num_frames)
     for chunk in pending:
-        _correct(
-            chunk,
-            done,
-            opening,
-            rest,
-            (loud, weights, shut_at, gate, closed),
-            head,
-            corrections,
-        )
+        _correct(chunk, done, opening, rest, curves, head, corrections)
         done += len(chunk)
         yield chunk
 

@@ -127,15 +127,16 @@ def with_decoder_head(net: CodeTalker, init: Path) -> CodeTalker:
             "(configs/codetalker_multilingual_head.yaml)"
         )
     s2 = replace(net.cfg.stage2, head_decoder=True)
-    return _grown(net, s2, "decoder_head", "the decoder's head term")
+    return _grown(net, s2, "the decoder's head term", "decoder_head")
 
 
-def _grown(net: CodeTalker, s2, new: str, what: str) -> CodeTalker:
-    """A model of ``net``'s config with stage 2 ``s2``, holding ``net``'s weights and the module
-    ``new`` as it starts (the one module ``s2`` adds); ``what`` names it in the error."""
+def _grown(net: CodeTalker, s2, what: str, *new: str) -> CodeTalker:
+    """A model of ``net``'s config with stage 2 ``s2``, holding ``net``'s weights and the modules
+    ``new`` as they start (the modules ``s2`` adds); ``what`` names them in the error."""
     grown = CodeTalker(replace(net.cfg, stage2=s2))
     result = grown.load_state_dict(net.state_dict(), strict=False)
-    if sorted(result.missing_keys) != [f"{new}.bias", f"{new}.weight"] or result.unexpected_keys:
+    added = sorted(f"{m}.{t}" for m in new for t in ("bias", "weight"))
+    if sorted(result.missing_keys) != added or result.unexpected_keys:
         raise TalkmeshError(f"cannot give this model {what}: {result}")
     return grown.train(net.training)
 
@@ -188,14 +189,10 @@ def with_source_face(net: CodeTalker, source: CodeTalker, init: Path) -> CodeTal
         head_std=s.head_std,
         head_decoder=True,
     )
-    grown = CodeTalker(replace(net.cfg, stage2=s2))
-    result = grown.load_state_dict(net.state_dict(), strict=False)
-    new = {f"{m}.{t}" for m in ("head_map", "decoder_head") for t in ("weight", "bias")}
-    if not set(result.missing_keys) <= new or result.unexpected_keys:
-        raise TalkmeshError(f"{init}: cannot give this model its decoder's face term: {result}")
+    grown = _grown(net, s2, f"the face term of {init}'s decoder", "head_map", "decoder_head")
     grown.decoder_head.load_state_dict(source.decoder_head.state_dict())
     print(f"the VQ decoder's face term from {init} ({len(s.head_mean)} lip pairs)")
-    return grown.train(net.training)
+    return grown
 
 
 def _freeze_motion_stage(net: CodeTalker) -> None:
@@ -257,7 +254,7 @@ def with_head(net: CodeTalker, info: DatasetInfo, count: int) -> CodeTalker:
         head_mean=tuple(float(v) for v in dist.mean(0)),
         head_std=tuple(float(max(v, floor)) for v in dist.std(0)),
     )
-    grown = _grown(net, s2, "head_map", "the head term")
+    grown = _grown(net, s2, "the head term", "head_map")
     print(f"head term on {len(pairs)} lip pairs (stage2.head_pairs)")
     return grown
 

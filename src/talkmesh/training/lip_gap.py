@@ -54,20 +54,20 @@ def lip_width(template: np.ndarray, lips: np.ndarray) -> float:
 def lip_gap_pairs(dataset, lips: np.ndarray | None) -> np.ndarray:
     """(P, 2) vertex pairs across the lip gap, from the template and the training motion of
     ``dataset`` (a ``MotionDataset``); ``lips``: the lip region's vertex ids."""
-    pairs, spread = _pair_spreads(dataset, lips)
+    pairs, spread, _ = _pair_spreads(dataset, lips)
     return pairs[spread >= SHARE * spread.max()]
 
 
 def widest_lip_pairs(dataset, lips: np.ndarray | None, count: int) -> np.ndarray:
     """(count, 2) the pairs across the lip gap whose distance changes the most over the
     training motion of ``dataset``: the lips at the middle of the mouth, which part the most."""
-    pairs, spread = _pair_spreads(dataset, lips)
+    pairs, spread, _ = _pair_spreads(dataset, lips)
     return pairs[np.argsort(-spread, kind="stable")[:count]]
 
 
-def _pair_spreads(dataset, lips: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """(P, 2) candidate pairs of lip vertices close together on the template and (P,) the
-    standard deviation of their distance over the training motion."""
+def _pair_spreads(dataset, lips: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, list]:
+    """(P, 2) candidate pairs of lip vertices close together on the template, (P,) the
+    standard deviation of their distance over the training motion, and the clips it read."""
     if lips is None or len(lips) < 2:
         raise TalkmeshError(
             "train.lip_gap_weight needs the data's lip region (regions/lve.txt): add it or set "
@@ -86,7 +86,7 @@ def _pair_spreads(dataset, lips: np.ndarray | None) -> tuple[np.ndarray, np.ndar
     gaps = np.concatenate(
         [np.linalg.norm(c.vertices[:, i] - c.vertices[:, j], axis=-1) for c in clips]
     )
-    return np.stack([i, j], axis=1), gaps.std(axis=0)
+    return np.stack([i, j], axis=1), gaps.std(axis=0), clips
 
 
 def lip_gap_loss(
@@ -165,15 +165,13 @@ class LipGap:
         cls, dataset, regions, weight: float, close_weight: float = 0.0, rest_weight: float = 0.0
     ) -> LipGap:
         lips = getattr(regions, "lve", None)
-        candidates, spread = _pair_spreads(dataset, lips)
+        candidates, spread, clips = _pair_spreads(dataset, lips)
         order = np.argsort(-spread, kind="stable")
         pairs = candidates[order[spread[order] >= SHARE * spread.max()]]  # lip_gap_pairs
-        width = lip_width(dataset[0].template, np.asarray(lips, np.int64))
+        width = lip_width(clips[0].template, np.asarray(lips, np.int64))
         note, shut_pairs = "", None
-        step = max(1, len(dataset) // SAMPLES)
-        clips = [dataset[i] for i in range(0, len(dataset), step)]
 
-        def share(frames) -> float:  # of the sampled clips' frames
+        def share(frames) -> float:  # of the clips the pairs were found on
             return float(torch.cat([frames(c) for c in clips], dim=1).float().mean())
 
         if close_weight:  # the pairs parting the most, among those that part at all
