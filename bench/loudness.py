@@ -160,9 +160,10 @@ def teacher(data: Path, per_voice: int) -> None:
 
     manifest = json.loads((data / "manifest.json").read_text())
     todo = [(s, i) for s, ids in manifest["splits"]["test"].items() for i in ids[:per_voice]]
-    keep = rules.close_lips, rules.pause_gate, rules.LOUDNESS_SHARE
+    keep = rules.close_lips, rules.pause_gate, rules.LOUDNESS_SHARE, rules.lead
     variants = {
-        "the teacher, all three rules": {},
+        "the teacher, every rule": {},
+        "in step with the phones (no lead)": {"lead": lambda weights, *a: weights},
         "without its /p b m/ closure rule": {"close_lips": lambda *a, **k: None},
         "without its pause rule": {"pause_gate": lambda phones, fps, n: np.ones(n)},
         "every opening scaled by loudness (LOUDNESS_SHARE 1.0)": {"LOUDNESS_SHARE": 1.0},
@@ -187,7 +188,7 @@ def teacher(data: Path, per_voice: int) -> None:
                     jaw_scale=style.jaw * style.articulation,
                 )  # fmt: skip
             finally:
-                rules.close_lips, rules.pause_gate, rules.LOUDNESS_SHARE = keep
+                rules.close_lips, rules.pause_gate, rules.LOUDNESS_SHARE, rules.lead = keep
             opening = lip_opening(head.vertices_from_weights(weights)[::2], head.regions) * 1000
             scores[variant].append(score_opening(opening, rest, phones, wave, FPS)["loudness_r"])
     print(f"\n| truth ({len(todo)} test clips, clean) | loudness_r (median) |\n|---|---|")

@@ -10,9 +10,12 @@ from talkmesh.face.assets import lip_opening, load_head
 from talkmesh.face.lipsync import INDEX, SpeakingStyle, phones_to_weights
 from talkmesh.face.teacher import (
     CLOSURE_MM,
+    LEAD_CHANNELS,
+    LEAD_S,
     MOUTH_CHANNELS,
     REST_RAMP_S,
     close_lips,
+    lead,
     pause_gate,
     teach,
 )
@@ -28,12 +31,13 @@ def _phones(spec):
     return out, t
 
 
-def _animate(spec, head, audio=None, style=None):
+def _animate(spec, head, audio=None, style=None, lead_s=0.0):
+    """The rules in step with the phones (``lead_s`` 0), unless a lead is asked for."""
     phones, total = _phones(spec)
     n = int(round(total * FPS))
     w = phones_to_weights(phones, n, FPS, style=style or SpeakingStyle(), seed=0)
     raw = w.copy()
-    teach(w, phones, FPS, head, audio=audio, sr=16_000)
+    teach(w, phones, FPS, head, audio=audio, sr=16_000, lead_s=lead_s)
     return phones, raw, w
 
 
@@ -46,18 +50,39 @@ def _opening_mm(head, w):
     return lip_opening(head.vertices_from_weights(w), head.regions) * 1000
 
 
-def test_lips_meet_through_every_bilabial(head):
+@pytest.mark.parametrize("lead_s", [0.0, LEAD_S])
+def test_lips_meet_through_every_bilabial(head, lead_s):
     spec = [(SILENCE, 0.3), ("AA", 0.12), ("P", 0.06), ("AA", 0.12), ("M", 0.05), ("IY", 0.1)]
     spec += [("B", 0.04), ("AE", 0.15), (SILENCE, 0.3)]
-    phones, raw, w = _animate(spec, head)
+    phones, raw, w = _animate(spec, head, lead_s=lead_s)
     centres = (np.arange(len(w)) + 0.5) / FPS
     before, after = _opening_mm(head, raw), _opening_mm(head, w)
     for p in phones:
         if p.label in {"P", "B", "M"}:
             inside = (centres >= p.start) & (centres < p.end)
             assert inside.any()
-            assert after[inside].max() <= CLOSURE_MM, (p, after[inside])
             assert before[inside].max() > CLOSURE_MM  # the animator alone leaves them apart
+            # the mouth leads the sound, but the lips are shut while the sound is stopped
+            assert after[inside].max() <= CLOSURE_MM, (p, after[inside])
+
+
+def test_the_mouth_leads_the_sound_and_the_upper_face_does_not(head):
+    spec = [(SILENCE, 0.3), ("AA", 0.2), ("S", 0.08), ("AA", 0.2), (SILENCE, 0.3)]
+    _, _, in_step = _animate(spec, head)
+    _, _, ahead = _animate(spec, head, lead_s=LEAD_S)
+    k = round(LEAD_S * FPS)
+    assert k == 2  # a 30 fps frame: two of the corpus's 60 fps frames
+    mouth = list(LEAD_CHANNELS)
+    assert set(MOUTH_CHANNELS) < set(mouth) and INDEX["mouthClose"] in mouth
+    np.testing.assert_allclose(ahead[:-k, mouth], in_step[k:, mouth], atol=1e-6)
+    np.testing.assert_allclose(ahead[-k:, mouth], in_step[-1:, mouth].repeat(k, 0), atol=1e-6)
+    upper = [c for c in range(52) if c not in set(mouth)]
+    np.testing.assert_array_equal(ahead[:, upper], in_step[:, upper])
+    # half a 60 fps frame ahead lies halfway between the frames
+    w = np.zeros((4, 52), np.float32)
+    w[:, INDEX["jawOpen"]] = [0.0, 0.2, 0.4, 0.4]
+    lead(w, FPS, 0.5 / FPS)
+    np.testing.assert_allclose(w[:, INDEX["jawOpen"]], [0.1, 0.3, 0.4, 0.4])
 
 
 def test_closure_solve_reaches_the_target_from_a_wide_open_frame(head):

@@ -206,13 +206,17 @@ LANGUAGES: tuple[Language, ...] = (
         "Kami pergi ke pantai pada pagi Ahad.",
     )),
     # never trained on: test-only languages
+    # espeak-ng reads Hebrew script without its vowels ("אמא מבשלת" -> ?m? mvSlt) and cannot read
+    # the vowel points, so the sentences are its phoneme input ([[...]]), vowels written out:
+    # אבא בא הביתה בבוקר / אמא מבשלת מרק טעים / הבן שלי משחק בפארק / ביום ראשון נלך לים /
+    # הפרחים במרפסת יפים מאוד / מה שלומך היום
     Language("he", "Hebrew", "Semitic", (), ("hb1", "hb2"), (
-        "אבא בא הביתה בבוקר",
-        "אמא מבשלת מרק טעים",
-        "הבן שלי משחק בפארק",
-        "ביום ראשון נלך לים",
-        "הפרחים במרפסת יפים מאוד",
-        "מה שלומך היום",
+        "[[?'aba b'a hab'ajta bab'okeQ\"]]",
+        "[[?'ima mevaS'elet maQ\"'ak ta?'im]]",
+        "[[hab'en Sel'i mesaX'ek bap'aQ\"k]]",
+        "[[bej'om Q\"iS'on nel'eX laj'am]]",
+        "[[hapQ\"aX'im bamiQ\"p'eset jaf'im me?'od]]",
+        "[[m'a SlomX'a haj'om]]",
     )),
     Language("lt", "Lithuanian", "Baltic", (), ("lt1", "lt2"), (
         "Mano brolis perka duoną mieste.",

@@ -3,7 +3,9 @@
 Three Debian synthesisers give the times of the phones they actually render:
 
 * MBROLA through espeak-ng: ``espeak-ng -v mb-us1 --pho`` writes the phones with durations in ms
-  and ``mbrola`` renders exactly that file, so the durations are the truth.
+  and ``mbrola`` renders exactly that file, so the durations are the truth. Where the database
+  lacks a diphone that espeak-ng asks for, MBROLA renders silence instead; those stretches were
+  not said, and :func:`dropped_diphones` makes them pauses.
 * Festival: the utterance's ``Segment`` relation holds each phone's end time
   (``utt.save.segs``), for diphone and HTS voices alike.
 * espeak-ng's own voices (engine ``espeak-lib``, :func:`espeak_voice`; the multilingual corpus):
@@ -27,6 +29,7 @@ Flite's ``rms``, ``awb``, ``slt`` and ``kal16``, and SVOX Pico's US and British 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import tempfile
@@ -212,6 +215,94 @@ def _phones_from_pho(pho: str, language: str = "en") -> list[Phone]:
     return phones
 
 
+# espeak-ng's Hebrew phone table (he_phtrans) serves both Hebrew databases, which spell their
+# phones differently: hb1 has r and x but no glottal stop, R or X; hb2 has ?, R and X but no r or
+# x. Unmapped, MBROLA drops every diphone with one of them. None: the phone is left out.
+PHO_FIXES: dict[str, dict[str, str | None]] = {
+    "hb1": {'Q"': "r", "r/": "r", "R": "r", "X": "x", "?": None},
+    "hb2": {'Q"': "R", "r/": "R", "r": "R", "x": "X"},
+}
+
+
+def fix_pho(pho: str, db: str) -> str:
+    """``pho`` with each phone respelled as the database ``db`` spells it (:data:`PHO_FIXES`)."""
+    fixes = PHO_FIXES.get(db)
+    if not fixes:
+        return pho
+    lines = []
+    for line in pho.splitlines():
+        parts = line.split(maxsplit=1)
+        if parts and line[0] != ";" and parts[0] in fixes:
+            if fixes[parts[0]] is None:
+                continue
+            line = " ".join([fixes[parts[0]], *parts[1:]])
+        lines.append(line)
+    return "\n".join(lines) + "\n"
+
+
+# mbrola's message for a diphone its database lacks; it renders the diphone as silence
+_UNKNOWN_DIPHONE = re.compile(r"Warning: (\S+)-(\S+) unknown, replaced with _-_")
+DIGITAL_SILENCE_DB = -90.0  # a 5 ms block this quiet is silence the synthesiser wrote
+
+
+def dropped_diphones(
+    pho: str, messages: str, audio: np.ndarray, sr: int
+) -> list[tuple[float, float]]:
+    """The stretches (start, end in s) that MBROLA left silent because its database lacks the
+    diphone: each diphone its ``messages`` name (``Warning: a-X unknown, replaced with _-_``, in
+    the order of the .pho) spans the middle of its first phone to the middle of its second; the
+    runs of digital silence in ``audio`` that meet such a span are the stretches."""
+    rows = [r for r in (line.split() for line in pho.splitlines() if line[:1] != ";") if len(r) > 1]
+    # mbrola starts and ends in silence: a pause of no length either side
+    syms, mids, t = ["_"], [0.0], 0.0
+    for r in rows:
+        ms = float(r[1]) / 1000.0
+        syms.append(r[0])
+        mids.append(t + ms / 2)
+        t += ms
+    syms.append("_")
+    mids.append(t)
+    spans, k = [], 0
+    for a, b in _UNKNOWN_DIPHONE.findall(messages):
+        at = next((i for i in range(k, len(syms) - 1) if (syms[i], syms[i + 1]) == (a, b)), None)
+        if at is not None:  # (a message for a pair the .pho does not have is passed over)
+            spans.append((mids[at], mids[at + 1]))
+            k = at + 1
+    if not spans:
+        return []
+    hop = max(1, sr // 200)
+    blocks = np.asarray(audio[: len(audio) // hop * hop], np.float64).reshape(-1, hop)
+    quiet = np.r_[False, 10 * np.log10((blocks**2).mean(1) + 1e-30) < DIGITAL_SILENCE_DB, False]
+    starts = np.flatnonzero(~quiet[:-1] & quiet[1:])
+    ends = np.flatnonzero(quiet[:-1] & ~quiet[1:])
+    runs = [(s * hop / sr, e * hop / sr) for s, e in zip(starts, ends)]
+    return [r for r in runs if any(r[0] < b and a < r[1] for a, b in spans)]
+
+
+def without(phones: list[Phone], stretches: list[tuple[float, float]]) -> list[Phone]:
+    """``phones`` with each stretch a pause: phones inside it go, phones across its edges keep
+    the part outside (a part shorter than the 5 ms the stretches are measured in joins the
+    pause)."""
+    out = list(phones)
+    for lo, hi in stretches:
+        cut = []
+        for p in out:
+            if p.end <= lo or p.start >= hi:
+                cut.append(p)
+                continue
+            if p.start < lo - 0.005:
+                cut.append(Phone(p.label, p.start, lo))
+            elif p.start < lo:
+                lo = p.start
+            if p.end > hi + 0.005:
+                cut.append(Phone(p.label, hi, p.end))
+            elif p.end > hi:
+                hi = p.end
+        cut.append(Phone(SILENCE, lo, hi))
+        out = sorted(cut, key=lambda p: p.start)
+    return out
+
+
 def mbrola_voice(db: str, language: str, pitch: int = 50, speed: int = 160) -> Voice:
     """An MBROLA voice of any language (``db``: the database, e.g. ``de2``), refused when it is
     reserved for outside checks."""
@@ -334,17 +425,22 @@ def synthesize_mbrola(voice: Voice, text: str, wav: Path) -> tuple[list[Phone], 
             text,
         ]
     ).stdout.decode()
+    pho = fix_pho(pho, voice.voice.removeprefix("mb-"))
     with tempfile.NamedTemporaryFile("w", suffix=".pho", delete=False) as f:
         f.write(pho)
     try:
-        _run(["mbrola", "-e", str(_mbrola_db(voice)), f.name, str(wav)])
+        done = _run(["mbrola", "-e", str(_mbrola_db(voice)), f.name, str(wav)])
     finally:
         os.unlink(f.name)
     import soundfile as sf
 
-    info = sf.info(str(wav))
+    audio, sr = sf.read(str(wav), dtype="float32")
+    if audio.ndim > 1:
+        audio = audio.mean(axis=1)
     phones = _phones_from_pho(pho, voice.language)
-    return _merge(phones, info.frames / info.samplerate), info.samplerate
+    messages = (done.stdout + done.stderr).decode(errors="replace")
+    phones = without(phones, dropped_diphones(pho, messages, audio, sr))
+    return _merge(phones, len(audio) / sr), sr
 
 
 def _scheme_string(text: str) -> str:
