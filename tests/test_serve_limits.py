@@ -200,7 +200,15 @@ def test_garbage_is_a_protocol_error_and_big_heads_get_400(tmp_path):
                 ws.recv(timeout=WAIT_S)
             assert closed.value.rcvd.code == CLOSE_POLICY
         long_url = f"{s.url}/health?" + "x" * 60_000  # httpx sends up to 64 kB
-        assert httpx.get(long_url, timeout=WAIT_S).status_code == 400
+        # 400, or a reset when h11 refuses a head that arrives in pieces before the answer is
+        # read (seen once in a full run on 2 busy cores): never anything else, 400 at least once
+        answers = []
+        for _ in range(3):
+            try:
+                answers.append(httpx.get(long_url, timeout=WAIT_S).status_code)
+            except httpx.TransportError:
+                answers.append("reset")
+        assert set(answers) <= {400, "reset"} and 400 in answers, answers
         big_header = {"x-junk": "y" * 40_000}
         assert httpx.get(f"{s.url}/health", headers=big_header, timeout=WAIT_S).status_code == 400
         assert httpx.get(f"{s.url}/health", timeout=WAIT_S).status_code == 200
