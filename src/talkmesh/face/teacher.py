@@ -245,8 +245,9 @@ def teach(
 
 
 def lead(weights: np.ndarray, fps: float, seconds: float = LEAD_S) -> np.ndarray:
-    """In place: the jaw, mouth and tongue channels read ``seconds`` later, so the mouth moves that far ahead of
-    the sound (linear between frames; the last frame held). The upper face stays as it is."""
+    """In place: the jaw, mouth and tongue channels read ``seconds`` later, so the mouth moves
+    that far ahead of the sound (linear between frames; the last frame held). The upper face
+    stays as it is."""
     n = len(weights)
     if seconds <= 0 or n < 2:
         return weights
