@@ -7,9 +7,13 @@ import soundfile as sf
 from talkmesh.audio.languages import get_language
 from talkmesh.audio.phonemes import SILENCE, Phone
 from talkmesh.audio.voices import (
+    SILENT_PHONE_DB,
     dropped_diphones,
+    espeak_voice,
     fix_pho,
     mbrola_voice,
+    silent_phones,
+    synthesize_espeak_lib,
     synthesize_mbrola,
     without,
 )
@@ -110,3 +114,28 @@ def test_a_diphone_from_or_into_the_edge_silence_is_found():
     audio[int(0.15 * SR) :] = 0
     messages += "Warning: a-_ unknown, replaced with _-_\n"
     assert np.allclose(dropped_diphones(pho, messages, audio, SR), [(0.0, 0.05), (0.15, 0.2)])
+
+
+def test_a_phone_rendered_as_silence_is_a_pause_but_a_silent_bilabial_is_kept():
+    audio = _speech(0.4)
+    audio[int(0.1 * SR) : int(0.16 * SR)] = 0  # an /l/ the synthesiser named but did not say
+    audio[int(0.25 * SR) : int(0.3 * SR)] = 0  # an unreleased /p/: its lips still close
+    phones = [Phone("AA", 0.0, 0.1), Phone("L", 0.1, 0.16), Phone("K", 0.16, 0.25)]
+    phones += [Phone("P", 0.25, 0.3), Phone("IY", 0.3, 0.4)]
+    assert silent_phones(phones, audio, SR) == [(0.1, 0.16)]
+    cut = without(phones, silent_phones(phones, audio, SR))
+    assert [p.label for p in cut] == ["AA", SILENCE, "K", "P", "IY"]
+
+
+def test_espeak_korean_says_every_phone_it_names(tmp_path):
+    """espeak-ng's Korean renders a coda /l/ before a consonant as digital silence (-100 dB)."""
+    voice = espeak_voice("ko+m1", "ko")
+    text = get_language("ko").sentences[0]
+    phones, sr = synthesize_espeak_lib(voice, text, tmp_path / "ko.wav")
+    audio, _ = sf.read(str(tmp_path / "ko.wav"), dtype="float32")
+    assert len(phones) > 10 and phones[0].start == 0 and phones[-1].end == len(audio) / sr
+    assert all(a.end == b.start for a, b in zip(phones, phones[1:]))
+    for p in phones:
+        seg = audio[int(p.start * sr) : int(p.end * sr)].astype(np.float64)
+        if p.label != SILENCE and len(seg):
+            assert 10 * np.log10((seg**2).mean() + 1e-30) > SILENT_PHONE_DB, p

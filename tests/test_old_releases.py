@@ -94,9 +94,10 @@ def test_an_old_imported_release_loads_and_generates_what_it_did(outputs):
 
 
 def test_the_bundled_model_generates_what_it_did(outputs):
-    """Its expected output was made again when the model was retrained (2026-11-27, 2026-11-28,
-    and again on 2026-11-28 with the head term)."""
+    """Its expected output is made again each time the model is retrained. The clip is half a
+    second, so two releases can differ by only 0.02 mm on it (the last two: 1.7e-5 m): the
+    tolerance is far under that."""
     assert (MODELS_DIR / "codetalker-synth.safetensors").is_file()
     model = load_model("codetalker-synth")
     out = generate(model, outputs["audio"], outputs["bundled_template"])
-    np.testing.assert_allclose(out[:, :, ::97], outputs["codetalker-synth"], atol=1e-4)
+    np.testing.assert_allclose(out[:, :, ::97], outputs["codetalker-synth"], rtol=0, atol=2e-6)

@@ -134,7 +134,7 @@ def test_open_vowels_open_with_loudness(head):
     phones, raw, w = _animate(spec, head, audio=audio.astype(np.float32))
     op = _opening_mm(head, w)
     a, b = op[int(0.2 * FPS) : int(0.3 * FPS)].max(), op[int(0.6 * FPS) : int(0.7 * FPS)].max()
-    assert a > 1.5 * b
+    assert a > 1.3 * b  # the loud one at MAX_JAW, the soft one at about half its target
     assert a > _opening_mm(head, raw)[int(0.2 * FPS) : int(0.3 * FPS)].max()
 
 

@@ -9,7 +9,8 @@ Three Debian synthesisers give the times of the phones they actually render:
 * Festival: the utterance's ``Segment`` relation holds each phone's end time
   (``utt.save.segs``), for diphone and HTS voices alike.
 * espeak-ng's own voices (engine ``espeak-lib``, :func:`espeak_voice`; the multilingual corpus):
-  the library reports each phone's first output sample (:mod:`talkmesh.audio.espeak_lib`).
+  the library reports each phone's first output sample (:mod:`talkmesh.audio.espeak_lib`). A
+  phone it names but renders as silence (:func:`silent_phones`) is a pause.
 
 Festival's voices of other languages (:func:`festival_voice`; the multilingual corpus) take the
 same Festival path, their phone sets mapped by :mod:`talkmesh.audio.festival_voices`.
@@ -351,6 +352,26 @@ def festival_voice(language: str, speaker: str, speed: int = 160) -> Voice:
     )  # fmt: skip
 
 
+SILENT_PHONE_DB = -80.0  # a speech phone this quiet all through was not said
+
+
+def silent_phones(phones: list[Phone], audio: np.ndarray, sr: int) -> list[tuple[float, float]]:
+    """The speech phones (start, end in s) whose audio is at most :data:`SILENT_PHONE_DB` over
+    the whole phone: phones the synthesiser named but did not say (espeak-ng's Korean gives a
+    coda /l/ before a consonant 40-70 ms of digital silence). A /p b m/ is kept: its lips close
+    whether or not it is heard."""
+    from talkmesh.face.teacher import BILABIALS
+
+    out = []
+    for p in phones:
+        if p.label == SILENCE or p.label in BILABIALS or p.end <= p.start:
+            continue
+        seg = np.asarray(audio[int(p.start * sr) : int(p.end * sr)], np.float64)
+        if len(seg) and 10 * np.log10((seg**2).mean() + 1e-30) <= SILENT_PHONE_DB:
+            out.append((p.start, p.end))
+    return out
+
+
 def espeak_phones(events: list[tuple[str, int]], num_samples: int, sr: int, language: str):
     """The library's phoneme events -> contiguous timed phones: each phone from its event's
     sample to the next event's (the last to the end of the audio), silences merged."""
@@ -383,7 +404,9 @@ def synthesize_espeak_lib(voice: Voice, text: str, wav: Path) -> tuple[list[Phon
             "give it text in its language (pinyin with tone numbers for cmn-latn-pinyin)"
         )
     sf.write(str(wav), out.audio, out.sample_rate, format="WAV", subtype="PCM_16")
-    return phones, out.sample_rate
+    audio = out.audio.astype(np.float32) / 32768.0
+    said = without(phones, silent_phones(phones, audio, out.sample_rate))
+    return _merge(said, len(out.audio) / out.sample_rate), out.sample_rate
 
 
 def _merge(phones: list[Phone], duration: float) -> list[Phone]:
