@@ -353,6 +353,7 @@ def festival_voice(language: str, speaker: str, speed: int = 160) -> Voice:
 
 
 SILENT_PHONE_DB = -80.0  # a speech phone this quiet all through was not said
+BILABIALS = frozenset({"P", "B", "M"})  # kept when silent: the lips close for them all the same
 
 
 def silent_phones(phones: list[Phone], audio: np.ndarray, sr: int) -> list[tuple[float, float]]:
@@ -360,8 +361,6 @@ def silent_phones(phones: list[Phone], audio: np.ndarray, sr: int) -> list[tuple
     the whole phone: phones the synthesiser named but did not say (espeak-ng's Korean gives a
     coda /l/ before a consonant 40-70 ms of digital silence). A /p b m/ is kept: its lips close
     whether or not it is heard."""
-    from talkmesh.face.teacher import BILABIALS
-
     out = []
     for p in phones:
         if p.label == SILENCE or p.label in BILABIALS or p.end <= p.start:
