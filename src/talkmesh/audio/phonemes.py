@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     from pocketsphinx import Decoder
 
 SILENCE = "SIL"
+BILABIALS = frozenset({"P", "B", "M"})  # the lips close for each of them
 # The 39 phones of CMUdict (ARPAbet without stress digits).
 # fmt: skip keeps the alphabetical list a compact block rather than 39 lines.
 ARPABET_PHONES = (

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from talkmesh.audio.phonemes import ARPABET_PHONES, SILENCE, Phone
+from talkmesh.audio.phonemes import ARPABET_PHONES, BILABIALS, SILENCE, Phone
 from talkmesh.errors import TalkmeshError
 
 MBROLA_DIR = Path("/usr/share/mbrola")
@@ -353,7 +353,6 @@ def festival_voice(language: str, speaker: str, speed: int = 160) -> Voice:
 
 
 SILENT_PHONE_DB = -80.0  # a speech phone this quiet all through was not said
-BILABIALS = frozenset({"P", "B", "M"})  # kept when silent: the lips close for them all the same
 
 
 def silent_phones(phones: list[Phone], audio: np.ndarray, sr: int) -> list[tuple[float, float]]:

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from talkmesh.audio.loading import SAMPLE_RATE, load_audio
-from talkmesh.audio.phonemes import SILENCE, Phone, recognize_phones
+from talkmesh.audio.phonemes import BILABIALS, SILENCE, Phone, recognize_phones
 from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.face.assets import Head, lip_opening
 
@@ -41,7 +41,6 @@ NOISE_FILE = ALSA_SOUNDS / "Noise.wav"
 MIN_PAUSE_S = 0.2  # shorter gaps are within-phrase closures, not pauses
 PAUSE_MARGIN_S = 0.05  # the first and last 50 ms of a pause are the mouth closing and opening
 CLOSED_MM = 1.5  # lips this close count as closed for /p b m/
-BILABIALS = frozenset({"P", "B", "M"})
 OPEN_VOWELS = frozenset({"AA", "AE", "AH", "AO", "AW", "AY"})
 LOUDNESS_SMOOTH_S = 0.1  # moving-average window of the log loudness
 SPEED_FLOOR_MM_S = 1.0  # lips moving slower than this in pauses count as still (no inf ratios)

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from talkmesh.audio.phonemes import Phone
+from talkmesh.audio.phonemes import BILABIALS, Phone
 from talkmesh.errors import TalkmeshError
 from talkmesh.face.assets import Head, lip_opening
 from talkmesh.face.lipsync import SpeakingStyle, phones_to_weights
@@ -64,7 +64,6 @@ NEAR_CLOSED_MM = 3.0  # an opening minimum this close to rest is the model closi
 REOPEN_MM = 0.5
 DIP_FRAMES = 3
 BILABIAL_PAD = 2  # frames either side of a recognised /p b m/ where a near-closure shuts
-BILABIALS = frozenset({"P", "B", "M"})
 BILABIAL = False  # the recognised /p b m/ (English): off, the near-closures in speech shut instead
 LIP_CLOSURE = True  # every near-closure in speech shuts (to met lips): closure 0.65 -> 1.00 (real)
 GAIN = 0.0  # the loudest speech opens the model's mouth this much further (off: the new model

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from talkmesh.audio.phonemes import SILENCE, Phone
+from talkmesh.audio.phonemes import BILABIALS, SILENCE, Phone
 from talkmesh.face.arkit import ARKIT_NAMES
 from talkmesh.face.lipsync import DIPHTHONGS, INDEX, MOUTH_TO_ARKIT, VISEMES
 
@@ -39,7 +39,6 @@ REST_PAUSE_S = 0.15  # pauses this long or longer return the mouth to rest
 REST_RAMP_S = 0.06  # inside such a pause, the time to close (and to open again before speech)
 CLOSURE_MM = 0.5  # lips closer than this count as met
 CLOSURE_TARGET_MM = 0.25  # what the solve aims for (margin under CLOSURE_MM)
-BILABIALS = frozenset({"P", "B", "M"})
 OPEN_VOWELS = frozenset({"AA", "AE", "AH", "AO", "AW", "AY"})
 # open-vowel jaw peak relative to the viseme's jaw target, at full loudness (the square root of
 # the loudness scales it below that): the synthesisers' vowels are short (English /@/ 20-30 ms),
