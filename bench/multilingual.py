@@ -2,7 +2,7 @@
 
     talkmesh synth --multilingual --out corpus/multilingual
     python bench/multilingual.py --data corpus/multilingual [--methods procedural,codetalker-synth-raw,codetalker-synth]
-        [--conditions clean,snr15] [--per-voice 4] [--out docs/results]
+        [--conditions clean,snr15] [--per-voice 4] [--face gus] [--out docs/results]
 
 The test split of the multilingual corpus (:mod:`talkmesh.datasets.multilingual`): voices no
 model trained on, in languages trained on and in languages never trained on. Timing truth is the
@@ -15,7 +15,9 @@ model with every correction off; ``MODEL``: as ``animate`` runs it; ``MODEL`` ma
 file), plus ``truth`` (the corpus's motion truth, the teacher: clean only).
 
 Prints a table per language (medians over its clips) and the pooled medians; with ``--out`` also
-writes ``multilingual.json`` and the plot ``multilingual.png`` there.
+writes ``multilingual.json`` and the plot ``multilingual.png`` there. ``--face`` animates every
+clip on one face instead of its subject's (the truth, made on the subject's face, is then left
+out): whether a language's score comes from its voice or from the face it was heard with.
 """
 
 from __future__ import annotations
@@ -70,6 +72,12 @@ def main() -> None:
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--per-voice", type=int, default=4, help="utterances per held-out voice")
     ap.add_argument("--languages", default="", help="comma-separated codes (default: all)")
+    ap.add_argument(
+        "--face",
+        default="",
+        help="animate every clip on this face (an identity: gus, lars, ...) instead of its "
+        "subject's, to tell what a voice costs from what a face costs",
+    )
     ap.add_argument("--out", type=Path, default=None, help="folder for multilingual.json/.png")
     ap.add_argument(
         "--merge",
@@ -82,6 +90,8 @@ def main() -> None:
     if not (args.data / "manifest.json").is_file():
         raise SystemExit(f"{args.data}: no multilingual corpus (talkmesh synth --multilingual)")
     methods = [m for m in args.methods.split(",") if m]
+    if args.face and "truth" in methods:
+        raise SystemExit("--face: the truth was made on each subject's own face; leave it out")
     conditions = [c for c in args.conditions.split(",") if c]
     noise = load_audio(NOISE_FILE) if NOISE_FILE.is_file() else None
     if any(c != "clean" for c in conditions) and noise is None:
@@ -93,7 +103,8 @@ def main() -> None:
     rows = []
     heads = {}
     for k, (name, info, trained) in enumerate(tqdm(todo, desc="multilingual", unit="clip")):
-        head = heads.setdefault(info["identity"], load_head(info["identity"]))
+        identity = args.face or info["identity"]
+        head = heads.setdefault(identity, load_head(identity))
         rest = float(lip_opening(head.template[None], head.regions)[0]) * 1000
         wave = load_audio(args.data / "wav" / f"{name}.wav")
         phones = read_phones(args.data, name)
@@ -122,7 +133,8 @@ def main() -> None:
         methods = [*dict.fromkeys([r["method"] for r in old] + methods)]
         rows = old + rows
     print(report(rows, methods, conditions))
-    print(by_head(rows, methods, _identities(args.data)))
+    faces = _identities(args.data)
+    print(by_head(rows, methods, {s: args.face for s in faces} if args.face else faces))
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "multilingual.json").write_text(json.dumps(rows, indent=1))

@@ -45,6 +45,7 @@ from talkmesh.evaluation.real_speech import (
     builtin_clips,
     degrade,
     medians,
+    pooled_bilabials,
     read_clip,
     score_clip,
     to_json,
@@ -209,16 +210,18 @@ def table(rows, med, methods, conditions) -> str:
         lines.append(f"| {r.clip} | {r.condition} | {r.method} | {vals} |")
     lines += [
         "",
-        "Medians over clips:",
+        "Medians over clips (and every clip's /p b m/ together):",
         "",
-        "| condition | method | " + " | ".join(METRICS) + " |",
-        "|---|---|" + "---|" * len(METRICS),
+        "| condition | method | " + " | ".join(METRICS) + " | /p b m/ closed of all |",
+        "|---|---|" + "---|" * (len(METRICS) + 1),
     ]
+    pooled = pooled_bilabials(rows)
     for c in conditions:
         for m in methods:
             if (m, c) in med:
                 vals = " | ".join(_fmt(med[(m, c)][k]) for k in METRICS)
-                lines.append(f"| {c} | {m} | {vals} |")
+                closed, total = pooled.get((m, c), (0, 0))
+                lines.append(f"| {c} | {m} | {vals} | {closed}/{total} |")
     return "\n".join(lines)
 
 

@@ -80,6 +80,25 @@ def test_inserted_silence_is_silent_with_closed_mouth_targets():
     np.testing.assert_array_equal(trail[-4:], 0.0)
 
 
+@pytest.mark.parametrize("ramp_s,frames", [(0.0, 0), (0.06, 2), (0.1, 3)])
+def test_the_silence_ramps_last_as_long_as_the_recipe_says(ramp_s, frames, monkeypatch):
+    """Each ramp lies inside the silence: a model learns to open its mouth that far ahead of
+    speech, so the ramp is the recipe's (``data.augment.silence_ramp_s``)."""
+    s = sample(30)
+    s = s._replace(vertices=s.vertices + 1.0)
+    _, v = aug.insert_silence(s.audio, s.vertices, s.template, 10, 15, FPS, ramp_s)
+    gap = v[10:25, 0, 0]
+    moving = gap != 0.0  # the template is 0: frames off it are ramps
+    assert moving[:frames].all() and moving[15 - frames :].all()
+    assert not moving[frames : 15 - frames].any()
+    seen = []
+    real = aug.insert_silence
+    monkeypatch.setattr(aug, "insert_silence", lambda *a: seen.append(a[-1]) or real(*a))
+    cfg = AugmentConfig(silence_p=1.0, silence_ramp_s=ramp_s, silence_seconds=(0.5, 0.5))
+    out = aug.augment(s, cfg, np.random.default_rng(1), FPS)
+    assert len(out.vertices) == 45 and seen == [ramp_s]  # the recipe's ramp reaches the silence
+
+
 def test_reverb_adds_a_decaying_tail_in_sync():
     rirs = aug.room_impulse_responses(2, (0.4, 0.6), 0)
     assert len(rirs) == 2 and all(np.argmax(np.abs(r)) < 16 for r in rirs)  # direct path first
@@ -156,6 +175,8 @@ def test_config_checks_its_values():
         from_dict(AugmentConfig, {"snr_db": [20, 5]}, "data.augment")
     with pytest.raises(TalkmeshError, match="unknown config key"):
         from_dict(AugmentConfig, {"noize_p": 0.5}, "data.augment")
+    with pytest.raises((TalkmeshError, ValueError), match="silence_ramp_s"):
+        from_dict(AugmentConfig, {"silence_ramp_s": -0.1}, "data.augment")
 
 
 def test_finetune_continues_a_release_on_augmented_audio(tiny_corpus, tmp_path):

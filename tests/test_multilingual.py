@@ -127,6 +127,12 @@ def test_espeak_mnemonics_map_onto_the_animator_phones():
         ("u-", "ko"): "IH",
         ("_|", "cmn"): SILENCE,
         ("_:", "cmn"): SILENCE,
+        ("c", "hi"): "CH",  # च: espeak-ng's palatal stop is Hindi's /tʃ/, not a /k/
+        ("c#", "hi"): "CH",  # छ
+        ("J#", "hi"): "JH",  # झ, not a nasal
+        ("H", "hi"): "HH",  # ह /ɦ/, not SAMPA's /ɥ/
+        ("b#", "hi"): "B",  # भ: aspirated, still a closure
+        ("p#", "hi"): "P",  # फ
     }
     for (mnemonic, language), label in cases.items():
         assert espeak_label(mnemonic, language) == label, (mnemonic, language)

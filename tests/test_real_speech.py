@@ -125,3 +125,22 @@ def test_a_transcript_that_does_not_match_is_no_truth():
     wrong = rs.Clip(go.name, go.path, "zyxwvut qqqq", go.source)  # words not in the dictionary
     with pytest.raises(rs.TalkmeshError, match="does not align"):
         rs.truth_phones(wrong, rs.read_clip(go))
+
+
+def test_pooled_bilabials_count_every_clips_closures():
+    def row(clip, method, bilabial, count):
+        return rs.ClipScores(
+            clip, method, "clean", 0.0, 5.0, bilabial, 10.0, 0.5, 1.0, 1.0, 1, count
+        )
+
+    rows = [
+        row("a", "m", 1.0, 1),
+        row("b", "m", 1.0, 1),
+        row("c", "m", 0.5, 10),
+        row("d", "m", float("nan"), 0),  # no /p b m/: not scored
+        row("a", "n", 0.0, 1),
+    ]
+    pooled = rs.pooled_bilabials(rows)
+    assert pooled == {("m", "clean"): (7, 12), ("n", "clean"): (0, 1)}
+    # the median over clips (1.0: two clips of one closure each) is not the share (7 of 12)
+    assert rs.medians(rows)[("m", "clean")]["bilabial"] == 1.0

@@ -486,6 +486,8 @@ _ESPEAK_COMMON = {
 # Where a language's phoneme table gives a mnemonic another sound (espeak-ng's phoneme tables)
 _ESPEAK_BY_TABLE = {
     "ru": {"y": "IH", "Y": "IH"},  # ы /ɨ/, unrounded
+    # च छ /tʃ tʃʰ/ (espeak-ng's palatal stops), झ /dʒʱ/, ह /ɦ/, ग़ /ɣ/
+    "hi": {"c": "CH", "c#": "CH", "c:": "CH", "J#": "JH", "H": "HH", "Q": "G"},
     "uk": {"y": "IH", "Y": "IH"},  # Ukrainian reads with the Russian table
     "vi": {"y": "IH", "y@": "IH", "yI": "IH", "u@": "UW", "i@": "IY"},  # ư /ɯ/; ua, ia
     "yue": {  # jyutping-named: z /ts/, c /tsʰ/, a /ɐ/, eo /ɵ/, oe /œ/, yu /y/, finals with -ng

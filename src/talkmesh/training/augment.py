@@ -9,7 +9,8 @@ step with its own probability, through:
 1. speed perturbation (Kaldi's: the audio resampled, tempo and pitch together, x0.9-1.1), the
    motion re-timed to the new length by linear interpolation;
 2. silence (leading, trailing or inserted between frames) whose targets are the closed, neutral
-   face (``template``), ramped over 100 ms from and back to the motion around it;
+   face (``template``), ramped over ``silence_ramp_s`` (100 ms unless a recipe says) from and back
+   to the motion around it;
 3. room reverberation (pyroomacoustics image-source rooms, a bank of ``rooms`` per seed, applied by
    pedalboard's convolution; the direct-path delay removed so the lips stay in sync);
 4. background noise (audiomentations' coloured noise, white to brown) at a random SNR, in the pauses
@@ -50,6 +51,10 @@ class AugmentConfig:
     speed: tuple[float, float] = (0.9, 1.1)  # tempo factor range; the targets follow
     silence_p: float = 0.0
     silence_seconds: tuple[float, float] = (0.2, 1.0)  # closed-mouth targets
+    # the targets blend from and back to the motion around a silence over this long: each ramp
+    # lies inside the silence, so a model learns to hold the mouth open that far into a pause
+    # and to open it that far ahead of speech (the teacher's own pause ramp: 60 ms)
+    silence_ramp_s: float = RAMP_SECONDS
     reverb_p: float = 0.0
     rt60: tuple[float, float] = (0.2, 0.9)  # seconds
     rooms: int = 16  # room impulse responses in the bank (computed once per process)
@@ -71,6 +76,8 @@ class AugmentConfig:
                 raise ValueError(f"data.augment.{name} must be [low, high]")
         if self.speed[0] <= 0 or self.silence_seconds[0] < 0 or self.rt60[0] <= 0:
             raise ValueError("data.augment: speed and rt60 must be positive, silence >= 0")
+        if not 0.0 <= self.silence_ramp_s <= 1.0:
+            raise ValueError("data.augment.silence_ramp_s must be in [0, 1] seconds")
         if self.rooms < 1 or not self.sample_rates or min(self.sample_rates) < 4000:
             raise ValueError("data.augment: rooms >= 1 and sample rates of 4 kHz or more")
 
@@ -135,17 +142,18 @@ def insert_silence(
     at_frame: int,
     num_frames: int,
     fps: float,
+    ramp_s: float = RAMP_SECONDS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``num_frames`` of digital silence before frame ``at_frame`` (0: leading, T: trailing) whose
     targets are the neutral face ``template``: the mouth closed. Over the first and last
-    ``RAMP_SECONDS`` (at most a third of the gap each) the targets blend from the frame before and
+    ``ramp_s`` seconds (at most a third of the gap each) the targets blend from the frame before and
     back to the frame after with a raised cosine, so the motion has no jump.
 
     audio (S,), vertices (T, V, 3) -> audio (S + n,), vertices (T + num_frames, V, 3).
     """
     per_frame = SAMPLE_RATE / fps
     gap = np.repeat(template[None].astype(np.float32), num_frames, axis=0)
-    ramp = min(int(round(RAMP_SECONDS * fps)), num_frames // 3)
+    ramp = min(int(round(ramp_s * fps)), num_frames // 3)
     if ramp > 0:
         rise = 0.5 - 0.5 * np.cos(np.pi * (np.arange(ramp) + 1) / (ramp + 1))
         w = rise[:, None, None].astype(np.float32)
@@ -259,7 +267,9 @@ def _timing(sample, cfg: AugmentConfig, rng: np.random.Generator, fps: float):
             where, int(rng.integers(1, len(vertices)))
         )
         n = max(1, int(round(rng.uniform(*cfg.silence_seconds) * fps)))
-        audio, vertices = insert_silence(audio, vertices, sample.template, at, n, fps)
+        audio, vertices = insert_silence(
+            audio, vertices, sample.template, at, n, fps, cfg.silence_ramp_s
+        )
     return audio, vertices
 
 
