@@ -161,8 +161,8 @@ def report(rows, methods, conditions) -> str:
             "",
             "| language | trained on | method | clips | "
             + " | ".join(METRICS)
-            + " | worst pause |",
-            "|---|---|---|---|" + "---|" * (len(METRICS) + 1),
+            + " | worst pause | slowest speed_ratio | /p b m/ closed of all |",
+            "|---|---|---|---|" + "---|" * (len(METRICS) + 3),
         ]
         for lang in [*languages, "all"]:
             for m in methods:
@@ -179,9 +179,11 @@ def report(rows, methods, conditions) -> str:
                 vals = " | ".join(_fmt(_median(sel, k)) for k in METRICS)
                 worst = _extreme(sel, "pause_mm", max)
                 slowest = _extreme(sel, "speed_ratio", min)
+                scored = [r for r in sel if r["bilabials"] and not math.isnan(r["bilabial"])]
+                closed = sum(round(r["bilabial"] * r["bilabials"]) for r in scored)
                 lines.append(
                     f"| {lang} | {trained} | {m} | {len(sel)} | {vals} | {_fmt(worst)} | "
-                    f"{_fmt(slowest)} |"
+                    f"{_fmt(slowest)} | {closed}/{sum(r['bilabials'] for r in scored)} |"
                 )
         lines.append("")
     return "\n".join(lines)
