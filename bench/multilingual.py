@@ -46,6 +46,7 @@ from talkmesh.face.assets import lip_opening, load_head  # noqa: E402
 
 FPS = 30.0
 CONDITIONS = ("clean", "snr15")
+TITLES = {"bilabial": "/p b m/ closed", "vowel_mm": "Open vowels' opening above rest (mm)"}
 
 
 def _sequences(root: Path, split: str, per_voice: int, languages: set[str]):
@@ -134,7 +135,9 @@ def main() -> None:
         rows = old + rows
     print(report(rows, methods, conditions))
     faces = _identities(args.data)
-    print(by_head(rows, methods, {s: args.face for s in faces} if args.face else faces))
+    faces = {s: args.face for s in faces} if args.face else faces
+    print(by_head(rows, methods, faces))
+    print(by_head(rows, methods, faces, "vowel_mm"))
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "multilingual.json").write_text(json.dumps(rows, indent=1))
@@ -195,9 +198,10 @@ def _identities(root: Path) -> dict[str, str]:
     return {s: info["identity"] for s, info in manifest["subjects"].items()}
 
 
-def by_head(rows, methods, identities: dict[str, str]) -> str:
+def by_head(rows, methods, identities: dict[str, str], key: str = "bilabial") -> str:
     """/p b m/ closure (clean) per face, by how far its lips stand apart at rest: a closure
-    moves them that far, so a model that does not know the face closes some faces and not others."""
+    moves them that far, so a model that does not know the face closes some faces and not others.
+    ``key="vowel_mm"``: the open vowels' opening above rest per face instead."""
     heads: dict[str, list] = {}
     for r in rows:
         if r["condition"] == "clean":
@@ -206,7 +210,7 @@ def by_head(rows, methods, identities: dict[str, str]) -> str:
     rest = {h: float(lip_opening(load_head(h).template[None], load_head(h).regions)[0]) * 1000
             for h in heads if h != "?"}  # fmt: skip
     lines = [
-        "### /p b m/ closed, clean, per face (by its lips' opening at rest)",
+        f"### {TITLES[key]}, clean, per face (by its lips' opening at rest)",
         "",
         "| face | rest opening (mm) | " + " | ".join(methods) + " |",
         "|---|---|" + "---|" * len(methods),
@@ -215,7 +219,7 @@ def by_head(rows, methods, identities: dict[str, str]) -> str:
         vals = []
         for m in methods:
             sel = [r for r in heads[h] if r["method"] == m]
-            vals.append(_fmt(_median(sel, "bilabial")) if sel else "-")
+            vals.append(_fmt(_median(sel, key)) if sel else "-")
         lines.append(f"| {h} | {rest[h]:.2f} | " + " | ".join(vals) + " |")
     return "\n".join(lines) + "\n"
 
