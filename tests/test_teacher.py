@@ -66,6 +66,21 @@ def test_lips_meet_through_every_bilabial(head, lead_s):
             assert after[inside].max() <= CLOSURE_MM, (p, after[inside])
 
 
+@pytest.mark.parametrize("offset", [0.0, 0.004, 0.008, 0.012])
+@pytest.mark.parametrize("duration", [0.005, 0.01, 0.029])
+def test_a_short_bilabial_closes_in_the_frames_a_model_reads(head, duration, offset):
+    """A /b/ shorter than a 30 fps frame (a synthesiser's sliver) still closes the lips in the
+    truth as it is read for training and scoring: every second 60 fps frame."""
+    from talkmesh.evaluation.real_speech import phone_window
+
+    spec = [(SILENCE, 0.3 + offset), ("AA", 0.12), ("B", duration), ("AA", 0.12), (SILENCE, 0.3)]
+    phones, _, w = _animate(spec, head, lead_s=LEAD_S)
+    at_30 = _opening_mm(head, w)[::2]
+    lo, hi = phone_window(phones[2], FPS / 2, len(at_30))
+    assert at_30[lo:hi].min() <= CLOSURE_MM, at_30[lo:hi]
+    assert at_30[lo:hi].max() > 3 * CLOSURE_MM  # a closure between open vowels, not a shut mouth
+
+
 def test_the_mouth_leads_the_sound_and_the_upper_face_does_not(head):
     spec = [(SILENCE, 0.3), ("AA", 0.2), ("S", 0.08), ("AA", 0.2), (SILENCE, 0.3)]
     _, _, in_step = _animate(spec, head)
