@@ -29,7 +29,9 @@ from talkmesh.datasets import synth
 from talkmesh.datasets.synth import CorpusInfo, _atomic_write, _check_request
 from talkmesh.errors import TalkmeshError
 
-FORMAT_VERSION = 5  # teacher truth: mouth ahead of the sound, vowels 1.5, closures a 30 fps frame or longer
+FORMAT_VERSION = (
+    5  # teacher truth: mouth ahead of the sound, vowels 1.5, closures a 30 fps frame or longer
+)
 ENGINES = ("mbrola", "espeak-lib", "festival")
 
 
