@@ -29,9 +29,8 @@ from talkmesh.datasets import synth
 from talkmesh.datasets.synth import CorpusInfo, _atomic_write, _check_request
 from talkmesh.errors import TalkmeshError
 
-FORMAT_VERSION = (
-    5  # teacher truth: mouth ahead of the sound, vowels 1.5, closures a 30 fps frame or longer
-)
+# 5: the teacher's truth a frame ahead of the sound, vowels 1.5, closures a 30 fps frame or longer
+FORMAT_VERSION = 5
 ENGINES = ("mbrola", "espeak-lib", "festival")
 
 
