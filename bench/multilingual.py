@@ -40,9 +40,10 @@ from talkmesh.evaluation.real_speech import (  # noqa: E402
     METRICS,
     NOISE_FILE,
     add_noise,
+    closed_of_all,
     score_opening,
 )
-from talkmesh.face.assets import lip_opening, load_head  # noqa: E402
+from talkmesh.face.assets import lip_opening, list_identities, load_head  # noqa: E402
 
 FPS = 30.0
 CONDITIONS = ("clean", "snr15")
@@ -93,6 +94,10 @@ def main() -> None:
     methods = [m for m in args.methods.split(",") if m]
     if args.face and "truth" in methods:
         raise SystemExit("--face: the truth was made on each subject's own face; leave it out")
+    if args.face and args.face not in list_identities():
+        raise SystemExit(
+            f"--face {args.face}: no such face; use one of {', '.join(list_identities())}"
+        )
     conditions = [c for c in args.conditions.split(",") if c]
     noise = load_audio(NOISE_FILE) if NOISE_FILE.is_file() else None
     if any(c != "clean" for c in conditions) and noise is None:
@@ -182,11 +187,10 @@ def report(rows, methods, conditions) -> str:
                 vals = " | ".join(_fmt(_median(sel, k)) for k in METRICS)
                 worst = _extreme(sel, "pause_mm", max)
                 slowest = _extreme(sel, "speed_ratio", min)
-                scored = [r for r in sel if r["bilabials"] and not math.isnan(r["bilabial"])]
-                closed = sum(round(r["bilabial"] * r["bilabials"]) for r in scored)
+                closed, total = closed_of_all((r["bilabial"], r["bilabials"]) for r in sel)
                 lines.append(
                     f"| {lang} | {trained} | {m} | {len(sel)} | {vals} | {_fmt(worst)} | "
-                    f"{_fmt(slowest)} | {closed}/{sum(r['bilabials'] for r in scored)} |"
+                    f"{_fmt(slowest)} | {closed}/{total} |"
                 )
         lines.append("")
     return "\n".join(lines)

@@ -22,6 +22,7 @@ from real_speech import FPS, _animate_condition  # noqa: E402
 
 from talkmesh.audio.loading import load_audio  # noqa: E402
 from talkmesh.audio.phonemes import SILENCE  # noqa: E402
+from talkmesh.errors import TalkmeshError  # noqa: E402
 from talkmesh.evaluation.real_speech import (  # noqa: E402
     CONDITIONS,
     MIN_PAUSE_S,
@@ -53,7 +54,10 @@ def main() -> None:
     head = load_head()
     rest = float(lip_opening(head.template[None], head.regions)[0]) * 1000
     methods = [m for m in args.methods.split(",") if m]
-    animated = _animate_condition(heard, methods, head)
+    try:
+        animated = _animate_condition(heard, methods, head)
+    except TalkmeshError as e:
+        raise SystemExit(str(e)) from None
     n = min(len(v) for v in animated.values())
     loud = log_loudness(heard, FPS, n)
     opening = {m: lip_opening(v[:n], head.regions) * 1000 - rest for m, v in animated.items()}

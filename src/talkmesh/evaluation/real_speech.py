@@ -299,19 +299,28 @@ def medians(rows: list[ClipScores]) -> dict[tuple[str, str], dict[str, float]]:
     return out
 
 
+def closed_of_all(clips) -> tuple[int, int]:
+    """(/p b m/ closed, /p b m/ scored) over clips given as (``bilabial`` share, ``bilabials``
+    count) pairs; a clip with none is left out."""
+    closed = total = 0
+    for share, count in clips:
+        if count and not math.isnan(share):
+            closed, total = closed + round(share * count), total + count
+    return closed, total
+
+
 def pooled_bilabials(rows: list[ClipScores]) -> dict[tuple[str, str], tuple[int, int]]:
     """(method, condition) -> (/p b m/ closed, /p b m/ scored) over all clips together. The real
     clips hold few (35 in 10 clips, one to eleven a clip), so their median moves by a tenth
     when one clip's closure flips; the count says how many closures a change gained or lost."""
-    out: dict[tuple[str, str], tuple[int, int]] = {}
+    groups: dict[tuple[str, str], list[ClipScores]] = {}
     for r in rows:
-        if r.bilabials and not math.isnan(r.bilabial):
-            closed, total = out.get((r.method, r.condition), (0, 0))
-            out[(r.method, r.condition)] = (
-                closed + round(r.bilabial * r.bilabials),
-                total + r.bilabials,
-            )
-    return out
+        groups.setdefault((r.method, r.condition), []).append(r)
+    out = {
+        key: closed_of_all((r.bilabial, r.bilabials) for r in group)
+        for key, group in groups.items()
+    }
+    return {key: counts for key, counts in out.items() if counts[1]}
 
 
 def to_json(rows: list[ClipScores]) -> list[dict]:
