@@ -11,8 +11,9 @@ alone, clean and under real recorded noise (alsa-utils' ``Noise.wav``) at 15 dB 
 scored with the real-speech metrics (:mod:`talkmesh.evaluation.real_speech`) on the head of the
 sequence's subject. Methods are those of ``bench/real_speech.py`` (``procedural``: the animator on
 the phones the English recogniser finds, as ``--model procedural`` does; ``MODEL-raw``: a learned
-model with every correction off; ``MODEL``: as ``animate`` runs it; ``MODEL`` may be a release
-file), plus ``truth`` (the corpus's motion truth, the teacher: clean only).
+model with every correction off; ``MODEL``: as ``animate`` runs it; ``MODEL-streamMS``: alone, as
+``talkmesh serve`` streams it with MS ms of look-ahead; ``MODEL`` may be a release file), plus
+``truth`` (the corpus's motion truth, the teacher: clean only).
 
 Prints a table per language (medians over its clips) and the pooled medians; with ``--out`` also
 writes ``multilingual.json`` and the plot ``multilingual.png`` there. ``--face`` animates every

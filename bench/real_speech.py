@@ -15,6 +15,13 @@ plot ``real-speech.png`` there.
 
     python bench/real_speech.py --methods procedural,procedural-stream-full,procedural-stream --conditions clean
 
+``MODEL-streamMS`` is a learned model alone (every correction off) as ``talkmesh serve`` streams it
+with a look-ahead of MS ms: for the bundled CodeTalker its Whisper features a 3-frame block at a
+time (:mod:`talkmesh.models.whisper_stream`), computed offline by ``generate_streamed``, which the
+stream equals (tests/test_whisper_stream.py):
+
+    python bench/real_speech.py --methods codetalker-synth-raw,codetalker-synth-stream100,codetalker-synth-stream300
+
 ``--emotions`` animates every method again under each emotion at full intensity (method names
 ``METHOD+EMOTION``) and prints how far its /p b m/ closure, pause rest and vowel opening are from
 the neutral run (docs/guide/performance.md):
@@ -28,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -85,6 +93,20 @@ VARIANTS = {
 }
 
 
+STREAM = re.compile(r"^(?P<model>.+)-stream(?P<ms>[0-9]+)$")  # MODEL-streamMS
+_LOADED: dict[str, object] = {}
+
+
+def _model_streamed(wave: np.ndarray, head, model: str, lookahead_ms: float) -> np.ndarray:
+    """(T, V, 3): the learned ``model`` alone as it streams with ``lookahead_ms``."""
+    from talkmesh.models.codetalker.generate import generate_streamed
+    from talkmesh.models.release import load_model
+
+    if model not in _LOADED:
+        _LOADED[model] = load_model(model).eval()
+    return generate_streamed(_LOADED[model], wave, head.template, lookahead_ms)
+
+
 def _split(method: str) -> tuple[str, Corrections]:
     for suffix, corrections in VARIANTS.items():
         if suffix and method.endswith(suffix):
@@ -113,6 +135,10 @@ def _animate_condition(wave, methods, head) -> dict[str, np.ndarray]:
     for method in methods:
         if method in STREAMED:
             out[method] = _streamed(wave, head, STREAMED[method])
+            continue
+        streamed = STREAM.match(method)
+        if streamed:
+            out[method] = _model_streamed(wave, head, streamed["model"], float(streamed["ms"]))
             continue
         model, corrections = _split(method)
         if model == "procedural":
@@ -262,7 +288,8 @@ def main() -> None:
         "runs them (default corrections), MODEL-raw (none), MODEL-nogate / -nomix / -nogain / "
         "-nobilabial (one off), MODEL-faithful (the settings within 3% of the synthetic LVE), "
         "MODEL-closure (with the lip closure at every near-closure), MODEL-noclosure (without), MODEL-gate / -recgate (the "
-        "pause gate alone, from voice activity / from the recogniser)",
+        "pause gate alone, from voice activity / from the recogniser), MODEL-streamMS (alone, as it "
+        "streams with MS ms of look-ahead)",
     )
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--clips", default="", help="comma-separated name prefixes (default: all)")

@@ -589,20 +589,27 @@ def test_each_worker_ticks_its_sessions_in_a_lane_of_its_own():
     asyncio.run(run())
 
 
-def test_the_bundled_default_is_refused_naming_the_model_that_streams(capsys):
-    """`serve --model codetalker-synth` (animate's default, no causal decoder): one line naming
-    the bundled model that streams and the command that serves it."""
-    from talkmesh.cli import main
+def test_the_bundled_default_streams(pcm):
+    """`serve --model codetalker-synth` (animate's default): a session says the look-ahead it
+    waits for (its default, 300 ms and the rest of a 3-frame block) and streams the clip's
+    frames, the jaw moving in the speech."""
     from talkmesh.pipeline import available_models
 
     if "codetalker-synth" not in available_models():
         pytest.skip("the bundled CodeTalker is not installed")
-    assert main(["serve", "--model", "codetalker-synth", "--port", "0", "-q"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and err.startswith(
-        "talkmesh: error: --model codetalker-synth"
-    )
-    assert "cannot stream" in err and "`talkmesh serve --model procedural`" in err
+    with TestClient(create_app(models=["codetalker-synth"])) as c:
+        with c.websocket_connect("/ws/stream?idle=0") as ws:
+            hello = ws.receive_json()
+            for i in range(0, len(pcm), CHUNK):
+                ws.send_bytes(pcm[i : i + CHUNK])
+            ws.send_json({"type": "end"})
+            reply = read_until_close(ws)
+    assert hello["model"] == "codetalker-synth"
+    assert hello["lookahead_ms"] == pytest.approx(300.0 + 2000.0 / 30)
+    assert reply.code == CLOSE_NORMAL
+    jaw = np.array([f.weights[list(ARKIT_NAMES).index("jawOpen")] for f in reply.frames])
+    assert len(jaw) == round(len(pcm) / 2 / SAMPLE_RATE * FPS)
+    assert jaw.max() > 0.2 and jaw.max() - jaw.min() > 0.2
 
 
 def test_served_head_has_the_renderers_colours():

@@ -10,9 +10,9 @@ from talkmesh.errors import TalkmeshError
 
 
 def streaming_hint(name: str, source: str, error: TalkmeshError) -> str:
-    """The refusal of a model that cannot stream; for a bundled one (the default of ``talkmesh
-    animate``, which animates files but has no causal decoder), which bundled model streams and
-    the command that serves it."""
+    """The refusal of a model that cannot stream; for a bundled one (one that animates files but
+    has no causal decoder: the bundled codetalker-synth streams), which bundled models stream
+    and the command that serves them."""
     from talkmesh.models.release import MODELS_DIR
 
     message = str(error)
@@ -22,8 +22,8 @@ def streaming_hint(name: str, source: str, error: TalkmeshError) -> str:
     reason = message.split("cannot stream", 1)[1].split("(", 1)[0].strip(" :")
     return (
         f"--model {name}: the bundled {name} animates files (`talkmesh animate`) but cannot "
-        f"stream ({reason}); the bundled model that streams is procedural: "
-        "`talkmesh serve --model procedural` (or train a streaming CodeTalker with "
+        f"stream ({reason}); the bundled models that stream are codetalker-synth and "
+        "procedural: `talkmesh serve --model procedural` (or train a streaming CodeTalker with "
         "configs/codetalker_stream.yaml and pass its model.safetensors to --model)"
     )
 
@@ -41,6 +41,6 @@ def onnx_stream_refusal(name: str) -> str:
     return (
         f"model {name} is an ONNX export: this server animates files with it (POST "
         f"/animate?model={name}) but cannot stream it (its speech encoder reads whole windows "
-        "of audio); stream with procedural or a streaming CodeTalker release, or run the "
+        "of audio); stream with procedural or a release (.safetensors), or run the "
         "export in the browser page (web/browser), which streams a microphone through it"
     )

@@ -80,7 +80,7 @@ from talkmesh.serve.protocol import (
     parse_text,
 )
 from talkmesh.serve.session import SessionAudio, session_options
-from talkmesh.serve.stream import DEFAULT_LOOKAHEAD_MS, open_stream
+from talkmesh.serve.stream import open_stream
 from talkmesh.serve.workers import WorkerLost, WorkerPool, default_workers
 
 log = logging.getLogger(__name__)
@@ -385,7 +385,7 @@ class Service:
             )
         return np.frombuffer(data, "<i2").astype(np.float32) / 32768.0
 
-    def _parse_query(self, ws: WebSocket) -> tuple[str, float, bool]:
+    def _parse_query(self, ws: WebSocket) -> tuple[str, float | None, bool]:
         query = ws.query_params
         name = query.get("model", self.default_model)
         if name not in self.models:
@@ -393,12 +393,12 @@ class Service:
                 CLOSE_POLICY,
                 f"unknown model '{name[:80]}': this server has {', '.join(self.models)}",
             )
-        text = query.get("lookahead_ms", str(DEFAULT_LOOKAHEAD_MS))
+        text = query.get("lookahead_ms")  # None: the model's default (procedural 100 ms)
         try:
-            lookahead = float(text)
+            lookahead = None if text is None else float(text)
         except ValueError:
             lookahead = math.nan
-        if not math.isfinite(lookahead):
+        if lookahead is not None and not math.isfinite(lookahead):
             raise ClientError(
                 CLOSE_POLICY, f"lookahead_ms must be a number of milliseconds, got '{text[:40]}'"
             )

@@ -15,9 +15,11 @@ Two animators stream:
   and brow drift come from a seeded schedule; brow raises on pitch accents need the audio after
   the accent and are left out.
 * a learned model's release that streams (:meth:`talkmesh.models.base.MotionModel.open_frame_stream`;
-  today a streaming CodeTalker, ``configs/codetalker_stream.yaml``: causal VQ decoder, mel speech
-  encoder with a runtime look-ahead): one frame per step with key/value caches, exactly what
-  ``generate`` computes offline. On the model's own topology (``head`` a face of another topology
+  a CodeTalker with a causal VQ decoder: a streaming one, ``configs/codetalker_stream.yaml``, whose
+  mel speech encoder has a runtime look-ahead, exactly what ``generate`` computes offline; or the
+  bundled one, whose Whisper features come a block of frames at a time,
+  :mod:`talkmesh.models.whisper_stream`, exactly what ``generate_streamed`` computes): one frame
+  per step with key/value caches. On the model's own topology (``head`` a face of another topology
   than the bundled head's), its ARKit weights are solved from its motion as offline
   (:mod:`talkmesh.face.solve`, the face rigged once per mesh), each push continuing the last
   frame, and its eye motion is its own.
@@ -51,6 +53,7 @@ from talkmesh.face.lipsync import (
     replace_eye_motion,
     upper_face_curves,
 )
+from talkmesh.models.bundled import MODELS_DIR
 
 DEFAULT_LOOKAHEAD_MS = 100.0
 MAX_LOOKAHEAD_MS = 300.0
@@ -337,7 +340,7 @@ class ModelStreamer(Streamer):
     def __init__(
         self,
         path: str | Path,
-        lookahead_ms: float,
+        lookahead_ms: float | None,
         head: Head,
         offsets: bool,
         seed: int = 0,
@@ -542,17 +545,19 @@ def open_stream(
     blinks: bool = True,
     decoders: DecoderPool | None = None,
 ) -> Streamer:
-    """A streamer for ``model``: ``procedural`` or the path of a release that streams (today a
-    streaming CodeTalker, ``configs/codetalker_stream.yaml``).
+    """A streamer for ``model``: ``procedural``, a bundled model's name or the path of a release
+    that streams (a CodeTalker with a causal VQ decoder: the bundled ``codetalker-synth``, a
+    streaming one of ``configs/codetalker_stream.yaml``).
 
-    ``lookahead_ms`` (default 100): audio after a frame's time that it waits for, 0-300 ms (a
-    model accepts the range it was trained for). ``offsets``: also return vertex
+    ``lookahead_ms``: audio after a frame's time that it waits for, 0-300 ms (None: the
+    model's default, procedural 100 ms, the bundled CodeTalker 300 ms, a mel streaming release
+    the largest it was trained for, which is the range it accepts). ``offsets``: also return vertex
     offsets per frame. ``fps`` applies to the procedural animator (a model has its own), and
     ``decoders`` (a :class:`DecoderPool` its recogniser comes from and goes back to, by
     ``release()``).
     """
-    lookahead = DEFAULT_LOOKAHEAD_MS if lookahead_ms is None else float(lookahead_ms)
-    if not 0.0 <= lookahead <= MAX_LOOKAHEAD_MS:
+    lookahead = None if lookahead_ms is None else float(lookahead_ms)
+    if lookahead is not None and not 0.0 <= lookahead <= MAX_LOOKAHEAD_MS:
         raise TalkmeshError(
             f"look-ahead {lookahead:g} ms is out of range: use 0 to {MAX_LOOKAHEAD_MS:g} ms"
         )
@@ -568,12 +573,21 @@ def open_stream(
     if name == "procedural":
         if not 1.0 <= fps <= 240.0:
             raise TalkmeshError(f"fps {fps:g} is out of range: use 1 to 240")
-        return ProceduralStreamer(lookahead, head, offsets, fps=fps, seed=seed, decoders=decoders)
+        return ProceduralStreamer(
+            DEFAULT_LOOKAHEAD_MS if lookahead is None else lookahead,
+            head,
+            offsets,
+            fps=fps,
+            seed=seed,
+            decoders=decoders,
+        )
     path = Path(name)
+    if not path.is_file() and (MODELS_DIR / f"{name}.safetensors").is_file():
+        path = MODELS_DIR / f"{name}.safetensors"  # a bundled model by its name
     if path.suffix != ".safetensors" or not path.is_file():
         raise TalkmeshError(
-            f"unknown streaming model '{name}': use procedural or a streaming model's "
-            ".safetensors file"
+            f"unknown streaming model '{name}': use procedural, a bundled model or a streaming "
+            "model's .safetensors file"
         )
     return ModelStreamer(
         path, lookahead, head, offsets, seed=seed, style_weights=style_weights, blinks=blinks

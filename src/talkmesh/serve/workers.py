@@ -292,7 +292,7 @@ class WorkerPool:
     def pids(self) -> list[int]:
         return [w.process.pid for w in self.workers]
 
-    async def open(self, source: str, lookahead_ms: float, offsets: bool) -> RemoteStream:
+    async def open(self, source: str, lookahead_ms: float | None, offsets: bool) -> RemoteStream:
         """A session on the least busy worker (a lost one is replaced first).
 
         Raises:

@@ -58,8 +58,8 @@ class RingView:
 
 
 class FrameBatch:
-    """All streams of one streaming CodeTalker (causal VQ decoder, mel speech encoder), one
-    slot each; :meth:`step` runs the next frame of any of them together (module docstring).
+    """All streams of one CodeTalker with a causal VQ decoder (mel or Whisper speech encoder),
+    one slot each; :meth:`step` runs the next frame of any of them together (module docstring).
     Thread-safe: streams open and close while another thread steps."""
 
     def __init__(self, model: nn.Module) -> None:
@@ -148,7 +148,7 @@ class FrameBatch:
                     raise ValueError(f"frame {r.frame} asked for out of order")
             t = torch.tensor([r.frame for r in requests])
             B = len(requests)
-            # the speech features (the mel stack over each stream's receptive field)
+            # the speech features (each stream's mel stack, or its Whisper block's feature)
             windows = torch.stack([r.stream.features.window(*r[1:]) for r in requests])
             shifts = [r.stream.features.shift for r in requests]
             feats = requests[0].stream.features.encode(windows, shifts)

@@ -23,6 +23,7 @@ from talkmesh.models.codetalker.batch import frame_batch
 from talkmesh.models.codetalker.vq import DecoderStep, Quantized
 from talkmesh.models.layers import KVCache, folded_linear, sinusoid, window_bias
 from talkmesh.models.speech import MelFeatureStream
+from talkmesh.models.whisper_stream import WhisperFeatureStream, streamed_features
 
 # Fast mode's pass schedule. Each pass runs K frames from guesses of their codes and keeps those up
 # to the first wrong guess; a pass costs little more than one step, so long passes pay while the
@@ -420,8 +421,9 @@ class FrameGenerator:
 
 
 class CodeTalkerStream(FrameStream):
-    """A streaming CodeTalker (causal VQ decoder, mel speech encoder) one frame per step: the
-    frame's speech feature from the stream's audio (:class:`MelFeatureStream`), then the model's
+    """A CodeTalker with a causal VQ decoder one frame per step: the frame's speech feature from
+    the stream's audio (:class:`MelFeatureStream`, or for the Whisper encoder
+    :class:`~talkmesh.models.whisper_stream.WhisperFeatureStream`), then the model's
     step with key/value caches, exactly what ``generate`` computes. The streams of one model
     share its :class:`talkmesh.models.codetalker.batch.FrameBatch`, where each holds a slot, and
     compute their frames together (:meth:`frames_together`)."""
@@ -430,7 +432,7 @@ class CodeTalkerStream(FrameStream):
         self,
         model: nn.Module,
         style: Tensor,
-        features: MelFeatureStream,
+        features: MelFeatureStream | WhisperFeatureStream,
         face: Tensor | None = None,
     ) -> None:
         """``model``: a CodeTalker; ``style`` (1, d) its style vector; ``face`` (1, hidden) its VQ
@@ -453,3 +455,29 @@ class CodeTalkerStream(FrameStream):
         self, requests: list[FrameRequest], basis: np.ndarray | None = None
     ) -> np.ndarray:
         return self.engine.step(requests, basis)
+
+
+def generate_streamed(
+    model: nn.Module,
+    audio: np.ndarray,
+    template: np.ndarray,
+    lookahead_ms: float | None = None,
+    style_weights: np.ndarray | None = None,
+    **windows,
+) -> np.ndarray:
+    """(T, V, 3) vertices: what a stream of ``audio`` (S,) 16 kHz computes on ``template``
+    (V, 3), offline, for a CodeTalker with the Whisper encoder and a causal VQ decoder
+    (:mod:`talkmesh.models.whisper_stream`; ``windows``: its ``context_s`` and ``block``)."""
+    T = model.default_frames(len(audio))
+    K = len(model.styles)
+    weights = np.full(K, 1.0 / K, np.float32) if style_weights is None else style_weights
+    with torch.inference_mode():
+        head = torch.as_tensor(template, dtype=torch.float32)[None]
+        style = model.style_vector(
+            None, torch.from_numpy(np.asarray(weights, np.float32))[None], head
+        )
+        face = model.decoder_face(head)
+        feats = streamed_features(model.speech, audio, T, model.motion_fps, lookahead_ms, **windows)
+        cross = model.cross_terms(model._tokens(feats[None], T))
+        _, motion = generate_fast(model, style, cross, T, None, face)
+    return (motion.view(T, -1, 3) + head).numpy()

@@ -58,6 +58,7 @@ from talkmesh.models.speech import (
 )
 from talkmesh.models.speech_chunks import FrameFeatures
 from talkmesh.models.threads import step_threads
+from talkmesh.models.whisper_stream import WhisperFeatureStream
 
 GENERATION_MODES = ("fast", "naive", "exact")  # CodeTalker.generate(mode=...)
 # the head term's input, in tenths of the training faces' spread: Adam moves each weight of its
@@ -313,15 +314,23 @@ class CodeTalker(MotionModel):
         lookahead_ms: float | None,
         template: np.ndarray | None = None,
     ) -> FrameStream:
-        """A streaming release (``configs/codetalker_stream.yaml``: causal VQ decoder, mel speech
-        encoder with a runtime look-ahead) one frame per step (:class:`CodeTalkerStream`);
-        ``template`` (V, 3): the head it drives (for a model with ``stage2.head_pairs``)."""
-        if not self.cfg.vq.causal or not isinstance(self.speech, MelEncoder):
+        """One frame per step (:class:`CodeTalkerStream`) for a model with a causal VQ decoder:
+        a streaming release (``configs/codetalker_stream.yaml``: mel speech encoder with a
+        runtime look-ahead, None its largest) or one with the Whisper encoder (the bundled
+        model: features a few frames at a time, :mod:`talkmesh.models.whisper_stream`, None its
+        default look-ahead); ``template`` (V, 3): the head it drives (``stage2.head_pairs``)."""
+        s2 = self.cfg.stage2
+        if isinstance(self.speech, MelEncoder):
+            features = MelFeatureStream(self.speech, self.motion_fps, lookahead_ms)
+        elif isinstance(self.speech, WhisperEncoder) and s2.audio_tokens_per_frame == 1:
+            features = WhisperFeatureStream(self.speech, self.motion_fps, lookahead_ms)
+        else:
+            features = None
+        if not self.cfg.vq.causal or features is None:
             raise TalkmeshError(
                 "this codetalker model cannot stream: it needs a causal VQ decoder and the mel "
-                "speech encoder (train one with configs/codetalker_stream.yaml)"
+                "speech encoder or the Whisper one (train one with configs/codetalker_stream.yaml)"
             )
-        features = MelFeatureStream(self.speech, self.motion_fps, lookahead_ms)
         K = len(self.styles)
         weights = np.full(K, 1.0 / K, np.float32) if style_weights is None else style_weights
         with torch.inference_mode():
