@@ -149,7 +149,7 @@ def score(data: Path, pred: Path) -> dict:
 
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", help="streaming CodeTalker release (.safetensors)")
+    p.add_argument("--model", help="a release that streams (.safetensors) or a bundled model")
     p.add_argument("--data", default="corpus/synth", type=Path)
     p.add_argument("--minutes", type=float, default=10.0)
     p.add_argument("--chunk-ms", type=float, default=20.0)
@@ -253,7 +253,7 @@ def main() -> None:
     chunk = int(round(args.chunk_ms / 1000 * SAMPLE_RATE))
     skip = set(filter(None, args.skip.split(",")))
     animators = ["procedural"] + ([args.model] if args.model else [])
-    labels = {a: "procedural" if a == "procedural" else "streaming CodeTalker" for a in animators}
+    labels = {a: "procedural" if a == "procedural" else Path(a).stem for a in animators}
     report: dict = {"chunk_ms": args.chunk_ms, "threads": args.threads}
     if "latency" not in skip:
         report["latency"] = latency_table(args, labels, chunk)
