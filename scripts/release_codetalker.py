@@ -215,6 +215,14 @@ def main() -> None:
         f"Generating the {len(test)} test sequences ({audio_s:.0f} s of audio) took {seconds:.1f} s "
         f"in fast mode (real-time factor {seconds / audio_s:.3f}).",
         "",
+        "## Streaming",
+        "",
+        "A model with a causal VQ decoder and the Whisper encoder streams (`talkmesh serve "
+        f"--model {args.name}`): Whisper windows a block of 3 frames at a time, each ending a "
+        "look-ahead (default 300 ms) after the block's last frame, with 2 s of context "
+        "(`talkmesh.models.whisper_stream`). Its lip sync streamed: `python bench/real_speech.py "
+        f"--methods {args.name}-raw,{args.name}-stream300` (docs/results/streaming.md).",
+        "",
         "## Limits",
         "",
         f"Trained on {train_minutes(args.data):.0f} minutes of synthetic speech from "
