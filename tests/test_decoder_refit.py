@@ -4,6 +4,7 @@ lip-gap loss too."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from conftest import decoder_recipe
@@ -117,3 +118,38 @@ def test_stage1_starts_from_the_motion_stage_of_any_release_with_its_vq(tmp_path
     }
     with pytest.raises(TalkmeshError, match="VQ-VAE config differs"):
         _build_stage1(bigger, info, tmp_path / "other.safetensors")
+
+
+def test_refit_on_the_speech_stages_codes_changes_the_vq_decoder_alone(tiny_corpus, tmp_path):
+    """``task: codetalker-decoder-speech``: the decoder learns from the codes the speech stage
+    predicts; every other weight stays, and the decoder moves towards the truth on those codes."""
+    pytest.importorskip("lightning")
+    from talkmesh.datasets.reader import open_dataset
+    from talkmesh.models.release import load_model, save_model
+    from talkmesh.training.trainer import load_recipe, train
+
+    data = open_dataset("synth", tiny_corpus, "train")
+    torch.manual_seed(0)
+    base = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, data.spec.train_subjects))
+    save_model(base, tmp_path / "base.safetensors")
+    recipe = tmp_path / "r.yaml"
+    decoder_recipe(recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "run")
+    recipe.write_text(recipe.read_text().replace("codetalker-decoder", "codetalker-decoder-speech"))
+    refit = load_model(train(load_recipe(recipe), progress=False))
+    before, after = base.state_dict(), refit.state_dict()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    assert changed and all(k.startswith("vqvae.decoder.") for k in changed), changed
+    assert refit.cfg == base.cfg
+    # its loss is the decoder's on the predicted codes, which the refit lowered
+    sample = data[0]
+    audio = torch.tensor(np.asarray(sample.audio))[None]
+    verts = torch.tensor(np.asarray(sample.vertices)).float().view(1, len(sample.vertices), -1, 3)
+    template = torch.tensor(np.asarray(sample.template)).float()[None]
+    styles = torch.tensor([data.spec.train_subjects.index(sample.subject)])
+
+    def loss(net: CodeTalker) -> float:
+        net.eval()
+        with torch.no_grad():
+            return float(net(audio, None, verts, template, styles).motion_loss)
+
+    assert loss(refit) < loss(base)

@@ -6,7 +6,8 @@ release); ``task: codetalker-finetune`` continues stage 2 of a finished release 
 a bundled name), e.g. on augmented audio, with its model, speech statistics and VQ-VAE as they
 are; ``task: codetalker-decoder`` refits the VQ decoder of a finished release on the data (the
 encoder, codebook and stage 2 as they are, so the release's code queries stay valid), e.g. with the
-lip-gap loss so that the codes of a closure close the lips; its model section may say
+lip-gap loss so that the codes of a closure close the lips (``task: codetalker-decoder-speech``:
+on the codes the speech stage predicts from the audio instead of the truth's); its model section may say
 ``head_decoder: true`` to let the decoder hear the head's lips too (``stage2.head_decoder``, for a
 release with the style's head term). The model section of the other tasks is
 ``{preset: small|vocaset|biwi, vq: {...}, stage2: {...}}``; the vertex count and the training
@@ -159,6 +160,28 @@ def _step_decoder(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     return StepOutput(
         out.reconstruction, {"reconstruction": float(out.reconstruction.detach())}, out.motion
     )
+
+
+def _step_decoder_speech(net: CodeTalker, batch: TorchBatch) -> StepOutput:
+    """The VQ decoder on the codes the speech stage predicts from the (augmented) audio, fed
+    back as in its training (``stage2.self_feedback``), against the true motion: it learns to
+    draw the codes the model will give it, not only the truth's. In training the speech stage's
+    modules stay in eval mode (no dropout) while the model's own flag keeps the self-feedback."""
+    training = net.training
+    net.eval()
+    if training:
+        net.vqvae.decoder.train()
+        net.training = True  # the model's self-feedback; its modules stay as set
+    out = net(
+        batch.audio,
+        batch.audio_lengths,
+        batch.vertices,
+        batch.templates,
+        batch.styles,
+        batch.motion_mask,
+    )
+    net.train(training)
+    return StepOutput(out.motion_loss, {"motion": float(out.motion_loss.detach())}, out.motion)
 
 
 def _build_stage2(model: dict[str, Any], info: DatasetInfo, init: Path | None) -> CodeTalker:
@@ -343,6 +366,14 @@ DECODER = Task(
     parameters=lambda net: itertools.chain(
         net.vqvae.decoder.parameters(), _decoder_head_parameters(net)
     ),
+    save=save_model,
+    prepare=None,
+)
+DECODER_SPEECH = Task(
+    name="codetalker-decoder-speech",
+    build=_build_decoder,
+    step=_step_decoder_speech,
+    parameters=DECODER.parameters,
     save=save_model,
     prepare=None,
 )

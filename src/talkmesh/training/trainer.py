@@ -255,6 +255,7 @@ TASKS: dict[str, str] = {
     "codetalker-stage2": "talkmesh.training.codetalker:STAGE2",
     "codetalker-finetune": "talkmesh.training.codetalker:FINETUNE",
     "codetalker-decoder": "talkmesh.training.codetalker:DECODER",
+    "codetalker-decoder-speech": "talkmesh.training.codetalker:DECODER_SPEECH",
     "meshtalk": "talkmesh.training.meshtalk:EXPRESSION",
     "meshtalk-prior": "talkmesh.training.meshtalk:PRIOR",
     "faceformer": "talkmesh.training.faceformer:FACEFORMER",
