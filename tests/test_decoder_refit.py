@@ -153,3 +153,30 @@ def test_refit_on_the_speech_stages_codes_changes_the_vq_decoder_alone(tiny_corp
             return float(net(audio, None, verts, template, styles).motion_loss)
 
     assert loss(refit) < loss(base)
+
+
+def test_train_trainable_changes_the_named_parameters_alone(tiny_corpus, tmp_path):
+    """``train.trainable``: of what the task trains, only the parameters so named learn; a name
+    that matches none of them is one line before any training."""
+    pytest.importorskip("lightning")
+    from talkmesh.datasets.reader import open_dataset
+    from talkmesh.models.release import load_model, save_model
+    from talkmesh.training.trainer import load_recipe, train
+
+    data = open_dataset("synth", tiny_corpus, "train")
+    torch.manual_seed(0)
+    base = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, data.spec.train_subjects))
+    save_model(base, tmp_path / "base.safetensors")
+    recipe = tmp_path / "r.yaml"
+    decoder_recipe(recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "run")
+    recipe.write_text(
+        recipe.read_text().replace("lip_gap_weight: 0.5,", "trainable: [vqvae.decoder.out],")
+    )
+    refit = load_model(train(load_recipe(recipe), progress=False))
+    before, after = base.state_dict(), refit.state_dict()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    assert changed == {"vqvae.decoder.out.weight", "vqvae.decoder.out.bias"}, changed
+    decoder_recipe(recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "none")
+    recipe.write_text(recipe.read_text().replace("lip_gap_weight: 0.5,", "trainable: [style],"))
+    with pytest.raises(TalkmeshError, match="names none of the parameters"):
+        train(load_recipe(recipe), progress=False)

@@ -33,6 +33,7 @@ from talkmesh.errors import MissingDependencyError, TalkmeshError
 from talkmesh.training import checkpoints
 from talkmesh.training.augment import AugmentConfig
 from talkmesh.training.augment import augment as augment_crop
+from talkmesh.training.params import decay_groups, trainable
 
 try:
     import torch
@@ -91,6 +92,9 @@ class TrainConfig:
     lip_close_weight: float = 0.0  # the lip-gap loss counts the truth's closed frames 1 + this
     lip_rest_weight: float = 0.0  # ... and the frames where its mouth is at rest 1 + this
     code_ce_weight: float = 0.0  # cross-entropy on the codes (training.lip_gap.CodeChoice); 0: off
+    # names (or name prefixes) of the parameters that learn, among those the task trains (e.g.
+    # [head_map.weight]: the style's head term alone); empty: all of them
+    trainable: tuple[str, ...] = ()
     log_every: int = 10  # steps between log rows
     val_every: int = 1  # epochs between validation runs
     out_dir: str = "runs/train"
@@ -428,7 +432,7 @@ def build_system(recipe: Recipe, info: DatasetInfo, init: Path | None):
             self.log("val/loss", loss, prog_bar=True, batch_size=len(batch.names), sync_dist=True)
 
         def configure_optimizers(self):
-            params = [p for p in task.parameters(self.model) if p.requires_grad]
+            params = trainable(self.model, task.parameters(self.model), recipe.train.trainable)
             t = recipe.train
             opt = torch.optim.AdamW if t.optimizer == "adamw" else torch.optim.Adam
             groups = decay_groups(self.model, params, t.weight_decay, t.weight_decay_modules)
@@ -483,29 +487,6 @@ def _rng_state() -> dict:
         ],
         "python": random.getstate(),
     }
-
-
-def decay_groups(
-    net: torch.nn.Module, params: list, weight_decay: float, modules: tuple[str, ...]
-) -> list[dict]:
-    """Optimizer parameter groups: weight decay on the parameters under ``modules`` (dotted
-    sub-module names of ``net``; empty: all of them), none on the others."""
-    if not modules:
-        return [{"params": params, "weight_decay": weight_decay}]
-    names = {id(p): n for n, p in net.named_parameters()}
-    for m in modules:
-        if not any(n.startswith(m + ".") for n in names.values()):
-            raise TalkmeshError(
-                f"train.weight_decay_modules: {m!r} names no parameters of the trained network "
-                f"(its sub-modules: {', '.join(sorted({n.split('.')[0] for n in names.values()}))})"
-            )
-    decayed = [p for p in params if any(names[id(p)].startswith(m + ".") for m in modules)]
-    chosen = {id(p) for p in decayed}
-    rest = [p for p in params if id(p) not in chosen]
-    return [
-        {"params": decayed, "weight_decay": weight_decay},
-        {"params": rest, "weight_decay": 0.0},
-    ]
 
 
 def _loaders(recipe: Recipe, train_set):
