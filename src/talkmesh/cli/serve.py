@@ -28,8 +28,8 @@ def add_serve(sub: Subparsers) -> None:
     sv.add_argument(
         "--model",
         action="append",
-        help="procedural or a streaming CodeTalker .safetensors; repeat to offer several, clients "
-        "pick one by name (default procedural)",
+        help="procedural, a bundled model (codetalker-synth) or a streaming CodeTalker "
+        ".safetensors; repeat to offer several, clients pick one by name (default procedural)",
     )
     sv.add_argument(
         "--max-sessions",
