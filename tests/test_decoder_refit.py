@@ -13,20 +13,33 @@ from talkmesh.errors import TalkmeshError
 from talkmesh.models.codetalker.model import CodeTalker
 
 
-def test_refit_changes_the_vq_decoder_alone(tiny_corpus, tmp_path):
+def _tiny_release(root, path):
+    """(the tiny corpus's training split, a tiny CodeTalker saved as a release at ``path``)."""
     pytest.importorskip("lightning")
     from talkmesh.datasets.reader import open_dataset
-    from talkmesh.models.release import load_model, save_model
-    from talkmesh.training.trainer import load_recipe, train
+    from talkmesh.models.release import save_model
 
-    data = open_dataset("synth", tiny_corpus, "train")
+    data = open_dataset("synth", root, "train")
     torch.manual_seed(0)
     base = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, data.spec.train_subjects))
-    save_model(base, tmp_path / "base.safetensors")
+    save_model(base, path)
+    return data, base
+
+
+def _refit(recipe):
+    """The release a recipe trains."""
+    from talkmesh.models.release import load_model
+    from talkmesh.training.trainer import load_recipe, train
+
+    return load_model(train(load_recipe(recipe), progress=False))
+
+
+def test_refit_changes_the_vq_decoder_alone(tiny_corpus, tmp_path):
+    _, base = _tiny_release(tiny_corpus, tmp_path / "base.safetensors")
     decoder_recipe(
         tmp_path / "r.yaml", tmp_path / "base.safetensors", tiny_corpus, tmp_path / "run"
     )
-    refit = load_model(train(load_recipe(tmp_path / "r.yaml"), progress=False))
+    refit = _refit(tmp_path / "r.yaml")
     before, after = base.state_dict(), refit.state_dict()
     assert before.keys() == after.keys()
     changed = {k for k in before if not torch.equal(before[k], after[k])}
@@ -123,19 +136,11 @@ def test_stage1_starts_from_the_motion_stage_of_any_release_with_its_vq(tmp_path
 def test_refit_on_the_speech_stages_codes_changes_the_vq_decoder_alone(tiny_corpus, tmp_path):
     """``task: codetalker-decoder-speech``: the decoder learns from the codes the speech stage
     predicts; every other weight stays, and the decoder moves towards the truth on those codes."""
-    pytest.importorskip("lightning")
-    from talkmesh.datasets.reader import open_dataset
-    from talkmesh.models.release import load_model, save_model
-    from talkmesh.training.trainer import load_recipe, train
-
-    data = open_dataset("synth", tiny_corpus, "train")
-    torch.manual_seed(0)
-    base = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, data.spec.train_subjects))
-    save_model(base, tmp_path / "base.safetensors")
+    data, base = _tiny_release(tiny_corpus, tmp_path / "base.safetensors")
     recipe = tmp_path / "r.yaml"
     decoder_recipe(recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "run")
     recipe.write_text(recipe.read_text().replace("codetalker-decoder", "codetalker-decoder-speech"))
-    refit = load_model(train(load_recipe(recipe), progress=False))
+    refit = _refit(recipe)
     before, after = base.state_dict(), refit.state_dict()
     changed = {k for k in before if not torch.equal(before[k], after[k])}
     assert changed and all(k.startswith("vqvae.decoder.") for k in changed), changed
@@ -158,25 +163,17 @@ def test_refit_on_the_speech_stages_codes_changes_the_vq_decoder_alone(tiny_corp
 def test_train_trainable_changes_the_named_parameters_alone(tiny_corpus, tmp_path):
     """``train.trainable``: of what the task trains, only the parameters so named learn; a name
     that matches none of them is one line before any training."""
-    pytest.importorskip("lightning")
-    from talkmesh.datasets.reader import open_dataset
-    from talkmesh.models.release import load_model, save_model
-    from talkmesh.training.trainer import load_recipe, train
-
-    data = open_dataset("synth", tiny_corpus, "train")
-    torch.manual_seed(0)
-    base = CodeTalker(CodeTalker.tiny_config(data.spec.num_vertices, data.spec.train_subjects))
-    save_model(base, tmp_path / "base.safetensors")
+    data, base = _tiny_release(tiny_corpus, tmp_path / "base.safetensors")
     recipe = tmp_path / "r.yaml"
     decoder_recipe(recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "run")
     recipe.write_text(
         recipe.read_text().replace("lip_gap_weight: 0.5,", "trainable: [vqvae.decoder.out],")
     )
-    refit = load_model(train(load_recipe(recipe), progress=False))
+    refit = _refit(recipe)
     before, after = base.state_dict(), refit.state_dict()
     changed = {k for k in before if not torch.equal(before[k], after[k])}
     assert changed == {"vqvae.decoder.out.weight", "vqvae.decoder.out.bias"}, changed
     decoder_recipe(recipe, tmp_path / "base.safetensors", tiny_corpus, tmp_path / "none")
     recipe.write_text(recipe.read_text().replace("lip_gap_weight: 0.5,", "trainable: [style],"))
     with pytest.raises(TalkmeshError, match="names none of the parameters"):
-        train(load_recipe(recipe), progress=False)
+        _refit(recipe)

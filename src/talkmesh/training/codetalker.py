@@ -162,6 +162,18 @@ def _step_decoder(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     )
 
 
+def _stage2_forward(net: CodeTalker, batch: TorchBatch):
+    """The speech stage's teacher-forced pass over a batch (``CodeTalker.forward``)."""
+    return net(
+        batch.audio,
+        batch.audio_lengths,
+        batch.vertices,
+        batch.templates,
+        batch.styles,
+        batch.motion_mask,
+    )
+
+
 def _step_decoder_speech(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     """The VQ decoder on the codes the speech stage predicts from the (augmented) audio, fed
     back as in its training (``stage2.self_feedback``), against the true motion: it learns to
@@ -172,14 +184,7 @@ def _step_decoder_speech(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     if training:
         net.vqvae.decoder.train()
         net.training = True  # the model's self-feedback; its modules stay as set
-    out = net(
-        batch.audio,
-        batch.audio_lengths,
-        batch.vertices,
-        batch.templates,
-        batch.styles,
-        batch.motion_mask,
-    )
+    out = _stage2_forward(net, batch)
     net.train(training)
     return StepOutput(out.motion_loss, {"motion": float(out.motion_loss.detach())}, out.motion)
 
@@ -304,14 +309,7 @@ def with_styles(net: CodeTalker, styles: tuple[str, ...]) -> CodeTalker:
 
 def _step_stage2(net: CodeTalker, batch: TorchBatch) -> StepOutput:
     net.vqvae.eval()  # frozen: no codebook usage updates
-    out = net(
-        batch.audio,
-        batch.audio_lengths,
-        batch.vertices,
-        batch.templates,
-        batch.styles,
-        batch.motion_mask,
-    )
+    out = _stage2_forward(net, batch)
     return StepOutput(
         out.loss,
         {"feature": float(out.feature_loss.detach()), "motion": float(out.motion_loss.detach())},

@@ -469,15 +469,9 @@ def generate_streamed(
     (V, 3), offline, for a CodeTalker with the Whisper encoder and a causal VQ decoder
     (:mod:`talkmesh.models.whisper_stream`; ``windows``: its ``context_s`` and ``block``)."""
     T = model.default_frames(len(audio))
-    K = len(model.styles)
-    weights = np.full(K, 1.0 / K, np.float32) if style_weights is None else style_weights
+    style, face = model.stream_terms(style_weights, template)
     with torch.inference_mode():
-        head = torch.as_tensor(template, dtype=torch.float32)[None]
-        style = model.style_vector(
-            None, torch.from_numpy(np.asarray(weights, np.float32))[None], head
-        )
-        face = model.decoder_face(head)
         feats = streamed_features(model.speech, audio, T, model.motion_fps, lookahead_ms, **windows)
         cross = model.cross_terms(model._tokens(feats[None], T))
         _, motion = generate_fast(model, style, cross, T, None, face)
-    return (motion.view(T, -1, 3) + head).numpy()
+    return motion.view(T, -1, 3).numpy() + np.asarray(template, np.float32)

@@ -331,6 +331,15 @@ class CodeTalker(MotionModel):
                 "this codetalker model cannot stream: it needs a causal VQ decoder and the mel "
                 "speech encoder or the Whisper one (train one with configs/codetalker_stream.yaml)"
             )
+        style, face = self.stream_terms(style_weights, template)
+        return CodeTalkerStream(self, style, features, face)
+
+    def stream_terms(
+        self, style_weights: np.ndarray | None, template: np.ndarray | None
+    ) -> tuple[Tensor, Tensor | None]:
+        """One stream's style vector (1, d) (``style_weights`` over the training styles, None:
+        all alike, a speaker the model has not heard) and its VQ decoder's head term (1, hidden)
+        (:meth:`decoder_face`) for the head ``template`` (V, 3) it drives."""
         K = len(self.styles)
         weights = np.full(K, 1.0 / K, np.float32) if style_weights is None else style_weights
         with torch.inference_mode():
@@ -338,9 +347,7 @@ class CodeTalker(MotionModel):
                 None if template is None else torch.as_tensor(template, dtype=torch.float32)[None]
             )
             weights = torch.from_numpy(np.asarray(weights, np.float32))[None]
-            style = self.style_vector(None, weights, head)
-            face = self.decoder_face(head)
-        return CodeTalkerStream(self, style, features, face)
+            return self.style_vector(None, weights, head), self.decoder_face(head)
 
     def onnx_graphs(self) -> tuple[nn.Module, nn.Module]:
         """The Whisper speech encoder and one step of generation with its state as inputs and
