@@ -4,13 +4,16 @@
     python bench/serve_load.py --sessions 16 --model codetalker-stream --minutes 5
     python bench/serve_load.py --sessions 1,2 --minutes 0.2               # quick look
     python bench/serve_load.py --sessions 1,16 --model codetalker-stream --compute-only
+    python bench/serve_load.py --sessions 1,4,16 --model codetalker-synth --lookahead-ms 300 \
+        --compute-only --one-window-at-a-time --torch-threads 1
 
 For each session count a fresh ``talkmesh serve`` starts on a free loopback port in a subprocess
 (``--max-sessions`` = the count). Each client streams speech (the pocketsphinx test recordings,
 looped; or ``--wav``) paced in real time, ``--chunk-ms`` at a time, starting at a random moment
 of the first ``--stagger-s`` seconds, and records when every frame arrives.
 
-``--model``: ``procedural``, a streaming release (.safetensors), or ``codetalker-stream``: a
+``--model``: ``procedural``, a streaming release (.safetensors), a bundled model that streams
+(``codetalker-synth``), or ``codetalker-stream``: a
 model of ``configs/codetalker_stream.yaml``'s size and the bundled head's vertices with untrained
 weights (a streaming step costs the same whatever the weights; no trained one is bundled).
 
@@ -69,6 +72,7 @@ EDGE = 0.2  # drift compares the first and last fifth of a run (at most 60 s eac
 MAX_EDGE_S = 60.0
 SETTLE_S = 1.0  # the first second (start-up) is left out of the drift's first window
 ROOT = Path(__file__).resolve().parent.parent
+STAGGER_MS = 100.0  # --compute-only: the streams start this far apart at most (a Whisper block)
 
 
 @dataclass
@@ -252,12 +256,22 @@ def run_config(args, model: str, name: str, n: int, pcm: bytes) -> str:
 
 
 def compute_only(
-    model: str, n: int, pcm: bytes, chunk_ms: float, lookahead_ms: float, search: str = "stream"
+    model: str,
+    n: int,
+    pcm: bytes,
+    chunk_ms: float,
+    lookahead_ms: float,
+    search: str = "stream",
+    together: bool = True,
 ) -> str:
     """The server's computation without the server: ``n`` streams pushed together
     (:func:`talkmesh.serve.stream.push_together`) in ticks of two chunks, in this process ->
     a table row of CPU time per frame and per second of one session's audio. ``search``:
-    the procedural recogniser's settings, ``stream`` (the server's) or ``offline``."""
+    the procedural recogniser's settings, ``stream`` (the server's) or ``offline``. Stream
+    ``k`` starts with ``k / n`` of :data:`STAGGER_MS` of silence, so the streams' frames fall
+    at different moments of a tick, as those of sessions that start at random moments do.
+    ``together`` False: each Whisper stream encodes its own windows (what a step did before
+    :meth:`talkmesh.models.whisper_stream.WhisperFeatureStream.prepare`), the reference."""
     from talkmesh.audio.phonemes import ALLPHONE, ALLPHONE_STREAM
     from talkmesh.face.assets import load_head
     from talkmesh.serve.stream import ProceduralStreamer, open_stream, push_together
@@ -272,14 +286,27 @@ def compute_only(
         streams = [
             open_stream(model, lookahead_ms=lookahead_ms, head=head, seed=k) for k in range(n)
         ]
-    audio = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+    from talkmesh.models.whisper_stream import WhisperFeatureStream
+
+    speech = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+    lead = [np.zeros(round(SAMPLE_RATE * STAGGER_MS / 1000 * k / n), np.float32) for k in range(n)]
+    audios = [np.concatenate([silence, speech]) for silence in lead]
     step = int(SAMPLE_RATE * chunk_ms / 1000)
-    frames, cpu = 0, time.process_time()
-    for i in range(0, len(audio), 2 * step):
-        chunks = [audio[i : i + step], audio[i + step : i + 2 * step]]
-        frames += sum(len(r) for r in push_together([(s, chunks, False) for s in streams]))
-    cpu = time.process_time() - cpu
-    seconds = len(audio) / SAMPLE_RATE
+    prepare = WhisperFeatureStream.__dict__["prepare"]  # the staticmethod itself
+    if not together:
+        WhisperFeatureStream.prepare = None  # FrameBatch.step then calls window() per stream
+    try:
+        frames, cpu = 0, time.process_time()
+        for i in range(0, len(speech), 2 * step):
+            work = [
+                (s, [a[i : i + step], a[i + step : i + 2 * step]], False)
+                for s, a in zip(streams, audios)
+            ]
+            frames += sum(len(r) for r in push_together(work))
+        cpu = time.process_time() - cpu
+    finally:
+        WhisperFeatureStream.prepare = prepare
+    seconds = len(speech) / SAMPLE_RATE
     return f"| {n} | {frames} | {1000 * cpu / frames:.2f} | {100 * cpu / (n * seconds):.1f} |"
 
 
@@ -300,7 +327,8 @@ def main() -> None:
     p.add_argument(
         "--model",
         default="procedural",
-        help="procedural, a streaming .safetensors, or codetalker-stream (untrained, see above)",
+        help="procedural, a streaming .safetensors, a bundled model that streams (codetalker-synth) "
+        "or codetalker-stream (untrained, see above)",
     )
     p.add_argument("--batch-wait-ms", type=float, help="the server's (default: its default, 15)")
     p.add_argument("--torch-threads", type=int, help="the server's (default PyTorch's)")
@@ -310,6 +338,12 @@ def main() -> None:
         "--compute-only",
         action="store_true",
         help="no server, no clients: the sessions' computation in this process, CPU time only",
+    )
+    p.add_argument(
+        "--one-window-at-a-time",
+        action="store_true",
+        help="--compute-only with a Whisper model: also each stream's encoder windows on their "
+        "own (the reference for encoding a step's windows together)",
     )
     args = p.parse_args()
     seconds = args.seconds or 60 * (args.minutes or 1 / 3)
@@ -325,18 +359,23 @@ def main() -> None:
 
                 torch.set_num_threads(args.torch_threads)
             searches = ["offline", "stream"] if model == "procedural" else ["stream"]
+            ways = [False, True] if args.one_window_at_a_time else [True]
             rows = [
-                f"| {search} "
-                + compute_only(model, n, pcm, args.chunk_ms, args.lookahead_ms, search)
+                f"| {search} | {'together' if together else 'one at a time'} "
+                + compute_only(model, n, pcm, args.chunk_ms, args.lookahead_ms, search, together)
                 for search in searches
                 for n in counts
+                for together in ways
             ]
-            print(f"\n{args.model}, {seconds:g} s per session, computed in ticks of two chunks\n")
             print(
-                "| recogniser | sessions | frames | CPU per frame (ms) "
+                f"\n{args.model}, {seconds:g} s per session, look-ahead {args.lookahead_ms:g} ms, "
+                "computed in ticks of two chunks\n"
+            )
+            print(
+                "| recogniser | encoder windows | sessions | frames | CPU per frame (ms) "
                 "| CPU per session (% of a core) |"
             )
-            print("|---|---|---|---|---|")
+            print("|---|---|---|---|---|---|")
             print("\n".join(rows))
             return
         name = "procedural" if model == "procedural" else Path(model).stem

@@ -89,8 +89,16 @@ def test_the_mouth_leads_the_sound_and_the_upper_face_does_not(head):
     assert k == 2  # a 30 fps frame: two of the corpus's 60 fps frames
     mouth = list(LEAD_CHANNELS)
     assert set(MOUTH_CHANNELS) < set(mouth) and INDEX["mouthClose"] in mouth
-    np.testing.assert_allclose(ahead[:-k, mouth], in_step[k:, mouth], atol=1e-6)
-    np.testing.assert_allclose(ahead[-k:, mouth], in_step[-1:, mouth].repeat(k, 0), atol=1e-6)
+    t = np.arange(len(ahead)) / FPS
+    speech = (t >= 0.3) & (t < 0.78 - LEAD_S)  # the speech, as heard LEAD_S later
+    np.testing.assert_allclose(
+        ahead[speech][:, mouth], in_step[k:][speech[:-k]][:, mouth], atol=1e-6
+    )
+    # the rest is not cut short by the lead: the mouth leaves rest REST_RAMP_S before the speech
+    rest = t <= 0.3 - REST_RAMP_S
+    assert np.abs(ahead[rest][:, MOUTH_CHANNELS]).max() == 0.0
+    assert np.abs(ahead[(t > 0.3 - REST_RAMP_S) & (t < 0.3)][:, MOUTH_CHANNELS]).max() > 0.0
+    assert np.abs(ahead[t >= 0.78 + REST_RAMP_S][:, MOUTH_CHANNELS]).max() == 0.0
     upper = [c for c in range(52) if c not in set(mouth)]
     np.testing.assert_array_equal(ahead[:, upper], in_step[:, upper])
     # half a 60 fps frame ahead lies halfway between the frames

@@ -17,7 +17,7 @@ from talkmesh.models.release import load_model
 from talkmesh.models.whisper import ENCODER_HOP
 from talkmesh.models.whisper_stream import WhisperFeatureStream, streamed_features
 from talkmesh.pipeline import available_models
-from talkmesh.serve.stream import open_stream
+from talkmesh.serve.stream import open_stream, push_together
 
 CLIP = Path(
     "/usr/share/pocketsphinx/test/data/librivox/sense_and_sensibility_01_austen_64kb-0880.wav"
@@ -121,3 +121,42 @@ def test_bad_look_aheads_get_one_line(model):
         WhisperFeatureStream(model.speech, 30.0, 100.0, block=0)
     with pytest.raises(TalkmeshError, match="unknown streaming model"):
         open_stream("no-such-model")
+
+
+def test_streams_pushed_together_encode_their_windows_together(model, wave, monkeypatch):
+    """Three streams of one model in the same ticks (what the server does): each gets the frames
+    it gets alone, and the Whisper windows that start in the same step go to the encoder in one
+    call, not one call per stream."""
+    head = load_head()
+    voices = [wave, 0.5 * wave[::-1].copy(), np.concatenate([np.zeros(4000, np.float32), wave])]
+    alone = [_stream(v, [320], 300.0)[1] for v in voices]
+    streams = [
+        open_stream("codetalker-synth", lookahead_ms=300.0, head=head, offsets=True, blinks=False)
+        for _ in voices
+    ]
+    features = streams[0].stream.features.features  # the model's WhisperFeatures
+    calls: list[int] = []
+    encode = features.features
+    monkeypatch.setattr(
+        features,
+        "features",
+        lambda audio, lengths=None: calls.append(len(audio)) or encode(audio, lengths),
+    )
+    got: list[list] = [[] for _ in voices]
+    longest = max(len(v) for v in voices)
+    for i in range(0, longest, 640):  # ticks of two 20 ms chunks
+        work = [
+            (s, [v[i : i + 320], v[i + 320 : i + 640]], i + 640 >= len(v))
+            for s, v in zip(streams, voices)
+            if i < len(v)
+        ]
+        active = [j for j, v in enumerate(voices) if i < len(v)]
+        for j, frames in zip(active, push_together(work)):
+            assert not isinstance(frames, TalkmeshError), frames
+            got[j] += frames
+    for frames, offsets in zip(got, alone):
+        together = np.stack([f.offsets for f in frames])
+        assert together.shape == offsets.shape
+        np.testing.assert_allclose(together, offsets, atol=1e-5)
+    windows = sum(-(-len(o) // 3) for o in alone)  # one encoder window a block of 3 frames
+    assert sum(calls) == windows and len(calls) < 0.6 * windows, (len(calls), windows)

@@ -30,7 +30,8 @@ from talkmesh.datasets.synth import CorpusInfo, _atomic_write, _check_request
 from talkmesh.errors import TalkmeshError
 
 # 5: the teacher's truth a frame ahead of the sound, vowels 1.5, closures a 30 fps frame or longer
-FORMAT_VERSION = 5
+# 6: the pauses' rest not cut short by the lead (the mouth leaves rest 60 ms before speech, not 93)
+FORMAT_VERSION = 6
 ENGINES = ("mbrola", "espeak-lib", "festival")
 
 

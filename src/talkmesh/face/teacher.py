@@ -17,11 +17,12 @@ animator, each one measured by the real-speech metrics (``bench/synthetic_lips.p
    least squares on the head's own blendshapes) so that the inner lips are within
    :data:`CLOSURE_MM` of each other; the change eases in and out over the neighbouring frames.
 
-Before rule 3, the mouth is moved :data:`LEAD_S` ahead of the sound (:func:`lead`): the jaw and
-lips move before the acoustics they shape, as the procedural animator's anticipation has them do
-(a model trained on a mouth in step with the synthesiser's phones opened a frame late on real
-recordings). The closures of rule 3 stay where the sound is stopped: the lips are shut while the
-/p b m/ is heard.
+Between rules 1 and 2, the mouth is moved :data:`LEAD_S` ahead of the sound (:func:`lead`): the
+jaw and lips move before the acoustics they shape, as the procedural animator's anticipation has
+them do (a model trained on a mouth in step with the synthesiser's phones opened a frame late on
+real recordings). The rest of rule 2 is not moved: after a pause the mouth leaves rest
+:data:`REST_RAMP_S` before the speech. The closures of rule 3 stay where the sound is stopped: the
+lips are shut while the /p b m/ is heard.
 
 Rounding (/u o y ø w/) and labiodentals (/f v/) are the animator's own dominance rules; the phone
 labels of every language reach them through :func:`talkmesh.audio.languages.sampa_label`.
@@ -235,8 +236,9 @@ def teach(
     lead_s: float = LEAD_S,
 ) -> np.ndarray:
     """The three rules on the animator's (T, 52) ARKit ``weights`` (changed in place and
-    returned): open vowels by loudness, rest in pauses, the mouth moved ``lead_s`` ahead of the
-    sound (0: in step with the phones), then lips met through /p b m/ where they are heard."""
+    returned): open vowels by loudness, the mouth moved ``lead_s`` ahead of the sound (0: in
+    step with the phones), rest in pauses (after the lead, so a pause's rest is not cut short),
+    then lips met through /p b m/ where they are heard."""
     assert weights.ndim == 2 and weights.shape[1] == len(ARKIT_NAMES), weights.shape
     n = len(weights)
     loudness = frame_loudness(audio, sr, fps, n)
@@ -246,9 +248,12 @@ def teach(
         weights.dtype
     )
     open_vowels(weights, phones, fps, loudness, jaw_scale)
+    lead(weights, fps, lead_s)
+    # the rest holds against the lead: after a pause the mouth leaves rest REST_RAMP_S before the
+    # speech, not REST_RAMP_S + lead_s (a model trained on the gate before the lead opened the
+    # first word 100-130 ms early on a reverberant real clip)
     gate = pause_gate(phones, fps, n)
     weights[:, MOUTH_CHANNELS] *= gate[:, None].astype(weights.dtype)
-    lead(weights, fps, lead_s)
     close_lips(weights, phones, fps, head)
     return weights
 

@@ -97,12 +97,30 @@ class WhisperFeatureStream:
         a stream the last windows end with the audio."""
         block = frame // self.block
         if block != self.current:
-            self.held = self._block(buffer, buffer_start, block)
-            self.current = block
+            self._hold(block, self._encode([self._audio(buffer, buffer_start, block)])[0])
         assert self.held is not None
         return self.held[frame - block * self.block]
 
-    def _block(self, buffer: np.ndarray, buffer_start: int, block: int) -> Tensor:
+    @staticmethod
+    def prepare(requests: list[tuple[WhisperFeatureStream, np.ndarray, int, int]]) -> None:
+        """Encode together the windows that a step's streams of one model start with this step
+        (each request: stream, buffer, buffer_start, frame, as :meth:`window` takes them): one
+        encoder batch for windows of equal length (a full ``context_s`` once a stream is that
+        old), instead of one encoder call per stream. The features are those of :meth:`window`
+        (float32 rounding apart)."""
+        due = [
+            (stream, frame // stream.block, stream._audio(buffer, start, frame // stream.block))
+            for stream, buffer, start, frame in requests
+            if frame // stream.block != stream.current
+        ]
+        if not due:
+            return
+        feats = due[0][0]._encode([audio for _, _, audio in due])
+        for (stream, block, _), f in zip(due, feats):
+            stream._hold(block, f)
+
+    def _audio(self, buffer: np.ndarray, buffer_start: int, block: int) -> np.ndarray:
+        """Block ``block``'s encoder window (at least :data:`MIN_WINDOW` samples)."""
         start, end = self.window_start(block), self.window_end(block)
         if start < buffer_start:
             raise TalkmeshError(
@@ -112,14 +130,27 @@ class WhisperFeatureStream:
         audio = np.asarray(buffer[start - buffer_start : end - buffer_start], np.float32)
         if len(audio) < MIN_WINDOW:  # the end of a very short stream: silence after it
             audio = np.pad(audio, (0, MIN_WINDOW - len(audio)))
+        return audio
+
+    def _encode(self, windows: list[np.ndarray]) -> list[Tensor]:
+        """The 50 Hz features (N_b, D) of each window, in one call of the encoder (which runs
+        windows of equal length as one batch)."""
+        lengths = [len(a) for a in windows]
+        batch = np.zeros((len(windows), max(lengths)), np.float32)
+        for b, a in enumerate(windows):
+            batch[b, : len(a)] = a
         with torch.inference_mode():
-            feats = self.features.features(torch.from_numpy(audio)[None])[0]  # (N, D)
+            return self.features.features(torch.from_numpy(batch), torch.tensor(lengths))
+
+    def _hold(self, block: int, feats: Tensor) -> None:
+        """Keep block ``block``'s frame features, interpolated from its window's ``feats``."""
+        start = self.window_start(block)
         frames = torch.arange(block * self.block, (block + 1) * self.block, dtype=torch.float64)
         x = (frames / self.fps * FEATURE_RATE - start / ENCODER_HOP).clamp(0, len(feats) - 1)
         low = x.floor().long()
         high = (low + 1).clamp(max=len(feats) - 1)
         w = (x - low).to(feats.dtype)[:, None]
-        return feats[low] * (1 - w) + feats[high] * w
+        self.held, self.current = feats[low] * (1 - w) + feats[high] * w, block
 
     def encode(self, windows: Tensor, shifts: list[int]) -> Tensor:
         """The features (B, D) of a step's streams, as :meth:`window` gave them."""

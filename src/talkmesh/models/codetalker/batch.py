@@ -148,7 +148,11 @@ class FrameBatch:
                     raise ValueError(f"frame {r.frame} asked for out of order")
             t = torch.tensor([r.frame for r in requests])
             B = len(requests)
-            # the speech features (each stream's mel stack, or its Whisper block's feature)
+            # the speech features (each stream's mel stack, or its Whisper block's feature;
+            # the Whisper windows that streams start this step are encoded together)
+            prepare = getattr(requests[0].stream.features, "prepare", None)
+            if prepare is not None:
+                prepare([(r.stream.features, *r[1:]) for r in requests])
             windows = torch.stack([r.stream.features.window(*r[1:]) for r in requests])
             shifts = [r.stream.features.shift for r in requests]
             feats = requests[0].stream.features.encode(windows, shifts)
