@@ -26,9 +26,9 @@ CLIP = Path(
 TOLERANCE = 1e-4  # of the motion's scale (its largest offset)
 
 
-def tiny_model():
+def tiny_model(**options):
     speech = SpeechEncoderConfig(kind="whisper", dim=16, hf_config=TINY_WHISPER)
-    return build_tiny_codetalker(speech=speech, causal=True, attention_window=7)
+    return build_tiny_codetalker(speech=speech, causal=True, attention_window=7, **options)
 
 
 @pytest.fixture(scope="module")

@@ -1,9 +1,11 @@
 """`talkmesh serve --runtime onnxruntime`: an .onnx export's POST /animate jobs run the exported
-graphs and equal the PyTorch runtime; its streams are refused in one line (the exported speech
-encoder reads whole windows of audio); a runtime that disagrees with a --model is one line."""
+graphs and equal the PyTorch runtime; its sessions stream what the PyTorch model streams, without
+torch (talkmesh.models.onnx_stream); a runtime that disagrees with a --model is one line."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +14,7 @@ from starlette.testclient import TestClient
 from test_onnx import tiny_model
 
 from talkmesh.cli import main
+from talkmesh.face.assets import load_head
 from talkmesh.models.onnx import export_onnx
 from talkmesh.serve.server import create_app
 
@@ -22,25 +25,71 @@ TOLERANCE = 1e-4  # of the motion's scale (its largest offset)
 
 
 @pytest.fixture(scope="module")
-def tiny_onnx(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
-    export_onnx(tiny_model(), path)
-    return path
+def head_onnx(tmp_path_factory):
+    """A tiny CodeTalker of the served head's vertices (Whisper encoder, causal VQ decoder):
+    its release (ct_torch.safetensors) and its export (ct_onnx.onnx)."""
+    from talkmesh.models.release import save_model
+
+    model = tiny_model(num_vertices=load_head().num_vertices)
+    folder = tmp_path_factory.mktemp("onnx")
+    save_model(model, folder / "ct_torch.safetensors")
+    export_onnx(model, folder / "ct_onnx.onnx")
+    return folder / "ct_torch.safetensors", folder / "ct_onnx.onnx"
 
 
-def test_a_session_asking_for_an_onnx_model_is_refused_in_one_line(tiny_onnx):
-    from starlette.websockets import WebSocketDisconnect
+def _session(client, name: str, pcm: np.ndarray) -> tuple[dict, list]:
+    """The hello and the frames of a session that streams ``pcm`` (int16) in 100 ms messages."""
+    from talkmesh.serve.protocol import decode_frame
 
-    with TestClient(create_app(["procedural", str(tiny_onnx)])) as client:
-        assert client.get("/health").json()["models"] == ["procedural", "tiny"]
-        with client.websocket_connect("/ws/stream?model=tiny") as ws:
-            reply = ws.receive_json()
-            with pytest.raises(WebSocketDisconnect) as closed:
-                ws.receive_json()
-    assert reply["type"] == "error" and closed.value.code == 1008, (reply, closed.value.code)
-    message = reply["message"]
-    assert "\n" not in message and "cannot stream" in message, message
-    assert "POST /animate?model=tiny" in message, message
+    with client.websocket_connect(f"/ws/stream?model={name}&offsets=1&idle=0") as ws:
+        hello = ws.receive_json()
+        for i in range(0, len(pcm), 1600):
+            ws.send_bytes(pcm[i : i + 1600].tobytes())
+        ws.send_json({"type": "end"})
+        frames = []
+        while (message := ws.receive())["type"] != "websocket.close":
+            if message.get("bytes") is not None:
+                frames.append(decode_frame(message["bytes"]))
+    return hello, frames
+
+
+def test_a_session_streams_an_onnx_model_as_pytorch_streams_it(head_onnx):
+    """Sessions of the release and of its export in one server: the same look-ahead (300 ms and
+    the rest of a 3-frame block), every frame, and the same frames (the ONNX session without
+    torch's kernels): ARKit weights within 1e-3, offsets within float16's rounding."""
+    from talkmesh.audio.loading import SAMPLE_RATE, load_audio
+
+    wave = load_audio(CLIP)
+    pcm = (np.clip(wave, -1, 1) * 32767).astype("<i2")
+    with TestClient(create_app([str(p) for p in head_onnx])) as client:
+        assert client.get("/health").json()["models"] == ["ct_torch", "ct_onnx"]
+        hello, want = _session(client, "ct_torch", pcm)
+        onnx_hello, got = _session(client, "ct_onnx", pcm)
+    assert onnx_hello["lookahead_ms"] == hello["lookahead_ms"] == pytest.approx(300 + 2000 / 30)
+    assert [f.index for f in got] == list(range(round(len(wave) / SAMPLE_RATE * 30)))
+    assert len(want) == len(got)
+    w_got, w_want = (np.stack([f.weights for f in x]) for x in (got, want))
+    assert np.ptp(w_want, axis=0).max() > 0.1  # the weights move
+    assert np.abs(w_got - w_want).max() <= 1e-3
+    o_got, o_want = (np.stack([f.offsets for f in x]).astype(np.float32) for x in (got, want))
+    assert np.abs(o_got - o_want).max() <= 2e-3 * np.abs(o_want).max()  # float16: 2^-10
+
+
+def test_an_onnx_stream_never_imports_torch(head_onnx):
+    """open_stream on an .onnx file in a fresh process: frames for the audio, no torch."""
+    path = head_onnx[1]
+    code = (
+        "import sys\nimport numpy as np\n"
+        "from talkmesh.audio.loading import load_audio\n"
+        "from talkmesh.serve.stream import open_stream\n"
+        f"s = open_stream({str(path)!r})\n"
+        f"wave = load_audio({str(CLIP)!r})\n"
+        "frames = [f for i in range(0, len(wave), 320) for f in s.push(wave[i:i + 320])]\n"
+        "frames += s.flush()\n"
+        "print(len(frames), 'torch' in sys.modules)\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.stdout.split() == ["90", "False"], res.stderr[-2000:]
 
 
 def test_an_onnx_file_of_another_kind_stops_the_server_in_one_line(tmp_path, capsys):

@@ -160,3 +160,32 @@ def test_streams_pushed_together_encode_their_windows_together(model, wave, monk
         np.testing.assert_allclose(together, offsets, atol=1e-5)
     windows = sum(-(-len(o) // 3) for o in alone)  # one encoder window a block of 3 frames
     assert sum(calls) == windows and len(calls) < 0.6 * windows, (len(calls), windows)
+
+
+def test_the_export_streams_what_the_release_streams(model, wave, tmp_path):
+    """The bundled model exported to ONNX (its head term and the VQ decoder's face input
+    included) streams on ONNX Runtime the frames the release streams (generate_streamed), and
+    its frames step together in one batch as they do alone."""
+    from talkmesh.models.framestream import FrameRequest, next_frames
+    from talkmesh.models.onnx import OnnxModel, export_onnx
+
+    export_onnx(model, tmp_path / "ct.onnx")
+    net = OnnxModel(tmp_path / "ct.onnx")
+    assert net.has_face
+    head = load_head()
+    want = generate_streamed(model, wave, head.template, 300.0) - head.template
+    # two streams, the second a second behind, stepped together whenever both have a frame due
+    streams = [net.open_frame_stream(None, 300.0, head.template) for _ in range(2)]
+    late = round(30 * 1.0)
+    got: list[list[np.ndarray]] = [[], []]
+    for t in range(len(want) + late):
+        requests = [
+            FrameRequest(s, wave, 0, t - k * late)
+            for k, s in enumerate(streams)
+            if 0 <= t - k * late < len(want)
+        ]
+        for r, motion in zip(requests, next_frames(requests)):
+            got[streams.index(r.stream)].append(motion.reshape(-1, 3))
+    scale = np.abs(want).max()
+    for frames in got:
+        assert np.abs(np.stack(frames) - want).max() <= 1e-4 * scale

@@ -15,7 +15,7 @@ LIVELINK_HELP = (
 
 RUNTIME_HELP = (
     "what runs the learned models: torch (releases) or onnxruntime (.onnx files of export-onnx, "
-    "for POST /animate jobs; their streams are refused); default: by the file"
+    "their jobs and streams without torch); default: by the file"
 )
 
 

@@ -252,6 +252,20 @@ class OnnxModel:
             out = out + (np.asarray(h[weight], np.float32) @ z.astype(np.float32))
         return out
 
+    def open_frame_stream(
+        self,
+        style_weights: np.ndarray | None = None,
+        lookahead_ms: float | None = None,
+        template: np.ndarray | None = None,
+    ):
+        """One stream's frames (:class:`talkmesh.models.onnx_stream.OnnxFrameStream`): the
+        speech graph on windows a block of frames at a time, ``lookahead_ms`` (None: 300 ms)
+        after each block, the step graph on the streams of this model together."""
+        from talkmesh.models.onnx_stream import OnnxFrameStream
+
+        template = None if template is None else np.asarray(template, np.float32)
+        return OnnxFrameStream(self, style_weights, lookahead_ms, template)
+
     def start(self, style: np.ndarray) -> dict[str, np.ndarray]:
         """The state of B streams before their first frame; ``style`` (B, d)."""
         state = {n: np.zeros((len(style), *s), np.float32) for n, s in self.state.items()}

@@ -66,7 +66,7 @@ from talkmesh.serve import limits as lim
 from talkmesh.serve.batching import DEFAULT_BATCH_WAIT_MS, Scheduler, frames_of
 from talkmesh.serve.emotion import LiveEmotion
 from talkmesh.serve.files import RenderError, animate_file, audio_suffix, neutral_head_glb
-from talkmesh.serve.hints import check_onnx, onnx_stream_refusal, streaming_hint
+from talkmesh.serve.hints import streaming_hint
 from talkmesh.serve.limits import JobQueue, QueueFull
 from talkmesh.serve.livelink import LiveLinkOut, open_link
 from talkmesh.serve.protocol import (
@@ -275,8 +275,6 @@ class Service:
         """Hello, then audio in and frames out until the client's end message."""
         name, lookahead, offsets = self._parse_query(ws)
         source = self.models[name]
-        if source.endswith(".onnx"):
-            raise ClientError(CLOSE_POLICY, onnx_stream_refusal(name))
         try:
             options = session_options(ws.query_params)
             link = open_link(self.livelink, ws.query_params.get("livelink"))  # sends frames later
@@ -585,11 +583,8 @@ def create_app(
     link = None if livelink is None else LiveLinkOut(livelink)
     service = Service(resolve_models(models), limits, avatar, batch_wait_ms / 1000, livelink=link)
     for name, source in service.models.items():
-        try:
-            if source.endswith(".onnx"):
-                check_onnx(source)  # its jobs only: sessions are refused (hints.py)
-            else:
-                open_stream(source, head=service.head)
+        try:  # a model that cannot stream this face (or an .onnx of another kind) stops it here
+            open_stream(source, head=service.head)
         except TalkmeshError as e:
             raise TalkmeshError(streaming_hint(name, source, e)) from None
     if workers and PROCEDURAL in service.models.values():

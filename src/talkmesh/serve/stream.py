@@ -54,6 +54,7 @@ from talkmesh.face.lipsync import (
     upper_face_curves,
 )
 from talkmesh.models.bundled import MODELS_DIR
+from talkmesh.models.framestream import FrameRequest, next_frames
 
 DEFAULT_LOOKAHEAD_MS = 100.0
 MAX_LOOKAHEAD_MS = 300.0
@@ -384,8 +385,6 @@ class ModelStreamer(Streamer):
         return weights if self.blinks is None else self.blinks(start, end)
 
     def _request(self, frame: int):
-        from talkmesh.models.base import FrameRequest  # torch: only where a model streams
-
         return FrameRequest(self.stream, self.buffer, self.buffer_start, frame)
 
     def _take(self, chunks: list[np.ndarray], end: bool) -> range:
@@ -449,8 +448,6 @@ def push_together(
 def _model_frames(streamers: list[ModelStreamer], due: list[range]) -> list[list[StreamFrame]]:
     """The frames ``due`` of model streams that share a face: one model step per frame index,
     one weight fit, one eye replacement for them all."""
-    from talkmesh.models.base import next_frames  # torch: only where a model streams
-
     first = streamers[0]
     # without vertex offsets to send, the model gives only the frames' projections onto the
     # blendshapes, all the weight fit needs (and cheaper than the V * 3 coordinates)
@@ -521,15 +518,21 @@ _MODELS: dict[tuple[str, float], object] = {}
 
 
 def _load_streaming_model(path: str | Path):
-    """A release loaded once per process (per file version) and shared read-only by streams."""
-    from talkmesh.models.release import load_model
-
+    """A release (or an ONNX export, run without torch) loaded once per process (per file
+    version) and shared read-only by streams."""
     path = Path(path).resolve()
     key = (str(path), path.stat().st_mtime)
     if key not in _MODELS:
         if len(_MODELS) >= 4:  # bounded: a server holds a few models
             _MODELS.clear()
-        _MODELS[key] = load_model(path).eval()
+        if path.suffix.lower() == ".onnx":
+            from talkmesh.models.onnx import OnnxModel
+
+            _MODELS[key] = OnnxModel(path)
+        else:
+            from talkmesh.models.release import load_model
+
+            _MODELS[key] = load_model(path).eval()
     return _MODELS[key]
 
 
@@ -545,9 +548,10 @@ def open_stream(
     blinks: bool = True,
     decoders: DecoderPool | None = None,
 ) -> Streamer:
-    """A streamer for ``model``: ``procedural``, a bundled model's name or the path of a release
+    """A streamer for ``model``: ``procedural``, a bundled model's name, the path of a release
     that streams (a CodeTalker with a causal VQ decoder: the bundled ``codetalker-synth``, a
-    streaming one of ``configs/codetalker_stream.yaml``).
+    streaming one of ``configs/codetalker_stream.yaml``) or an ``.onnx`` file of export-onnx
+    (run by ONNX Runtime without torch, :mod:`talkmesh.models.onnx_stream`).
 
     ``lookahead_ms``: audio after a frame's time that it waits for, 0-300 ms (None: the
     model's default, procedural 100 ms, the bundled CodeTalker 300 ms, a mel streaming release
@@ -584,10 +588,10 @@ def open_stream(
     path = Path(name)
     if not path.is_file() and (MODELS_DIR / f"{name}.safetensors").is_file():
         path = MODELS_DIR / f"{name}.safetensors"  # a bundled model by its name
-    if path.suffix != ".safetensors" or not path.is_file():
+    if path.suffix.lower() not in (".safetensors", ".onnx") or not path.is_file():
         raise TalkmeshError(
-            f"unknown streaming model '{name}': use procedural, a bundled model or a streaming "
-            "model's .safetensors file"
+            f"unknown streaming model '{name}': use procedural, a bundled model, a streaming "
+            "model's .safetensors file or an .onnx file of export-onnx"
         )
     return ModelStreamer(
         path, lookahead, head, offsets, seed=seed, style_weights=style_weights, blinks=blinks
