@@ -31,7 +31,8 @@ from talkmesh.errors import TalkmeshError
 
 # 5: the teacher's truth a frame ahead of the sound, vowels 1.5, closures a 30 fps frame or longer
 # 6: the pauses' rest not cut short by the lead (the mouth leaves rest 60 ms before speech, not 93)
-FORMAT_VERSION = 6
+# 7: as 6, but the mouth closes into a pause ahead of the sound again, as it did in 5
+FORMAT_VERSION = 7
 ENGINES = ("mbrola", "espeak-lib", "festival")
 
 

@@ -17,11 +17,11 @@ animator, each one measured by the real-speech metrics (``bench/synthetic_lips.p
    least squares on the head's own blendshapes) so that the inner lips are within
    :data:`CLOSURE_MM` of each other; the change eases in and out over the neighbouring frames.
 
-Between rules 1 and 2, the mouth is moved :data:`LEAD_S` ahead of the sound (:func:`lead`): the
+Before rule 3, the mouth is moved :data:`LEAD_S` ahead of the sound (:func:`lead`): the
 jaw and lips move before the acoustics they shape, as the procedural animator's anticipation has
 them do (a model trained on a mouth in step with the synthesiser's phones opened a frame late on
-real recordings). The rest of rule 2 is not moved: after a pause the mouth leaves rest
-:data:`REST_RAMP_S` before the speech. The closures of rule 3 stay where the sound is stopped: the
+real recordings). The mouth closes into a pause that far ahead too, but it leaves a pause's
+rest no earlier than :data:`REST_RAMP_S` before the speech. The closures of rule 3 stay where the sound is stopped: the
 lips are shut while the /p b m/ is heard.
 
 Rounding (/u o y ø w/) and labiodentals (/f v/) are the animator's own dominance rules; the phone
@@ -141,23 +141,27 @@ def open_vowels(
             weights[:, c] = np.maximum(weights[:, c], 0.6 * peak * bump)
 
 
-def pause_gate(phones: list[Phone], fps: float, n: int) -> np.ndarray:
-    """(n,) 1 in speech, 0 at rest in pauses of :data:`REST_PAUSE_S` or more (ramps inside them)."""
+def pause_gate(phones: list[Phone], fps: float, n: int, closing: bool = True) -> np.ndarray:
+    """(n,) 1 in speech, 0 at rest in pauses of :data:`REST_PAUSE_S` or more (ramps inside them).
+    ``closing`` False: only the rest before speech, and the ramp that leaves it (the gate that
+    holds a pause's rest against the mouth's lead)."""
     times = np.arange(n) / fps
     gate = np.ones(n)
-    for p in phones:
+    for i, p in enumerate(phones):
         if p.label != SILENCE or p.end - p.start < REST_PAUSE_S:
+            continue
+        if not closing and i == len(phones) - 1:  # no speech after it to leave rest for
             continue
         ramp = min(REST_RAMP_S, (p.end - p.start) / 2)
         into = np.clip((times - p.start) / ramp, 0, 1)  # 0 at the pause's start, 1 ramp later
         out_of = np.clip((p.end - times) / ramp, 0, 1)
-        edge = np.minimum(into, out_of)  # 1 inside the pause, 0 at its edges
-        closing = 0.5 - 0.5 * np.cos(np.pi * edge)
+        edge = np.minimum(into, out_of) if closing else out_of  # 1 inside, 0 at its edges
+        rest = 0.5 - 0.5 * np.cos(np.pi * edge)
         inside = (times >= p.start) & (times <= p.end)
-        gate = np.where(inside, np.minimum(gate, 1 - closing), gate)
+        gate = np.where(inside, np.minimum(gate, 1 - rest), gate)
     if phones and phones[0].label == SILENCE:  # before the first word: at rest until it starts
         gate[times < phones[0].end - REST_RAMP_S] = 0.0
-    if phones and phones[-1].label == SILENCE:
+    if closing and phones and phones[-1].label == SILENCE:
         gate[times > phones[-1].start + REST_RAMP_S] = 0.0
     return gate
 
@@ -236,9 +240,9 @@ def teach(
     lead_s: float = LEAD_S,
 ) -> np.ndarray:
     """The three rules on the animator's (T, 52) ARKit ``weights`` (changed in place and
-    returned): open vowels by loudness, the mouth moved ``lead_s`` ahead of the sound (0: in
-    step with the phones), rest in pauses (after the lead, so a pause's rest is not cut short),
-    then lips met through /p b m/ where they are heard."""
+    returned): open vowels by loudness, rest in pauses, the mouth moved ``lead_s`` ahead of the
+    sound (0: in step with the phones) but not out of a pause's rest earlier than
+    :data:`REST_RAMP_S` before the speech, then lips met through /p b m/ where they are heard."""
     assert weights.ndim == 2 and weights.shape[1] == len(ARKIT_NAMES), weights.shape
     n = len(weights)
     loudness = frame_loudness(audio, sr, fps, n)
@@ -248,12 +252,15 @@ def teach(
         weights.dtype
     )
     open_vowels(weights, phones, fps, loudness, jaw_scale)
-    lead(weights, fps, lead_s)
-    # the rest holds against the lead: after a pause the mouth leaves rest REST_RAMP_S before the
-    # speech, not REST_RAMP_S + lead_s (a model trained on the gate before the lead opened the
-    # first word 100-130 ms early on a reverberant real clip)
     gate = pause_gate(phones, fps, n)
     weights[:, MOUTH_CHANNELS] *= gate[:, None].astype(weights.dtype)
+    lead(weights, fps, lead_s)  # the mouth closes into a pause ahead of the sound, as it moves
+    # but the rest holds against the lead: after a pause the mouth leaves rest REST_RAMP_S before
+    # the speech, not REST_RAMP_S + lead_s (a model trained on a truth without this opened the
+    # first word 100-130 ms early on a reverberant real clip)
+    weights[:, MOUTH_CHANNELS] *= pause_gate(phones, fps, n, closing=False)[:, None].astype(
+        weights.dtype
+    )
     close_lips(weights, phones, fps, head)
     return weights
 
