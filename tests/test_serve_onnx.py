@@ -37,11 +37,11 @@ def head_onnx(tmp_path_factory):
     return folder / "ct_torch.safetensors", folder / "ct_onnx.onnx"
 
 
-def _session(client, name: str, pcm: np.ndarray) -> tuple[dict, list]:
+def _session(client, name: str, pcm: np.ndarray, offsets: int = 1) -> tuple[dict, list]:
     """The hello and the frames of a session that streams ``pcm`` (int16) in 100 ms messages."""
     from talkmesh.serve.protocol import decode_frame
 
-    with client.websocket_connect(f"/ws/stream?model={name}&offsets=1&idle=0") as ws:
+    with client.websocket_connect(f"/ws/stream?model={name}&offsets={offsets}&idle=0") as ws:
         hello = ws.receive_json()
         for i in range(0, len(pcm), 1600):
             ws.send_bytes(pcm[i : i + 1600].tobytes())
@@ -56,7 +56,8 @@ def _session(client, name: str, pcm: np.ndarray) -> tuple[dict, list]:
 def test_a_session_streams_an_onnx_model_as_pytorch_streams_it(head_onnx):
     """Sessions of the release and of its export in one server: the same look-ahead (300 ms and
     the rest of a 3-frame block), every frame, and the same frames (the ONNX session without
-    torch's kernels): ARKit weights within 1e-3, offsets within float16's rounding."""
+    torch's kernels): ARKit weights within 1e-3, offsets within float16's rounding; sessions
+    without offsets (the projections onto the blendshapes alone) the same weights."""
     from talkmesh.audio.loading import SAMPLE_RATE, load_audio
 
     wave = load_audio(CLIP)
@@ -65,12 +66,16 @@ def test_a_session_streams_an_onnx_model_as_pytorch_streams_it(head_onnx):
         assert client.get("/health").json()["models"] == ["ct_torch", "ct_onnx"]
         hello, want = _session(client, "ct_torch", pcm)
         onnx_hello, got = _session(client, "ct_onnx", pcm)
+        # without offsets the model gives the frames' projections onto the blendshapes alone
+        weights_only = [_session(client, name, pcm, 0)[1] for name in ("ct_torch", "ct_onnx")]
     assert onnx_hello["lookahead_ms"] == hello["lookahead_ms"] == pytest.approx(300 + 2000 / 30)
     assert [f.index for f in got] == list(range(round(len(wave) / SAMPLE_RATE * 30)))
     assert len(want) == len(got)
     w_got, w_want = (np.stack([f.weights for f in x]) for x in (got, want))
     assert np.ptp(w_want, axis=0).max() > 0.1  # the weights move
     assert np.abs(w_got - w_want).max() <= 1e-3
+    w_torch, w_onnx = (np.stack([f.weights for f in x]) for x in weights_only)
+    assert np.abs(w_onnx - w_torch).max() <= 1e-3 and np.abs(w_torch - w_want).max() <= 1e-3
     o_got, o_want = (np.stack([f.offsets for f in x]).astype(np.float32) for x in (got, want))
     assert np.abs(o_got - o_want).max() <= 2e-3 * np.abs(o_want).max()  # float16: 2^-10
 

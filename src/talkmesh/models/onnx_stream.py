@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from talkmesh.audio.logmel import log_mel
+from talkmesh.blas import one_blas_thread
 from talkmesh.models.blocks import DEFAULT_BLOCK, DEFAULT_CONTEXT_S, ENCODER_HOP, BlockWindows
 from talkmesh.models.framestream import FrameRequest, FrameStream
 
@@ -50,7 +51,8 @@ class OnnxFeatureStream(BlockWindows):
         n = len(audio)
         padded = np.zeros(-(-n // ENCODER_HOP) * ENCODER_HOP, np.float32)
         padded[:n] = audio
-        mel = log_mel(padded, self.model.n_mels)[None]
+        with one_blas_thread():  # a small product every 100 ms: a team of threads costs more
+            mel = log_mel(padded, self.model.n_mels)[None]
         return self.model.speech.run(None, {"mel": mel})[0][0][: -(-n // ENCODER_HOP)]
 
 
@@ -108,7 +110,11 @@ class OnnxFrameStream(FrameStream):
         for b, s in enumerate(streams):
             s.state = {n: v[b : b + 1] for n, v in state.items()}
             s.t += 1
-        return motion if basis is None else motion.astype(np.float64) @ basis.T
+        if basis is None:
+            return motion
+        # not BLAS: a product each frame wakes BLAS's team of threads, which then spin (it doubled
+        # a stream's CPU time)
+        return np.einsum("bi,ki->bk", motion.astype(np.float64), basis)
 
 
 __all__ = ["OnnxFeatureStream", "OnnxFrameStream"]
