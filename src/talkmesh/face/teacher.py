@@ -21,8 +21,8 @@ Before rule 3, the mouth is moved :data:`LEAD_S` ahead of the sound (:func:`lead
 jaw and lips move before the acoustics they shape, as the procedural animator's anticipation has
 them do (a model trained on a mouth in step with the synthesiser's phones opened a frame late on
 real recordings). The mouth closes into a pause that far ahead too, but it leaves a pause's
-rest no earlier than :data:`REST_RAMP_S` before the speech. The closures of rule 3 stay where the sound is stopped: the
-lips are shut while the /p b m/ is heard.
+rest no earlier than :data:`REST_RAMP_S` before the speech. The closures of rule 3 stay where the
+sound is stopped: the lips are shut while the /p b m/ is heard.
 
 Rounding (/u o y ø w/) and labiodentals (/f v/) are the animator's own dominance rules; the phone
 labels of every language reach them through :func:`talkmesh.audio.languages.sampa_label`.

@@ -102,10 +102,14 @@ class OnnxFrameStream(FrameStream):
             ]
         )
         model = self.engine
-        state = {n: np.concatenate([s.state[n] for s in streams]) for n in model.state}
-        face = np.concatenate([s.face for s in streams]) if model.has_face else None
+
+        def batch(arrays: list[np.ndarray]) -> np.ndarray:  # one stream's state as it is
+            return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
+
+        state = {n: batch([s.state[n] for s in streams]) for n in model.state}
+        face = batch([s.face for s in streams]) if model.has_face else None
         t = np.array([r.frame for r in requests], np.int64)
-        style = np.concatenate([s.style for s in streams])
+        style = batch([s.style for s in streams])
         motion, state = model.step_frames(feats.astype(np.float32), t, style, state, face)
         for b, s in enumerate(streams):
             s.state = {n: v[b : b + 1] for n, v in state.items()}
